@@ -1,0 +1,39 @@
+# Quick start: `make run` (start the services) and `make test` (lint + tests).
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: install run test lint format bench reproduce clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+run: install
+	$(VENV)/bin/bgrl serve
+
+lint: install
+	$(VENV)/bin/ruff check services benchmarks tests
+	$(VENV)/bin/ruff format --check services benchmarks tests
+	$(VENV)/bin/lint-imports
+
+format: install
+	$(VENV)/bin/ruff check --fix services benchmarks tests
+	$(VENV)/bin/ruff format services benchmarks tests
+
+test: lint
+	$(PY) -m pytest
+
+bench: install
+	$(VENV)/bin/bgrl bench all --out benchmarks/results
+
+reproduce: install
+	$(VENV)/bin/bgrl reproduce --out results/reproduce
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -1,0 +1,20 @@
+"""Test-wide setup: LSL stays on loopback, services write below a temporary folder."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+import services.core
+
+LSL_LOOPBACK_CFG = Path(services.core.__file__).with_name("lsl_loopback.cfg")
+os.environ.setdefault("LSLAPICFG", str(LSL_LOOPBACK_CFG))
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+@pytest.fixture(autouse=True)
+def _isolated_data_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch):
+    """Every test writes service data (caches, uploads, models) below its own temp folder."""
+    monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path_factory.mktemp("data")))
