@@ -6,6 +6,11 @@ its own module under ``services/cli``; this file only assembles them.
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+from typing import Annotated
+
 import typer
 
 from services.cli import serve
@@ -21,6 +26,25 @@ app.add_typer(bench_app, name="bench")
 
 for module in (serve,):
     module.register(app, bench_app)
+
+
+@bench_app.command("all")
+def bench_all(
+    out: Annotated[Path, typer.Option(help="Folder for the JSON results.")] = Path(
+        "benchmarks/results"
+    ),
+) -> None:
+    """Run every benchmark, each in its own process, writing OUT/<name>.json."""
+    names = [c.name for c in bench_app.registered_commands if c.name and c.name != "all"]
+    failed = []
+    for name in names:
+        typer.echo(f"== bench {name}")
+        cmd = [sys.executable, "-m", "services.cli.main", "bench", name, "--out", str(out)]
+        if subprocess.run(cmd, check=False).returncode != 0:
+            failed.append(name)
+    if failed:
+        typer.echo(f"failed: {', '.join(failed)}", err=True)
+        raise typer.Exit(1)
 
 
 if __name__ == "__main__":
