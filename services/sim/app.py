@@ -1,0 +1,76 @@
+"""The sim service: sessions over HTTP, frames over a websocket, action markers over LSL.
+
+Run with ``uvicorn services.sim.app:app --port 8001`` (or ``bgrl serve``); configuration
+comes from ``BGRL_SIM_*`` environment variables (:class:`SimSettings`). Endpoints are
+documented in ``docs/sim-service.md`` and at ``/docs``.
+"""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+
+from services.sim.errors import SimServiceError
+from services.sim.lsl_markers import MarkerPublisher
+from services.sim.routes import images, oracle, paced, service, sessions, stream
+from services.sim.sessions import SessionRegistry
+from services.sim.settings import SimSettings
+
+
+def create_app(settings: SimSettings | None = None) -> FastAPI:
+    """Build the sim service; ``settings`` default to the environment's ``BGRL_SIM_*``."""
+    settings = settings if settings is not None else SimSettings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        publisher = None
+        if settings.lsl_markers:
+            try:
+                publisher = MarkerPublisher(
+                    settings.marker_source_id or f"bgrl-sim@{socket.gethostname()}:{settings.port}"
+                )
+            except Exception as exc:
+                raise RuntimeError(
+                    "cannot open the LSL marker outlet (liblsl failed: "
+                    f"{type(exc).__name__}: {exc}); set BGRL_SIM_LSL_MARKERS=false to run "
+                    "without markers"
+                ) from exc
+        app.state.publisher = publisher
+        app.state.registry = SessionRegistry(
+            max_sessions=settings.max_sessions,
+            idle_timeout_s=settings.session_idle_timeout_s,
+            publisher=publisher,
+            extra_map_dirs=tuple(settings.extra_map_dirs),
+            frame_size=(settings.frame_width, settings.frame_height),
+            max_queued_actions=settings.max_queued_actions,
+        )
+        try:
+            yield
+        finally:
+            app.state.registry.close_all()
+            if publisher is not None:
+                publisher.close()
+
+    app = FastAPI(
+        title="BrainNav sim service",
+        summary="Navigation sim sessions, oracle, frame stream and LSL action markers.",
+        version="0.1.0",
+        lifespan=lifespan,
+        max_body_size=settings.max_upload_bytes,
+    )
+    app.state.settings = settings
+
+    @app.exception_handler(SimServiceError)
+    async def sim_error(request: Request, exc: SimServiceError) -> JSONResponse:
+        return JSONResponse(status_code=exc.status_code, content={"detail": str(exc)})
+
+    for module in (service, sessions, oracle, images, paced, stream):
+        app.include_router(module.router)
+    return app
+
+
+app = create_app()

@@ -1,0 +1,402 @@
+"""The brain-guided navigation task as a Gymnasium env on pybullet (Akinola et al., 2020)."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import gymnasium as gym
+import numpy as np
+import pybullet
+import pybullet_data
+from gymnasium import spaces
+
+from services.core.actions import FORWARD_STEP_M, N_ACTIONS, TURN_STEP_RAD, Action
+from services.sim import rendering
+from services.sim.maps import (
+    DEFAULT_MAP_PATH,
+    FOOTPRINT_RADIUS_M,
+    NavMap,
+    load_map,
+    wrap_angle,
+)
+from services.sim.oracle import Oracle
+
+N_RAYS = 10
+RAY_LENGTH_M = 13.0
+RAY_HEIGHT_M = 0.4
+RAY_ANGLES_RAD = np.linspace(-math.pi / 2.0, math.pi / 2.0, N_RAYS)
+"""Ray directions relative to the robot's heading, evenly over -90..+90 degrees."""
+OBS_SIZE = N_RAYS + 3
+
+GOAL_REWARD = 100.0
+COLLISION_REWARD = -100.0
+STEP_REWARD = -1.0
+RICH_DISTANCE_COEF = -1.0
+RICH_HEADING_COEF = -0.3
+
+Task = Literal["sssg", "vssg"]
+RewardMode = Literal["sparse", "rich"]
+
+_TWO_PI = 2.0 * math.pi
+_N_HEADINGS = round(_TWO_PI / TURN_STEP_RAD)
+
+
+@contextlib.contextmanager
+def _silenced_c_stdout() -> Iterator[None]:
+    """Silence the C-level stdout/stderr (pybullet's URDF importer warnings)."""
+    saved = [os.dup(1), os.dup(2)]
+    with open(os.devnull, "w") as devnull:
+        os.dup2(devnull.fileno(), 1)
+        os.dup2(devnull.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+
+
+class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
+    """Husky navigation to a fixed goal on an 11 x 12 m floor with obstacles.
+
+    ## Description
+
+    The navigation task of Akinola et al., "Accelerated Robot Learning via Human Brain
+    Signals" (ICRA 2020): a Husky robot moves on a floor with walls and box obstacles and
+    must reach a blue goal pillar without colliding. The robot is moved kinematically (no
+    dynamics); pybullet (DIRECT, one client per env) provides the range sensor and frames.
+    ``task="sssg"`` always starts at the map's start pose (Same Start Same Goal);
+    ``task="vssg"`` draws the start uniformly from a square of side ``start_jitter``
+    (0.2 m on the default map) around it (Variable Start Same Goal).
+
+    ## Action Space
+
+    ``Discrete(3)``: 0 move forward 0.3 m, 1 turn 30 degrees left (counter-clockwise),
+    2 turn 30 degrees right (see :class:`services.core.actions.Action`).
+
+    ## Observation Space
+
+    ``Box(13,)`` float32, SI units, not normalised:
+
+    | Index | Observation                                             | Min  | Max      |
+    |-------|---------------------------------------------------------|------|----------|
+    | 0-9   | ray distance (m), -90..+90 deg from the heading, evenly | 0    | 13       |
+    | 10    | distance to the goal (m)                                | 0    | diagonal |
+    | 11    | bearing to the goal, world frame (rad)                  | -pi  | pi       |
+    | 12    | yaw (rad)                                               | -pi  | pi       |
+
+    Rays start at the robot's centre, 0.4 m above the floor, and ignore the robot's body.
+
+    ## Rewards
+
+    ``reward_mode="sparse"``: +100 on reaching the goal, -100 on a collision, -1 otherwise.
+    ``reward_mode="rich"`` adds ``-1.0 * d - 0.3 * |theta|`` every step, with ``d`` the
+    distance to the goal and ``theta`` the angle between heading and goal bearing after the
+    action.
+
+    ## Starting State
+
+    The map's start pose, plus (VSSG) a uniform offset in x and y within the jitter square.
+
+    ## Episode End
+
+    Termination: the robot's centre comes within the goal radius (0.5 m) of the goal
+    (``info["is_success"]``), or a forward move would make the footprint (a disc of radius
+    0.4 m) touch an obstacle or wall (``info["collision"]``; the robot stays where it was).
+    Truncation: 120 steps, added by the registered ``TimeLimit``.
+
+    ## Info
+
+    Every step: ``is_success``, ``collision``, ``pose`` ``(x, y, yaw)``. ``reset`` adds
+    ``shortest_path_steps``: the number of actions the oracle policy needs from the start.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 8}
+
+    def __init__(
+        self,
+        task: Task = "sssg",
+        reward_mode: RewardMode = "sparse",
+        map_path: str | Path | None = None,
+        render_mode: str | None = None,
+        *,
+        render_width: int = rendering.FRAME_WIDTH,
+        render_height: int = rendering.FRAME_HEIGHT,
+    ) -> None:
+        if task not in ("sssg", "vssg"):
+            raise ValueError(f"task must be 'sssg' or 'vssg', got {task!r}")
+        if reward_mode not in ("sparse", "rich"):
+            raise ValueError(f"reward_mode must be 'sparse' or 'rich', got {reward_mode!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.task: Task = task
+        self.reward_mode: RewardMode = reward_mode
+        self.render_mode = render_mode
+        self.render_size = (int(render_width), int(render_height))
+        self.map_path = Path(map_path) if map_path is not None else DEFAULT_MAP_PATH
+        self.nav_map: NavMap = load_map(self.map_path)
+        self.oracle = Oracle.for_map(self.nav_map)
+        self._geometry = self.nav_map.geometry
+
+        self.action_space = spaces.Discrete(N_ACTIONS)
+        high = np.array(
+            [RAY_LENGTH_M] * N_RAYS + [self.nav_map.diagonal, math.pi, math.pi], dtype=np.float32
+        )
+        low = np.array([0.0] * N_RAYS + [0.0, -math.pi, -math.pi], dtype=np.float32)
+        self.observation_space = spaces.Box(low=low, high=high, dtype=np.float32)
+
+        self._client = pybullet.connect(pybullet.DIRECT)
+        self._robot_id, self._ray_z = self._build_world()
+        self._start_yaw = self.nav_map.start.yaw
+        # Ray end offsets per heading index: yaw = start yaw + k * 30 deg exactly.
+        self._ray_offsets = [
+            [
+                (
+                    RAY_LENGTH_M * math.cos(wrap_angle(self._start_yaw + k * TURN_STEP_RAD) + a),
+                    RAY_LENGTH_M * math.sin(wrap_angle(self._start_yaw + k * TURN_STEP_RAD) + a),
+                )
+                for a in RAY_ANGLES_RAD.tolist()
+            ]
+            for k in range(_N_HEADINGS)
+        ]
+        self._goal = (self.nav_map.goal.x, self.nav_map.goal.y)
+        self._goal_radius = self.nav_map.goal.radius
+        self._x = self.nav_map.start.x
+        self._y = self.nav_map.start.y
+        self._heading = 0
+        self._yaw = wrap_angle(self._start_yaw)
+        self._clearance_bound = 0.0
+        self._trajectory: list[tuple[float, float]] = []
+        self._rays = [RAY_LENGTH_M] * N_RAYS
+        self._body_synced = False
+        self._sssg_shortest_steps: int | None = None
+        self._closed = False
+
+    # ------------------------------------------------------------------ world
+    def _build_world(self) -> tuple[int, float]:
+        """Create floor, walls, boxes, goal pillar and the Husky in this env's client.
+
+        Rays are cast 0.4 m above the floor (below the lowest obstacle's half height), so
+        the floor needs no collision shape.
+        """
+        cid = self._client
+        m = self.nav_map
+        pybullet.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
+        with _silenced_c_stdout():
+            robot = pybullet.loadURDF("husky/husky.urdf", useFixedBase=True, physicsClientId=cid)
+        # Rays must not hit the robot: an empty collision group/mask excludes it.
+        for link in range(-1, pybullet.getNumJoints(robot, physicsClientId=cid)):
+            pybullet.setCollisionFilterGroupMask(robot, link, 0, 0, physicsClientId=cid)
+
+        def add_box(cx: float, cy: float, sx: float, sy: float, h: float, yaw: float, rgba):
+            half = [sx / 2.0, sy / 2.0, h / 2.0]
+            col = pybullet.createCollisionShape(
+                pybullet.GEOM_BOX, halfExtents=half, physicsClientId=cid
+            )
+            vis = pybullet.createVisualShape(
+                pybullet.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=cid
+            )
+            pybullet.createMultiBody(
+                0,
+                col,
+                vis,
+                basePosition=[cx, cy, h / 2.0],
+                baseOrientation=pybullet.getQuaternionFromEuler([0.0, 0.0, yaw]),
+                physicsClientId=cid,
+            )
+
+        b, t, wh = m.bounds, m.wall_thickness, m.wall_height
+        width, depth = b.x_max - b.x_min, b.y_max - b.y_min
+        mid_x, mid_y = (b.x_min + b.x_max) / 2.0, (b.y_min + b.y_max) / 2.0
+        wall_rgba = rendering.WALL_RGBA
+        add_box(mid_x, b.y_min - t / 2, width + 2 * t, t, wh, 0.0, wall_rgba)
+        add_box(mid_x, b.y_max + t / 2, width + 2 * t, t, wh, 0.0, wall_rgba)
+        add_box(b.x_min - t / 2, mid_y, t, depth, wh, 0.0, wall_rgba)
+        add_box(b.x_max + t / 2, mid_y, t, depth, wh, 0.0, wall_rgba)
+        for box in m.boxes:
+            add_box(*box.center, *box.size, box.height, box.yaw, rendering.OBSTACLE_RGBA)
+        # The floor is a flat visual box (TinyRenderer draws it far faster than
+        # plane.urdf's large textured mesh).
+        floor = pybullet.createVisualShape(
+            pybullet.GEOM_BOX,
+            halfExtents=[width / 2 + t, depth / 2 + t, 0.005],
+            rgbaColor=rendering.FLOOR_RGBA,
+            physicsClientId=cid,
+        )
+        pybullet.createMultiBody(
+            0, -1, floor, basePosition=[mid_x, mid_y, -0.005], physicsClientId=cid
+        )
+        # The goal pillar is visual only: it neither blocks the robot nor the rays.
+        pillar = pybullet.createVisualShape(
+            pybullet.GEOM_BOX,
+            halfExtents=[0.15, 0.15, 0.75],
+            rgbaColor=rendering.GOAL_RGBA,
+            physicsClientId=cid,
+        )
+        pybullet.createMultiBody(
+            0, -1, pillar, basePosition=[m.goal.x, m.goal.y, 0.75], physicsClientId=cid
+        )
+        ray_z = min(RAY_HEIGHT_M, 0.5 * min([wh, *(box.height for box in m.boxes)]))
+        return robot, ray_z
+
+    def _cast_rays(self) -> None:
+        x, y, z = self._x, self._y, self._ray_z
+        origin = [x, y, z]
+        ends = [[x + dx, y + dy, z] for dx, dy in self._ray_offsets[self._heading]]
+        hits = pybullet.rayTestBatch([origin] * N_RAYS, ends, physicsClientId=self._client)
+        self._rays = [hit[2] * RAY_LENGTH_M for hit in hits]
+
+    def _observation(self) -> tuple[np.ndarray, float, float]:
+        dx = self._goal[0] - self._x
+        dy = self._goal[1] - self._y
+        distance = math.hypot(dx, dy)
+        bearing = math.atan2(dy, dx)
+        obs = np.array([*self._rays, distance, bearing, self._yaw], dtype=np.float32)
+        return obs, distance, bearing
+
+    def _info(self, *, success: bool, collision: bool) -> dict[str, Any]:
+        return {"is_success": success, "collision": collision, "pose": self.pose}
+
+    # --------------------------------------------------------------- gym API
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start a new episode (VSSG draws the start from ``self.np_random``)."""
+        super().reset(seed=seed)
+        start = self.nav_map.start
+        x, y = start.x, start.y
+        if self.task == "vssg":
+            half = self.nav_map.start_jitter / 2.0
+            x += float(self.np_random.uniform(-half, half))
+            y += float(self.np_random.uniform(-half, half))
+        self._x, self._y = x, y
+        self._heading = 0
+        self._yaw = wrap_angle(self._start_yaw)
+        self._clearance_bound = self._geometry.clearance(x, y)
+        self._trajectory = [(x, y)]
+        self._body_synced = False
+        self._cast_rays()
+        obs, _, _ = self._observation()
+        info = self._info(success=False, collision=False)
+        info["shortest_path_steps"] = self._shortest_path_steps()
+        return obs, info
+
+    def _shortest_path_steps(self) -> int:
+        """The oracle policy's path length from the current pose (cached for SSSG)."""
+        if self.task == "sssg" and self._sssg_shortest_steps is not None:
+            return self._sssg_shortest_steps
+        steps = self.oracle.cost_to_go(self._x, self._y, self._yaw)
+        if not math.isfinite(steps):
+            raise RuntimeError(f"the oracle finds no path from the start pose {self.pose}")
+        if self.task == "sssg":
+            self._sssg_shortest_steps = int(steps)
+        return int(steps)
+
+    def _forward_collides(self, nx: float, ny: float) -> bool:
+        """Sweep the footprint disc along the move (as the oracle does), skipping the check
+        while a lower bound on the clearance shows that the move cannot collide."""
+        # Clearance is 1-Lipschitz: far from everything a 0.3 m move cannot collide.
+        if self._clearance_bound - FORWARD_STEP_M >= FOOTPRINT_RADIUS_M:
+            self._clearance_bound -= FORWARD_STEP_M
+            return False
+        if self._geometry.move_collides(self._x, self._y, nx, ny):
+            return True
+        self._clearance_bound = self._geometry.clearance(nx, ny)
+        return False
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Execute one action; see the class docstring for rewards and termination."""
+        a = int(action)
+        if not 0 <= a < N_ACTIONS or a != action:
+            raise ValueError(f"action must be 0, 1 or 2, got {action!r}")
+        collision = False
+        if a == Action.FORWARD:
+            nx = self._x + FORWARD_STEP_M * math.cos(self._yaw)
+            ny = self._y + FORWARD_STEP_M * math.sin(self._yaw)
+            if self._forward_collides(nx, ny):
+                collision = True
+            else:
+                self._x, self._y = nx, ny
+                self._trajectory.append((nx, ny))
+                self._body_synced = False
+                self._cast_rays()
+        else:
+            turn = 1 if a == Action.TURN_LEFT else -1
+            self._heading = (self._heading + turn) % _N_HEADINGS
+            self._yaw = wrap_angle(self._start_yaw + self._heading * TURN_STEP_RAD)
+            self._body_synced = False
+            self._cast_rays()
+        obs, distance, bearing = self._observation()
+        success = not collision and distance < self._goal_radius
+        if collision:
+            reward = COLLISION_REWARD
+        elif success:
+            reward = GOAL_REWARD
+        else:
+            reward = STEP_REWARD
+        if self.reward_mode == "rich":
+            heading_error = abs(wrap_angle(bearing - self._yaw))
+            reward += RICH_DISTANCE_COEF * distance + RICH_HEADING_COEF * heading_error
+        return (
+            obs,
+            reward,
+            success or collision,
+            False,
+            self._info(success=success, collision=collision),
+        )
+
+    # ------------------------------------------------------------ extra API
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """The robot's pose ``(x, y, yaw)`` in metres and radians."""
+        return (self._x, self._y, self._yaw)
+
+    @property
+    def trajectory(self) -> list[tuple[float, float]]:
+        """Positions visited in the current episode, the start first."""
+        return list(self._trajectory)
+
+    def optimal_actions(self) -> frozenset[int]:
+        """The oracle's optimal actions in the current state."""
+        return self.oracle.optimal_actions(self._x, self._y, self._yaw)
+
+    def _sync_body(self) -> None:
+        if not self._body_synced:
+            pybullet.resetBasePositionAndOrientation(
+                self._robot_id,
+                [self._x, self._y, 0.0],
+                pybullet.getQuaternionFromEuler([0.0, 0.0, self._yaw]),
+                physicsClientId=self._client,
+            )
+            self._body_synced = True
+
+    def render(self) -> np.ndarray | None:
+        """A third-person RGB frame (H, W, 3) uint8 with the rays drawn, or None."""
+        if self.render_mode != "rgb_array":
+            return None
+        self._sync_body()
+        return rendering.third_person_frame(
+            self._client, self.pose, self._rays, self._ray_z, RAY_ANGLES_RAD, *self.render_size
+        )
+
+    def top_down_image(self, trajectory: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
+        """A top-down map (H, W, 3) uint8: obstacles, goal, robot and the trajectory.
+
+        ``trajectory`` defaults to the positions of the current episode.
+        """
+        path = self._trajectory if trajectory is None else trajectory
+        return rendering.top_down_image(self.nav_map, self.pose, path)
+
+    def close(self) -> None:
+        """Disconnect this env's pybullet client."""
+        if not self._closed:
+            self._closed = True
+            with contextlib.suppress(pybullet.error):
+                pybullet.disconnect(physicsClientId=self._client)
+        super().close()

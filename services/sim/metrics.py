@@ -1,0 +1,97 @@
+"""Navigation metrics: SPL (Anderson et al. 2018) and the random-policy success rate."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from services.core.actions import N_ACTIONS
+
+
+def spl(
+    successes: Sequence[bool], shortest_steps: Sequence[int], taken_steps: Sequence[int]
+) -> float:
+    """Success weighted by (normalised inverse) Path Length, counted in actions.
+
+    ``SPL = mean_i S_i * l_i / max(p_i, l_i)`` (Anderson et al., "On Evaluation of Embodied
+    Navigation Agents", 2018), with ``S_i`` the success of episode ``i``, ``l_i`` its
+    shortest path (the oracle's ``shortest_path_steps`` for that start) and ``p_i`` the
+    number of actions taken.
+
+    Raises
+    ------
+    ValueError
+        The sequences are empty or differ in length, a shortest path is not positive, or a
+        taken path is negative.
+    """
+    s = np.asarray(successes, dtype=bool)
+    lengths = np.asarray(shortest_steps, dtype=np.float64)
+    taken = np.asarray(taken_steps, dtype=np.float64)
+    if s.ndim != 1 or s.shape != lengths.shape or s.shape != taken.shape:
+        raise ValueError(
+            "successes, shortest_steps and taken_steps must be 1-D and of equal length, got "
+            f"{s.shape}, {lengths.shape}, {taken.shape}"
+        )
+    if s.size == 0:
+        raise ValueError("SPL needs at least one episode")
+    if np.any(lengths <= 0):
+        raise ValueError("every shortest path must be at least one action")
+    if np.any(taken < 0):
+        raise ValueError("taken path lengths cannot be negative")
+    return float(np.mean(s * lengths / np.maximum(taken, lengths)))
+
+
+@dataclass(frozen=True)
+class RandomPolicyResult:
+    """Outcome of uniformly random episodes on one map and task."""
+
+    episodes: int
+    successes: int
+    collisions: int
+    success_rate: float
+    collision_rate: float
+
+
+def random_policy_success_rate(
+    task: str = "vssg",
+    *,
+    episodes: int = 10_000,
+    seed: int = 0,
+    map_path: str | Path | None = None,
+    progress: bool = False,
+) -> RandomPolicyResult:
+    """Run a uniformly random policy through the real env for 120-step episodes.
+
+    The paper's premise is that random exploration rarely finds the sparse reward; the
+    default map aims at about 0.1 % (see ``docs/sim.md``).
+    """
+    from services.sim import MAX_EPISODE_STEPS
+    from services.sim.env import BrainNavEnv
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    rng = np.random.default_rng(seed)
+    env = BrainNavEnv(task=task, map_path=map_path)  # type: ignore[arg-type]
+    successes = collisions = 0
+    try:
+        for episode in tqdm(range(episodes), desc="random episodes", disable=not progress):
+            env.reset(seed=seed + episode)
+            for _ in range(MAX_EPISODE_STEPS):
+                _, _, terminated, _, info = env.step(int(rng.integers(N_ACTIONS)))
+                if terminated:
+                    successes += info["is_success"]
+                    collisions += info["collision"]
+                    break
+    finally:
+        env.close()
+    return RandomPolicyResult(
+        episodes=episodes,
+        successes=successes,
+        collisions=collisions,
+        success_rate=successes / episodes,
+        collision_rate=collisions / episodes,
+    )

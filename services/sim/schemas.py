@@ -1,0 +1,169 @@
+"""Request (``*Create`` / ``*Request``) and response (``*Public``) schemas of the sim service."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.core.actions import Action
+from services.core.markers import ActionMarker
+from services.sim.sessions import PacedPolicy
+
+Observation = list[float | None]
+ActionValue = Annotated[
+    int,
+    Field(
+        strict=True,  # JSON integers only: no "1", true or 1.0
+        ge=min(Action),
+        le=max(Action),
+        description="0 forward 0.3 m, 1 turn left 30 deg, 2 turn right 30 deg.",
+    ),
+]
+
+
+class _Request(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class SessionCreate(_Request):
+    """Open a sim session: one env, reset once with ``seed``."""
+
+    task: Literal["sssg", "vssg"] = Field(
+        "sssg", description="sssg: single start single goal; vssg: start jittered 0.2 x 0.2 m."
+    )
+    map: str | None = Field(
+        None,
+        max_length=1024,
+        description="Name (e.g. 'default') or path of a map the service ships or is "
+        "configured with; default map when omitted. GET /maps lists them.",
+    )
+    seed: int | None = Field(None, ge=0, description="Seed of the first reset (random if None).")
+    reward_mode: Literal["sparse", "rich"] = "sparse"
+
+
+class PacedPublic(BaseModel):
+    """State of a session's paced mode."""
+
+    model_config = ConfigDict(from_attributes=True)
+
+    running: bool
+    policy: PacedPolicy | None
+    period_s: float | None
+    auto_reset: bool
+    max_actions: int | None
+    actions_executed: int
+    queued_actions: int
+    error: str | None = Field(description="Why the paced mode stopped on an error, if it did.")
+
+
+class SessionPublic(BaseModel):
+    """A sim session and its current state."""
+
+    model_config = ConfigDict(from_attributes=True)
+
+    id: str
+    task: str
+    reward_mode: str
+    map: str
+    seed: int | None
+    created_at: float = Field(description="Unix time (s) the session was opened.")
+    episode: int = Field(description="Current episode index (0-based).")
+    step: int = Field(description="Actions executed in this session so far.")
+    episode_step: int = Field(description="Actions executed in the current episode so far.")
+    pose: tuple[float, float, float] = Field(description="(x m, y m, yaw rad) of the robot.")
+    observation: Observation = Field(description="The env's 13-float observation.")
+    reward: float | None = Field(description="Reward of the last step (None right after reset).")
+    terminated: bool
+    truncated: bool
+    info: dict[str, Any]
+    last_marker: ActionMarker | None
+    paced: PacedPublic
+
+
+class ResetRequest(_Request):
+    """Start a new episode."""
+
+    seed: int | None = Field(None, ge=0, description="Reseed the env (None: continue its RNG).")
+
+
+class ResetPublic(BaseModel):
+    """The first observation of a new episode."""
+
+    episode: int
+    observation: Observation
+    info: dict[str, Any] = Field(description="Includes shortest_path_steps and pose.")
+
+
+class StepRequest(_Request):
+    """Execute one action."""
+
+    action: ActionValue
+
+
+class StepPublic(BaseModel):
+    """What the action produced, when it happened and how the oracle judged it."""
+
+    observation: Observation
+    reward: float
+    terminated: bool
+    truncated: bool
+    info: dict[str, Any] = Field(description="Includes is_success, collision and pose.")
+    timestamp: float = Field(description="LSL clock time (s) the action was executed.")
+    marker: ActionMarker = Field(description="The marker published for this action.")
+
+
+class OraclePublic(BaseModel):
+    """The oracle's answer for one pose."""
+
+    pose: tuple[float, float, float]
+    optimal_actions: list[Action]
+    cost_to_go: float | None = Field(description="Actions to the goal; None if unreachable.")
+    reachable: bool
+
+
+class PacedCreate(_Request):
+    """Start the paced mode: one action every ``period_s`` for human observers."""
+
+    policy: PacedPolicy = PacedPolicy.RANDOM
+    period_s: float | None = Field(
+        None, ge=0.05, le=60.0, description="Seconds per action (service default: 1.5)."
+    )
+    auto_reset: bool = Field(
+        True, description="Reset one period after an episode ends (else stop there)."
+    )
+    max_actions: int | None = Field(None, ge=1, description="Stop after this many actions.")
+
+
+class QueueRequest(_Request):
+    """Actions for the paced ``queue`` policy, executed in order, one per period."""
+
+    actions: list[ActionValue] = Field(min_length=1, max_length=1000)
+
+
+class QueuePublic(BaseModel):
+    """Length of the paced-mode action queue."""
+
+    queued_actions: int
+
+
+class MapPublic(BaseModel):
+    """A map sessions can use."""
+
+    name: str
+    default: bool
+
+
+class HealthPublic(BaseModel):
+    """Liveness and a summary of the service's load."""
+
+    status: Literal["ok"]
+    sessions: int
+    max_sessions: int
+    lsl_markers: bool
+    marker_stream: str | None = Field(description="Name of the LSL marker stream, if published.")
+    lsl_time: float = Field(description="The service's LSL clock (s), to check clock offsets.")
+
+
+FrameFormat = Literal["jpeg", "png"]
+FrameEncoding = Literal["base64", "binary"]

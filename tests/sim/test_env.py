@@ -1,0 +1,180 @@
+"""BrainNavEnv: spaces, observations, rewards, termination, seeding, check_env, rendering."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import services.sim  # noqa: F401  (registers the ids)
+from services.core.actions import Action
+from services.sim.env import BrainNavEnv
+from services.sim.maps import FOOTPRINT_RADIUS_M, MAPS_DIR
+
+
+@pytest.fixture(scope="module")
+def env():
+    environment = BrainNavEnv(task="sssg", reward_mode="sparse", render_mode="rgb_array")
+    yield environment
+    environment.close()
+
+
+def test_spaces_and_reset_observation(env: BrainNavEnv) -> None:
+    obs, info = env.reset(seed=0)
+    assert env.action_space == gym.spaces.Discrete(3)
+    assert obs.shape == (13,) and obs.dtype == np.float32
+    assert env.observation_space.contains(obs)
+    # Start (2, 6) facing +x: the +-90 deg rays hit the nearest box face or floor wall
+    # straight below / above (the default map's boxes are axis-aligned).
+    boxes = [b for b in env.nav_map.boxes if abs(b.center[0] - 2.0) <= b.size[0] / 2]
+    above = min([b.center[1] - b.size[1] / 2 for b in boxes if b.center[1] > 6.0] + [12.0])
+    below = max([b.center[1] + b.size[1] / 2 for b in boxes if b.center[1] < 6.0] + [0.0])
+    assert obs[9] == pytest.approx(above - 6.0, abs=1e-3)
+    assert obs[0] == pytest.approx(6.0 - below, abs=1e-3)
+    assert all(b.yaw == 0.0 for b in env.nav_map.boxes)
+    assert obs[10] == pytest.approx(4.6, abs=1e-4)  # goal (6.6, 6) is 4.6 m ahead
+    assert obs[11] == pytest.approx(0.0, abs=1e-6) and obs[12] == pytest.approx(0.0, abs=1e-6)
+    assert info["pose"] == (2.0, 6.0, 0.0)
+    assert 17 <= info["shortest_path_steps"] <= 19
+    assert info["is_success"] is False and info["collision"] is False
+
+
+def test_check_env_passes() -> None:
+    environment = gym.make(
+        "services.sim:BrainNav-VSSG-v0", reward_mode="rich", render_mode="rgb_array"
+    )
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # any checker warning fails the test
+            check_env(environment.unwrapped)
+    finally:
+        environment.close()
+
+
+def test_make_registered_ids_and_time_limit() -> None:
+    for env_id in ("services.sim:BrainNav-SSSG-v0", "services.sim:BrainNav-VSSG-v0"):
+        environment = gym.make(env_id, reward_mode="rich")
+        try:
+            environment.reset(seed=1)
+            truncated = terminated = False
+            steps = 0
+            while not (terminated or truncated):
+                _, _, terminated, truncated, info = environment.step(Action.TURN_LEFT)
+                steps += 1
+                assert info["is_success"] is False
+            assert truncated and not terminated and steps == 120
+        finally:
+            environment.close()
+
+
+def test_turn_rewards_sparse_and_rich() -> None:
+    for mode in ("sparse", "rich"):
+        environment = BrainNavEnv(reward_mode=mode)
+        try:
+            environment.reset(seed=0)
+            obs, reward, terminated, _, info = environment.step(Action.TURN_LEFT)
+            assert obs[12] == pytest.approx(math.radians(30), abs=1e-6)
+            heading_error = abs(obs[11] - obs[12])
+            expected = -1.0 if mode == "sparse" else -1.0 - obs[10] - 0.3 * heading_error
+            assert reward == pytest.approx(expected, abs=1e-5)
+            assert not terminated and info["collision"] is False
+        finally:
+            environment.close()
+
+
+def test_collision_terminates_and_keeps_pose(env: BrainNavEnv) -> None:
+    env.reset(seed=0)
+    # Facing +x from (2, 6): the wall at x = 4.0 stops the 0.4 m footprint disc.
+    for _ in range(20):
+        before = env.pose
+        _, reward, terminated, _, info = env.step(Action.FORWARD)
+        if terminated:
+            break
+    assert terminated and info["collision"] is True and info["is_success"] is False
+    assert reward == -100.0
+    assert env.pose == before
+    assert before[0] + 0.3 + FOOTPRINT_RADIUS_M > 4.0 > before[0] + FOOTPRINT_RADIUS_M
+
+
+def test_oracle_path_reaches_goal_with_goal_reward(env: BrainNavEnv) -> None:
+    _, info = env.reset(seed=0)
+    rewards = []
+    terminated = False
+    while not terminated:
+        action = env.oracle.policy_action(*env.pose)
+        assert action in env.optimal_actions()
+        _, reward, terminated, _, step_info = env.step(action)
+        rewards.append(reward)
+    assert step_info["is_success"] is True and step_info["collision"] is False
+    assert len(rewards) == info["shortest_path_steps"]
+    assert rewards[-1] == 100.0 and all(r == -1.0 for r in rewards[:-1])
+
+
+def test_same_seed_same_trajectory() -> None:
+    def run(seed: int) -> list[tuple[float, float, float]]:
+        environment = BrainNavEnv(task="vssg")
+        try:
+            environment.reset(seed=seed)
+            environment.action_space.seed(seed)
+            poses = [environment.pose]
+            for _ in range(40):
+                _, _, terminated, _, _ = environment.step(environment.action_space.sample())
+                poses.append(environment.pose)
+                if terminated:
+                    break
+            return poses
+        finally:
+            environment.close()
+
+    assert run(7) == run(7)
+    assert run(7)[0] != run(8)[0]
+    start = run(9)[0]
+    assert abs(start[0] - 2.0) <= 0.1 and abs(start[1] - 6.0) <= 0.1
+
+
+def test_invalid_arguments_are_rejected(env: BrainNavEnv) -> None:
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action must be"):
+        env.step(3)
+    with pytest.raises(ValueError, match="task"):
+        BrainNavEnv(task="maze")
+    with pytest.raises(ValueError, match="reward_mode"):
+        BrainNavEnv(reward_mode="dense")
+    with pytest.raises(ValueError, match="render_mode"):
+        BrainNavEnv(render_mode="human")
+
+
+def test_other_map_file() -> None:
+    environment = BrainNavEnv(map_path=MAPS_DIR / "open.json")
+    try:
+        _, info = environment.reset(seed=0)
+        assert info["shortest_path_steps"] > 0
+        assert environment.nav_map.name == "open"
+    finally:
+        environment.close()
+
+
+def test_rendering(env: BrainNavEnv) -> None:
+    env.reset(seed=0)
+    env.step(Action.TURN_LEFT)
+    env.step(Action.FORWARD)
+    frame = env.render()
+    assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8
+    assert frame.std() > 5.0  # a real scene, not a blank image
+    image = env.top_down_image()
+    assert image.ndim == 3 and image.shape[2] == 3 and image.dtype == np.uint8
+    # The robot disc is drawn at its pose (40 px/m, 0.2 m wall margin, y up).
+    x, y, _ = env.pose
+    px, py = round((x + 0.2) * 40), round((12.0 + 0.2 - y) * 40)
+    assert tuple(image[py, px + 5]) == (235, 180, 20)
+    blank = env.top_down_image(trajectory=[])
+    assert blank.shape == image.shape
+    headless = BrainNavEnv()
+    try:
+        assert headless.render() is None
+    finally:
+        headless.close()

@@ -1,0 +1,167 @@
+"""Oracle: lattice BFS, exact path lengths, the oracle policy, disk cache, noisy feedback."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.core.actions import Action
+from services.sim.env import BrainNavEnv
+from services.sim.maps import DEFAULT_MAP_PATH, NavMap, load_map, parse_map
+from services.sim.oracle import NoisyOracleFeedback, Oracle
+
+
+def corridor_map(goal_x: float = 3.05) -> NavMap:
+    """A 4 x 2 m room; start (1, 1), goal (goal_x, 1): forward moves reach x = 2.8 after 6."""
+    return parse_map(
+        {
+            "name": "corridor",
+            "bounds": {"x_max": 4.0, "y_max": 2.0},
+            "start": {"x": 1.0, "y": 1.0, "yaw": 0.0},
+            "start_jitter": 0.0,
+            "goal": {"x": goal_x, "y": 1.0},
+        }
+    )
+
+
+def test_hand_built_map_known_answers() -> None:
+    oracle = Oracle.for_map(corridor_map())
+    # Six forward moves: x = 2.5 is 0.55 m from the goal, x = 2.8 is 0.25 m.
+    assert oracle.cost_to_go(1.0, 1.0, 0.0) == 6
+    assert oracle.rollout(1.0, 1.0, 0.0) == [Action.FORWARD] * 6
+    assert oracle.optimal_actions(1.0, 1.0, 0.0) == {Action.FORWARD}
+    # Facing away: six turns either way, then six moves; the tie favours left.
+    assert oracle.cost_to_go(1.0, 1.0, math.pi) == 12
+    assert oracle.optimal_actions(1.0, 1.0, math.pi) == {Action.TURN_LEFT, Action.TURN_RIGHT}
+    assert oracle.policy_action(1.0, 1.0, math.pi) == Action.TURN_LEFT
+    # Facing +y: three right turns, then six moves.
+    assert oracle.cost_to_go(1.0, 1.0, math.pi / 2) == 9
+    assert oracle.optimal_actions(1.0, 1.0, math.pi / 2) == {Action.TURN_RIGHT}
+    # In the goal: zero; inside a wall: unreachable.
+    assert oracle.cost_to_go(2.9, 1.0, 0.0) == 0
+    assert oracle.cost_to_go(0.1, 1.0, 0.0) == math.inf
+    assert oracle.optimal_actions(0.1, 1.0, 0.0) == frozenset()
+
+
+def test_default_map_path_length_and_straight_line_blocked() -> None:
+    nav_map = load_map(DEFAULT_MAP_PATH)
+    oracle = Oracle.for_map(nav_map)
+    s = nav_map.start
+    length = oracle.cost_to_go(s.x, s.y, s.yaw)
+    assert 17 <= length <= 19
+    # Heading straight for the goal collides before the goal radius is reached.
+    distance = math.hypot(nav_map.goal.x - s.x, nav_map.goal.y - s.y)
+    f = 1.0 - nav_map.goal.radius / distance
+    end_x, end_y = s.x + f * (nav_map.goal.x - s.x), s.y + f * (nav_map.goal.y - s.y)
+    assert nav_map.geometry.move_collides(s.x, s.y, end_x, end_y)
+
+
+def _drive_with_oracle(env: BrainNavEnv, seed: int) -> tuple[int, int, bool]:
+    _, info = env.reset(seed=seed)
+    steps = 0
+    terminated = truncated = False
+    while not (terminated or truncated) and steps < 200:
+        _, _, terminated, truncated, step_info = env.step(env.oracle.policy_action(*env.pose))
+        steps += 1
+    return info["shortest_path_steps"], steps, bool(step_info["is_success"])
+
+
+def test_oracle_policy_takes_exactly_shortest_path_steps() -> None:
+    sssg = BrainNavEnv(task="sssg")
+    vssg = BrainNavEnv(task="vssg")
+    try:
+        l_sssg, taken, success = _drive_with_oracle(sssg, 0)
+        assert success and taken == l_sssg
+        lengths = []
+        for seed in range(40):
+            shortest, taken, success = _drive_with_oracle(vssg, seed)
+            assert success and taken == shortest, f"seed {seed}: {taken} != {shortest}"
+            lengths.append(shortest)
+        assert min(lengths) >= 17 and max(lengths) <= 19
+    finally:
+        sssg.close()
+        vssg.close()
+
+
+def test_policy_action_is_optimal_and_decreases_cost_by_one() -> None:
+    nav_map = load_map(DEFAULT_MAP_PATH)
+    oracle = Oracle.for_map(nav_map)
+    rng = np.random.default_rng(0)
+    checked = 0
+    while checked < 30:
+        x, y = rng.uniform(0.5, 10.5), rng.uniform(0.5, 11.5)
+        yaw = rng.integers(12) * math.pi / 6
+        if nav_map.geometry.collides(x, y) or not math.isfinite(oracle.cost_to_go(x, y, yaw)):
+            continue
+        action = oracle.policy_action(x, y, yaw)
+        assert action in oracle.optimal_actions(x, y, yaw)
+        if action == Action.FORWARD:
+            nx, ny, nyaw = x + 0.3 * math.cos(yaw), y + 0.3 * math.sin(yaw), yaw
+        else:
+            nx, ny, nyaw = x, y, yaw + (math.pi / 6 if action == Action.TURN_LEFT else -math.pi / 6)
+        assert oracle.cost_to_go(nx, ny, nyaw) == oracle.cost_to_go(x, y, yaw) - 1
+        checked += 1
+
+
+def test_default_map_detour_never_leads_away_from_goal() -> None:
+    env = BrainNavEnv(task="vssg")
+    try:
+        for seed in range(5):
+            obs, _ = env.reset(seed=seed)
+            distances = [float(obs[10])]
+            terminated = False
+            while not terminated:
+                obs, _, terminated, _, _ = env.step(env.oracle.policy_action(*env.pose))
+                distances.append(float(obs[10]))
+            assert all(b <= a + 1e-6 for a, b in itertools.pairwise(distances))
+    finally:
+        env.close()
+
+
+def test_disk_cache_round_trip(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path))
+    nav_map = corridor_map(goal_x=3.1)
+    built = Oracle.for_map(nav_map)
+    files = list((tmp_path / "sim" / "oracle").glob("*.npz"))
+    assert len(files) == 1 and files[0].name.startswith(Oracle.cache_key(nav_map))
+    Oracle._memory.clear()
+    loaded = Oracle.for_map(nav_map)
+    assert loaded is not built
+    np.testing.assert_array_equal(loaded.cost, built.cost)
+    # A different map gets a different key.
+    assert Oracle.cache_key(corridor_map(goal_x=3.2)) != Oracle.cache_key(nav_map)
+
+
+def test_noisy_feedback_accuracy_and_seeding() -> None:
+    perfect = NoisyOracleFeedback(1.0, seed=0)
+    assert all(perfect.feedback(True) for _ in range(50))
+    assert not any(perfect.feedback(False) for _ in range(50))
+    inverted = NoisyOracleFeedback(0.0, seed=0)
+    assert not any(inverted.feedback(True) for _ in range(50))
+
+    noisy = NoisyOracleFeedback(0.6, seed=1)
+    hits = sum(noisy.feedback(True) for _ in range(20_000))
+    assert abs(hits / 20_000 - 0.6) < 0.015
+
+    split = NoisyOracleFeedback(good_accuracy=0.9, bad_accuracy=0.55, seed=2)
+    good = sum(split.feedback(True) for _ in range(20_000)) / 20_000
+    bad = sum(not split.feedback(False) for _ in range(20_000)) / 20_000
+    assert abs(good - 0.9) < 0.015 and abs(bad - 0.55) < 0.015
+
+    a, b = NoisyOracleFeedback(0.7, seed=5), NoisyOracleFeedback(0.7, seed=5)
+    assert [a.feedback(i % 2 == 0) for i in range(100)] == [
+        b.feedback(i % 2 == 0) for i in range(100)
+    ]
+
+
+def test_noisy_feedback_rejects_bad_accuracy() -> None:
+    with pytest.raises(ValueError, match="accuracy"):
+        NoisyOracleFeedback()
+    with pytest.raises(ValueError, match="within"):
+        NoisyOracleFeedback(1.2)
+    with pytest.raises(ValueError, match="bad_accuracy"):
+        NoisyOracleFeedback(0.7, bad_accuracy=-0.1)
