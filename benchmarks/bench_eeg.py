@@ -1,0 +1,434 @@
+"""EEG decoding benchmarks (``bgrl bench eeg``) and the quality -> accuracy sweep.
+
+All data here is SYNTHETIC (virtual subject, :mod:`services.eeg.virtual_subject`).
+
+* Decision latency: a recording is replayed over a loopback LSL stream (chunks of 32
+  samples, paced at ``speed`` x real time) into :class:`services.eeg.live.LiveIngest`; for
+  each action the latency runs from the moment the chunk holding the last sample of the
+  [0, 0.8] s window is pushed to the moment P(error) is available (LSL transport, integrity
+  checks, causal preprocessing, epoch cut, EEGNet). Peer, same run and same windows: MNE's
+  offline path (``Raw.filter`` 1-40 Hz FIR, ``Raw.resample`` to 128 Hz, ``Epochs``) on the
+  window plus the 5 s before it.
+* Offline preprocessing speed of a 64 ch 2048 Hz recording, as a multiple of real time.
+  Peer: ``mne.io.Raw.filter(1, 40)`` + ``Raw.resample(128)`` on the same data.
+* Classifier training time on 600 epochs; peer: the 600 x 1.5 s calibration session.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import services.core
+from services.core.actions import ACTION_PERIOD_S
+
+LSL_LOOPBACK_CFG = Path(services.core.__file__).with_name("lsl_loopback.cfg")
+DEFAULT_QUALITIES = (0.0, 0.2, 0.3, 0.4, 0.6, 1.0)
+LSL_CHUNK_SAMPLES = 32
+"""Samples per LSL chunk in the replay (15.6 ms at 2048 Hz, a typical amplifier block)."""
+MNE_PEER_CONTEXT_S = 5.0
+"""Seconds of data before the window that the MNE peer filters (its FIR is ~3.3 s long)."""
+
+
+def random_labels(n_actions: int, error_rate: float, seed: int) -> np.ndarray:
+    """Oracle-like labels (True = correct) with errors drawn at random."""
+    rng = np.random.default_rng(seed)
+    return rng.random(n_actions) >= error_rate
+
+
+def _percentiles(values_s: list[float]) -> dict[str, float]:
+    v = np.asarray(values_s) * 1e3
+    return {
+        "p50_ms": float(np.percentile(v, 50)),
+        "p99_ms": float(np.percentile(v, 99)),
+        "max_ms": float(v.max()),
+        "n": int(v.size),
+    }
+
+
+# ----------------------------------------------------------------------------- quality sweep
+
+
+def _sweep_subject(
+    seed: int,
+    levels: list[float],
+    n_actions: int,
+    error_rate: float,
+    check_linearity: bool,
+    max_epochs: int,
+) -> list[dict[str, Any]]:
+    """Calibrate one virtual subject (``seed``) at every quality level.
+
+    The generator is linear in ``quality`` (only the label-dependent components scale, the
+    background does not depend on it), and so is the preprocessing. The epochs at level
+    ``q`` are therefore ``X(0) + q * (X(1) - X(0))`` from two simulations; levels above 1
+    extrapolate the generator (ErrP amplitudes times ``q``) to show how much stronger the
+    clearest subject would have to be. ``check_linearity`` compares the construction with
+    a direct simulation at quality 0.5.
+    """
+    import torch
+
+    from services.eeg.calibration import TrainingConfig, train_classifier
+    from services.eeg.preprocessing import EpochSet, epochs_from_raw
+    from services.eeg.virtual_subject import simulate_recording
+
+    torch.set_num_threads(1)
+    labels = random_labels(n_actions, error_rate, seed)
+    e0 = epochs_from_raw(simulate_recording(labels, quality=0.0, seed=seed))
+    e1 = epochs_from_raw(simulate_recording(labels, quality=1.0, seed=seed))
+    delta = e1.X - e0.X
+    linearity = None
+    if check_linearity:
+        direct = epochs_from_raw(simulate_recording(labels, quality=0.5, seed=seed)).X
+        linearity = float(np.abs(direct - (e0.X + 0.5 * delta)).max() / np.abs(direct).max())
+    rows = []
+    for q in levels:
+        t0 = time.perf_counter()
+        X = (e0.X + np.float32(q) * delta).astype(np.float32)
+        epochs = EpochSet(X, e0.y, e0.ch_names, e0.params, e0.sfreq_in, synthetic=True)
+        config = TrainingConfig(max_epochs=max_epochs)
+        m = train_classifier(epochs, seed=seed, config=config).metrics
+        rows.append(
+            {
+                "quality": q,
+                "seed": seed,
+                "extrapolated": q > 1.0,
+                "test_accuracy": m["test_accuracy"],
+                "balanced_accuracy": m["balanced_accuracy"],
+                "roc_auc": m["roc_auc"],
+                "n_epochs": m["n_epochs"],
+                "n_test": m["n_test"],
+                "best_training_epoch": m["best_training_epoch"],
+                "seconds": time.perf_counter() - t0,
+                "linearity_check_max_rel_diff": linearity,
+            }
+        )
+    return rows
+
+
+def quality_sweep(
+    levels: list[float],
+    *,
+    n_seeds: int = 5,
+    n_actions: int = 600,
+    error_rate: float = 0.3,
+    max_epochs: int = 150,
+    jobs: int = 1,
+    partial_path: Path | None = None,
+) -> dict[str, Any]:
+    """Calibrate ``n_seeds`` virtual subjects at every quality level; summarise test metrics.
+
+    Each seed is a different virtual subject (background, topography, latency shift) and
+    also seeds the labels, the split and the training. Levels above 1 are extrapolations
+    (see :func:`_sweep_subject`). ``partial_path`` receives the runs so far after every
+    task, so a long sweep that is stopped keeps its finished part.
+    """
+    import json
+
+    from tqdm import tqdm
+
+    # Two tasks per subject (each half of the levels) balance the work over the workers.
+    halves = [list(levels[: (len(levels) + 1) // 2]), list(levels[(len(levels) + 1) // 2 :])]
+    tasks = [
+        (s, half, n_actions, error_rate, s == 0 and k == 0, max_epochs)
+        for s in range(n_seeds)
+        for k, half in enumerate(h for h in halves if h)
+    ]
+    runs: list[dict[str, Any]] = []
+
+    def collect(rows: list[dict[str, Any]]) -> None:
+        runs.extend(rows)
+        if partial_path is not None:
+            partial_path.write_text(json.dumps(runs, indent=1))
+
+    if jobs == 1:
+        for task in tqdm(tasks, desc="quality sweep", unit="task"):
+            collect(_sweep_subject(*task))
+    else:
+        with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
+            futures = [pool.submit(_sweep_subject, *task) for task in tasks]
+            for future in tqdm(as_completed(futures), total=len(futures), desc="quality sweep"):
+                collect(future.result())
+    summary = []
+    for q in levels:
+        rows = [r for r in runs if r["quality"] == q]
+        entry: dict[str, Any] = {"quality": q, "extrapolated": q > 1.0, "n_seeds": len(rows)}
+        for key in ("test_accuracy", "balanced_accuracy", "roc_auc"):
+            values = np.array([r[key] for r in rows])
+            entry[f"{key}_mean"] = float(values.mean())
+            entry[f"{key}_std"] = float(values.std(ddof=1)) if len(rows) > 1 else 0.0
+        summary.append(entry)
+    return {
+        "synthetic": True,
+        "n_actions": n_actions,
+        "error_rate": error_rate,
+        "n_seeds": n_seeds,
+        "max_epochs": max_epochs,
+        "linearity_check_max_rel_diff": next(
+            (
+                r["linearity_check_max_rel_diff"]
+                for r in runs
+                if r["linearity_check_max_rel_diff"] is not None
+            ),
+            None,
+        ),
+        "summary": summary,
+        "runs": runs,
+    }
+
+
+def format_sweep_table(result: dict[str, Any]) -> str:
+    """Markdown table: quality vs test accuracy, balanced accuracy, ROC AUC (mean +- std)."""
+    lines = [
+        "| quality | test accuracy | balanced accuracy | ROC AUC |",
+        "|---:|---:|---:|---:|",
+    ]
+    for e in result["summary"]:
+        cells = [
+            f"{e[f'{k}_mean']:.3f} ± {e[f'{k}_std']:.3f}"
+            for k in ("test_accuracy", "balanced_accuracy", "roc_auc")
+        ]
+        level = f"{e['quality']:.2f}" + (" (extrapolated)" if e["extrapolated"] else "")
+        lines.append(f"| {level} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- benchmarks
+
+
+def bench_training(n_actions: int = 600, seed: int = 0) -> tuple[dict[str, Any], Any]:
+    """Time calibration training on ``n_actions`` epochs; returns (figures, classifier)."""
+    from services.eeg.calibration import train_classifier
+    from services.eeg.preprocessing import epochs_from_raw
+    from services.eeg.virtual_subject import simulate_recording
+
+    raw = simulate_recording(random_labels(n_actions, 0.3, seed), quality=0.4, seed=seed)
+    epochs = epochs_from_raw(raw)
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = train_classifier(epochs, seed=seed)
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+    session_s = n_actions * ACTION_PERIOD_S
+    m = result.metrics
+    figures = {
+        "n_epochs": m["n_epochs"],
+        "training_epochs_run": m["training_epochs_run"],
+        "train_seconds": seconds,
+        "train_cpu_seconds": cpu,
+        "seconds_per_training_epoch": seconds / m["training_epochs_run"],
+        "peer_session_seconds": session_s,
+        "session_over_train_ratio": session_s / seconds,
+        "test_accuracy": m["test_accuracy"],
+    }
+    return figures, result.classifier
+
+
+def bench_offline_speed(minutes: float = 20.0, seed: int = 1) -> dict[str, Any]:
+    """Offline preprocessing of a ``minutes`` long recording: ours vs MNE filter+resample."""
+    import mne
+
+    from services.eeg.preprocessing import OnlinePreprocessor, PreprocessingParams
+    from services.eeg.virtual_subject import simulate_recording
+
+    n_actions = int(minutes * 60 / ACTION_PERIOD_S) - 2
+    raw = simulate_recording(random_labels(n_actions, 0.3, seed), quality=0.5, seed=seed)
+    duration_s = raw.n_times / raw.info["sfreq"]
+    sfreq = raw.info["sfreq"]
+    picks = mne.pick_types(raw.info, eeg=True)
+    ch_names = [raw.ch_names[i] for i in picks]
+    chunk = round(4.0 * sfreq)
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    pre = OnlinePreprocessor(ch_names, sfreq, PreprocessingParams())
+    for start in range(0, raw.n_times, chunk):
+        pre.push(raw._data[picks, start : start + chunk].T, start / sfreq)
+    ours_s, ours_cpu = time.perf_counter() - t0, time.process_time() - c0
+
+    raw.pick(picks)
+    t0, c0 = time.perf_counter(), time.process_time()
+    raw.filter(1.0, 40.0, n_jobs=1, verbose=False)
+    raw.resample(128.0, n_jobs=1, verbose=False)
+    mne_s, mne_cpu = time.perf_counter() - t0, time.process_time() - c0
+    return {
+        "recording_seconds": duration_s,
+        "n_channels": len(ch_names),
+        "sfreq": sfreq,
+        "ours_seconds": ours_s,
+        "ours_x_realtime": duration_s / ours_s,
+        "mne_seconds": mne_s,
+        "mne_x_realtime": duration_s / mne_s,
+        "ours_over_mne_speed_ratio": mne_s / ours_s,
+        "ours_cpu_seconds": ours_cpu,
+        "ours_x_realtime_cpu": duration_s / ours_cpu,
+        "mne_cpu_seconds": mne_cpu,
+        "mne_x_realtime_cpu": duration_s / mne_cpu,
+    }
+
+
+def _mne_peer_decision(raw_data: np.ndarray, info: Any, onset_sample: int, classifier) -> float:
+    """MNE's offline path for one window (filter, resample, epoch, classify); returns P."""
+    import mne
+
+    sfreq = info["sfreq"]
+    start = max(0, onset_sample - round(MNE_PEER_CONTEXT_S * sfreq))
+    stop = onset_sample + round(0.85 * sfreq)
+    seg = mne.io.RawArray(raw_data[:, start:stop], info, verbose=False)
+    seg.filter(1.0, 40.0, n_jobs=1, verbose=False)
+    seg.resample(128.0, n_jobs=1, verbose=False)
+    onset = round((onset_sample - start) / sfreq * 128.0)
+    events = np.array([[onset, 0, 2]])
+    ep = mne.Epochs(seg, events, tmin=0.0, tmax=0.8, baseline=None, preload=True, verbose=False)
+    return float(classifier.predict_proba(ep.get_data(copy=False))[0])
+
+
+def bench_latency(
+    classifier, n_actions: int = 500, speed: float = 3.0, seed: int = 2, n_peer: int = 100
+) -> dict[str, Any]:
+    """Decision latency over a live loopback LSL replay of ``n_actions`` actions."""
+    import mne
+    import torch
+
+    os.environ.setdefault("LSLAPICFG", str(LSL_LOOPBACK_CFG))  # stay on this machine
+    from mne_lsl.lsl import StreamInfo, StreamInlet, StreamOutlet, resolve_streams
+
+    from services.eeg.live import LiveIngest
+    from services.eeg.preprocessing import epochs_from_raw
+    from services.eeg.virtual_subject import simulate_recording
+
+    torch.set_num_threads(1)
+    period = 1.0
+    raw = simulate_recording(
+        random_labels(n_actions, 0.3, seed), quality=1.0, seed=seed, action_period_s=period
+    )
+    sfreq = raw.info["sfreq"]
+    picks = mne.pick_types(raw.info, eeg=True)
+    ch_names = [raw.ch_names[i] for i in picks]
+    classifier.check_compatible(ch_names, sfreq)
+    data = np.ascontiguousarray(raw.get_data(picks=picks).T, dtype=np.float32)
+    stim = raw.get_data(picks="Status")[0]
+    onset_samples = np.flatnonzero(np.diff(stim, prepend=0) > 0)
+    n_win = round(0.8 * sfreq)
+
+    name = f"bench-eeg-{time.time_ns()}"
+    info = StreamInfo(name, "EEG", len(ch_names), sfreq, "float32", name)
+    info.set_channel_names(ch_names)
+    outlet = StreamOutlet(info, chunk_size=LSL_CHUNK_SAMPLES)
+    streams = resolve_streams(timeout=5.0, name=name)
+    if not streams:
+        raise RuntimeError("loopback LSL stream not found")
+    inlet = StreamInlet(streams[0], max_buffered=60)
+    inlet.open_stream(timeout=5.0)
+
+    n_chunks = int(np.ceil(data.shape[0] / LSL_CHUNK_SAMPLES))
+    push_wall = np.full(n_chunks, np.nan)
+    t0_stream = 1000.0
+    done = threading.Event()
+
+    def produce() -> None:
+        start = time.perf_counter()
+        for k in range(n_chunks):
+            due = start + k * LSL_CHUNK_SAMPLES / sfreq / speed
+            delay = due - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            chunk = data[k * LSL_CHUNK_SAMPLES : (k + 1) * LSL_CHUNK_SAMPLES]
+            # A float timestamp is the last sample's; liblsl spaces the others by 1 / sfreq.
+            last = k * LSL_CHUNK_SAMPLES + len(chunk) - 1
+            push_wall[k] = time.perf_counter()  # before the push: the consumer may be faster
+            outlet.push_chunk(chunk, timestamp=t0_stream + last / sfreq)
+        done.set()
+
+    ingest = LiveIngest(ch_names, sfreq, params=classifier.params)
+    onsets = t0_stream + onset_samples / sfreq
+    latencies, compute, online_p, decided, rejected = [], [], [], [], []
+    next_action = 0
+    producer = threading.Thread(target=produce, daemon=True)
+    producer.start()
+    try:
+        while next_action < len(onsets):
+            chunk, stamps = inlet.pull_chunk(timeout=0.0, max_samples=4096)
+            if len(stamps) == 0:
+                if done.is_set() and inlet.samples_available == 0:
+                    break
+                time.sleep(0.0005)
+                continue
+            t_pulled = time.perf_counter()
+            ingest.push_chunk(chunk, stamps)
+            while next_action < len(onsets):
+                answer = ingest.epoch_for(float(onsets[next_action]))
+                if answer.status == "pending":
+                    break
+                if answer.status == "rejected":
+                    rejected.append(answer.reason)
+                    next_action += 1
+                    continue
+                p = float(classifier.predict_proba(answer.epoch)[0])
+                t_done = time.perf_counter()
+                last_sample = onset_samples[next_action] + n_win
+                latencies.append(t_done - push_wall[last_sample // LSL_CHUNK_SAMPLES])
+                compute.append(t_done - t_pulled)
+                online_p.append(p)
+                decided.append(next_action)
+                next_action += 1
+    finally:
+        producer.join(timeout=5.0)
+        inlet.close_stream()
+
+    offline = epochs_from_raw(raw, classifier.params)
+    offline_p = classifier.predict_proba(offline.X[decided])
+    peer_latencies = []
+    eeg_info = mne.pick_info(raw.info, picks)
+    raw_eeg = raw.get_data(picks=picks)
+    for onset_sample in onset_samples[5 : 5 + n_peer]:
+        t0 = time.perf_counter()
+        _mne_peer_decision(raw_eeg, eeg_info, int(onset_sample), classifier)
+        peer_latencies.append(time.perf_counter() - t0)
+    ours, peer = _percentiles(latencies), _percentiles(peer_latencies)
+    return {
+        "n_actions": len(latencies),
+        "n_rejected": len(rejected),
+        "rejection_reasons": sorted(set(rejected))[:5],
+        "stream_issues": [issue.kind for issue in ingest.issues][:20],
+        "replay_speed": speed,
+        "action_period_s": period,
+        "lsl_chunk_samples": LSL_CHUNK_SAMPLES,
+        "ours": ours,
+        "ours_compute_after_pull": _percentiles(compute),
+        "mne_peer": peer,
+        "peer_over_ours_p50_ratio": peer["p50_ms"] / ours["p50_ms"],
+        "online_vs_offline_max_abs_p_diff": float(np.max(np.abs(np.array(online_p) - offline_p))),
+    }
+
+
+def run_benchmark(
+    n_actions: int = 500, speed: float = 3.0, offline_minutes: float = 20.0
+) -> dict[str, Any]:
+    """All EEG decoding benchmarks; returns the JSON-ready result with a ``summary``."""
+    import torch
+
+    torch.set_num_threads(1)
+    training, classifier = bench_training()
+    latency = bench_latency(classifier, n_actions=n_actions, speed=speed)
+    offline = bench_offline_speed(offline_minutes)
+    return {
+        "synthetic": True,
+        "summary": {
+            "decision_latency_p50_ms": latency["ours"]["p50_ms"],
+            "decision_latency_p99_ms": latency["ours"]["p99_ms"],
+            "mne_peer_latency_p50_ms": latency["mne_peer"]["p50_ms"],
+            "offline_x_realtime": offline["ours_x_realtime"],
+            "offline_x_realtime_cpu": offline["ours_x_realtime_cpu"],
+            "mne_offline_x_realtime": offline["mne_x_realtime"],
+            "train_seconds_600_epochs": training["train_seconds"],
+            "train_cpu_seconds_600_epochs": training["train_cpu_seconds"],
+        },
+        "latency": latency,
+        "offline_preprocessing": offline,
+        "training": training,
+    }

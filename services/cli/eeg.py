@@ -1,0 +1,111 @@
+"""``bgrl eeg ...`` (calibration, quality sweep) and ``bgrl bench eeg``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject quality.")
+
+
+@eeg_app.command("calibrate")
+def calibrate_command(
+    recording: Annotated[
+        Path, typer.Argument(help="Calibration recording (BDF, EDF or FIF) with Status codes.")
+    ],
+    out: Annotated[Path, typer.Option(help="Folder for the classifier, metrics and report.")],
+    seed: Annotated[int, typer.Option(help="Seed of the split, initialisation and batches.")] = 0,
+    max_epochs: Annotated[int, typer.Option(min=1, help="Upper bound on training epochs.")] = 300,
+    report: Annotated[bool, typer.Option(help="Write report.png / report.html.")] = True,
+) -> None:
+    """Train and evaluate the ErrP classifier on RECORDING; writes OUT/metrics.json."""
+    from services.eeg.calibration import TrainingConfig, calibrate
+    from services.eeg.io import RecordingError, read_recording
+
+    try:
+        raw = read_recording(recording)
+    except (RecordingError, FileNotFoundError) as exc:
+        raise typer.BadParameter(str(exc), param_hint="RECORDING") from exc
+    try:
+        result = calibrate(
+            raw,
+            seed=seed,
+            out_dir=out,
+            config=TrainingConfig(max_epochs=max_epochs),
+            report=report,
+            progress=True,
+        )
+    except ValueError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    m = result.metrics
+    tag = " [SYNTHETIC data]" if m["synthetic"] else ""
+    typer.echo(
+        f"test accuracy {m['test_accuracy']:.3f}, balanced {m['balanced_accuracy']:.3f}, "
+        f"ROC AUC {m['roc_auc']:.3f} on {m['n_test']} of {m['n_epochs']} epochs{tag}"
+    )
+    typer.echo(f"wrote {out / 'metrics.json'}")
+
+
+@eeg_app.command("quality-sweep")
+def quality_sweep_command(
+    out: Annotated[Path, typer.Option(help="Folder for quality_sweep.json.")] = Path(
+        "benchmarks/results"
+    ),
+    qualities: Annotated[
+        list[float] | None,
+        typer.Option(
+            "--quality",
+            min=0.0,
+            help="Quality levels (repeatable); above 1 extrapolates the generator's ErrP.",
+        ),
+    ] = None,
+    seeds: Annotated[int, typer.Option(min=1, help="Subjects (seeds) per quality level.")] = 5,
+    actions: Annotated[int, typer.Option(min=60, help="Actions per calibration session.")] = 600,
+    error_rate: Annotated[float, typer.Option(min=0.05, max=0.95)] = 0.3,
+    max_epochs: Annotated[int, typer.Option(min=1, help="Training epochs cap per run.")] = 150,
+    jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
+) -> None:
+    """Simulate and calibrate virtual subjects per quality level; table of test accuracy."""
+    from benchmarks.bench_eeg import DEFAULT_QUALITIES, format_sweep_table, quality_sweep
+
+    out.mkdir(parents=True, exist_ok=True)
+    result = quality_sweep(
+        qualities or list(DEFAULT_QUALITIES),
+        n_seeds=seeds,
+        n_actions=actions,
+        error_rate=error_rate,
+        max_epochs=max_epochs,
+        jobs=jobs,
+        partial_path=out / "quality_sweep.partial.json",
+    )
+    path = out / "quality_sweep.json"
+    path.write_text(json.dumps(result, indent=2))
+    typer.echo(format_sweep_table(result))
+    typer.echo(f"wrote {path}")
+
+
+def bench_eeg(
+    out: Annotated[Path, typer.Option(help="Folder for eeg.json.")] = Path("benchmarks/results"),
+    actions: Annotated[int, typer.Option(min=10, help="Actions in the live LSL replay.")] = 500,
+    speed: Annotated[float, typer.Option(min=0.5, help="Replay speed (x real time).")] = 3.0,
+    minutes: Annotated[float, typer.Option(min=0.5, help="Offline recording length.")] = 20.0,
+) -> None:
+    """Decision latency (live LSL replay), offline preprocessing speed, training time."""
+    from benchmarks.bench_eeg import run_benchmark
+
+    result = run_benchmark(n_actions=actions, speed=speed, offline_minutes=minutes)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "eeg.json"
+    path.write_text(json.dumps(result, indent=2))
+    typer.echo(json.dumps(result["summary"], indent=2))
+    typer.echo(f"wrote {path}")
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``bgrl eeg`` and ``bgrl bench eeg``."""
+    app.add_typer(eeg_app, name="eeg")
+    bench_app.command("eeg")(bench_eeg)

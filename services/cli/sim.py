@@ -1,0 +1,194 @@
+"""``bgrl sim ...`` commands and ``bgrl bench sim``."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from tqdm import tqdm
+
+sim_app = typer.Typer(help="The navigation simulator: map images, marker stream, checks.")
+
+
+@sim_app.command("map-png")
+def map_png(
+    out: Annotated[Path, typer.Option(help="PNG file to write.")],
+    map_path: Annotated[
+        Path | None, typer.Option("--map", help="Map JSON file (default: the shipped map).")
+    ] = None,
+    oracle_path: Annotated[
+        bool, typer.Option(help="Draw the oracle policy's path from the start.")
+    ] = True,
+) -> None:
+    """Render a map's top-down image, with the oracle's shortest path from the start."""
+    from PIL import Image
+
+    from services.sim.env import BrainNavEnv
+    from services.sim.maps import MapError
+
+    try:
+        env = BrainNavEnv(map_path=map_path)
+    except MapError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--map") from None
+    try:
+        env.reset(seed=0)
+        steps = 0
+        if oracle_path:
+            x, y, yaw = env.pose
+            for action in env.oracle.rollout(x, y, yaw) or []:
+                env.step(action)
+                steps += 1
+        image = env.top_down_image()
+    finally:
+        env.close()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(image).save(out)
+    detail = f", oracle path {steps} actions" if oracle_path else ""
+    typer.echo(f"wrote {out} ({image.shape[1]}x{image.shape[0]} px{detail})")
+
+
+@sim_app.command("random-success")
+def random_success(
+    task: Annotated[str, typer.Option(help="sssg or vssg.")] = "vssg",
+    episodes: Annotated[int, typer.Option(min=1, help="120-step episodes to run.")] = 10_000,
+    seed: Annotated[int, typer.Option(help="Seed of the actions and starts.")] = 0,
+    map_path: Annotated[
+        Path | None, typer.Option("--map", help="Map JSON file (default: the shipped map).")
+    ] = None,
+    out: Annotated[Path | None, typer.Option(help="Also write the result as JSON here.")] = None,
+) -> None:
+    """How often a uniformly random policy reaches the goal (the paper's premise: rarely)."""
+    from dataclasses import asdict
+
+    from services.sim.maps import MapError
+    from services.sim.metrics import random_policy_success_rate
+
+    if task not in ("sssg", "vssg"):
+        raise typer.BadParameter(f"must be sssg or vssg, got {task!r}", param_hint="--task")
+    try:
+        result = random_policy_success_rate(
+            task, episodes=episodes, seed=seed, map_path=map_path, progress=True
+        )
+    except MapError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--map") from None
+    summary = {**asdict(result), "task": task, "seed": seed, "map": str(map_path or "default")}
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(summary, indent=2) + "\n")
+    typer.echo(
+        f"{task}: {result.successes}/{result.episodes} random episodes reached the goal "
+        f"({100 * result.success_rate:.3f} %), {100 * result.collision_rate:.1f} % collided"
+    )
+
+
+@sim_app.command("markers")
+def markers(
+    count: Annotated[int, typer.Option(min=1, help="Stop after this many markers.")] = 10,
+    timeout: Annotated[
+        float, typer.Option(min=0.1, help="Give up after this many seconds without a marker.")
+    ] = 30.0,
+    source_id: Annotated[
+        str | None,
+        typer.Option(help="Only the stream with this LSL source_id (BGRL_SIM_MARKER_SOURCE_ID)."),
+    ] = None,
+) -> None:
+    """Print action markers from the sim's LSL marker stream as JSON lines.
+
+    A quick check that EEG recordings will carry them.
+    """
+    from mne_lsl.lsl import StreamInlet, resolve_streams
+
+    from services.core.markers import MARKER_STREAM_NAME, ActionMarker
+
+    infos = resolve_streams(timeout=timeout, name=MARKER_STREAM_NAME, source_id=source_id)
+    if not infos:
+        which = f" with source_id {source_id!r}" if source_id else ""
+        typer.echo(
+            f"no LSL stream named {MARKER_STREAM_NAME!r}{which} found in {timeout} s", err=True
+        )
+        raise typer.Exit(1)
+    inlet = StreamInlet(infos[0])
+    inlet.open_stream(timeout=timeout)
+    offset = inlet.time_correction(timeout=timeout)
+    typer.echo(f"listening to {MARKER_STREAM_NAME} from {infos[0].source_id}", err=True)
+    for _ in range(count):
+        sample, timestamp = inlet.pull_sample(timeout=timeout)
+        if timestamp is None:
+            typer.echo(f"no marker within {timeout} s", err=True)
+            raise typer.Exit(1)
+        marker = ActionMarker.from_lsl(sample[0])
+        typer.echo(json.dumps({**marker.model_dump(mode="json"), "local_time": timestamp + offset}))
+    inlet.close_stream()
+
+
+def bench_sim(
+    out: Annotated[Path, typer.Option(help="Folder for sim.json.")],
+    env_steps: Annotated[int, typer.Option(min=100, help="Env steps measured in total.")] = 20_000,
+    rounds: Annotated[int, typer.Option(min=1, help="Interleaved env/ray-cast rounds.")] = 10,
+    frames: Annotated[int, typer.Option(min=1, help="Frames rendered.")] = 60,
+    oracle_queries: Annotated[int, typer.Option(min=1, help="Oracle queries timed.")] = 2_000,
+    service_steps: Annotated[int, typer.Option(min=1, help="Steps through the HTTP app.")] = 300,
+    seed: Annotated[int, typer.Option(help="Seed of actions and query poses.")] = 0,
+) -> None:
+    """Sim costs against peers in the same run; writes OUT/sim.json.
+
+    Env steps/s vs raw rayTestBatch, frame and top-down render times, oracle build and
+    query times, HTTP step overhead.
+    """
+    from benchmarks import bench_sim as bench
+
+    total = rounds + math.ceil(frames / 10) + 3
+    with tqdm(total=total, desc="bench sim", unit="part") as bar:
+
+        def progress(message: str) -> None:
+            bar.set_postfix_str(message)
+            bar.update(1)
+
+        started = time.perf_counter()
+        result = bench.run(
+            env_steps=env_steps,
+            rounds=rounds,
+            frames=frames,
+            oracle_queries=oracle_queries,
+            service_steps=service_steps,
+            seed=seed,
+            progress=progress,
+        )
+    result["command"] = (
+        f"bgrl bench sim --out {out} --env-steps {env_steps} --rounds {rounds} "
+        f"--frames {frames} --oracle-queries {oracle_queries} --service-steps {service_steps} "
+        f"--seed {seed}"
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "sim.json"
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    env, render, oracle, service = (
+        result["env_step"],
+        result["render"],
+        result["oracle"],
+        result["service"],
+    )
+    typer.echo(
+        f"env {env['env_steps_per_s']:.0f} steps/s vs rayTestBatch "
+        f"{env['raycast_batches_per_s']:.0f}/s: ratio {env['ratio_env_to_raycast']:.2f} "
+        f"(aim >= {env['aim_ratio']})\n"
+        f"frame 320x240 {render['camera_frame_ms']['mean']:.1f} ms, top-down "
+        f"{render['top_down_ms']['mean']:.1f} ms\n"
+        f"oracle build {oracle['build_cold_s']:.2f} s (cache load {oracle['cache_load_s']:.2f} s), "
+        f"query {oracle['optimal_actions_us']:.0f} us (optimal actions), "
+        f"{oracle['cost_to_go_us']:.0f} us (cost-to-go)\n"
+        f"HTTP step {service['http_step_ms']:.2f} ms vs GET /health "
+        f"{service['http_health_ms']:.2f} ms vs direct env step "
+        f"{service['direct_env_step_ms']:.3f} ms\n"
+        f"wrote {path} in {time.perf_counter() - started:.0f} s"
+    )
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``bgrl sim ...`` and ``bgrl bench sim``."""
+    app.add_typer(sim_app, name="sim")
+    bench_app.command("sim")(bench_sim)

@@ -1,0 +1,364 @@
+"""ErrP calibration: train and evaluate EEGNet on a labelled recording (paper stage 1).
+
+Stratified, seeded 80/12/8 train/validation/test split; class-weighted cross-entropy
+(errors are the minority class); Adam; early stopping on the validation loss (the weights
+of the best validation epoch are kept); test accuracy, balanced accuracy, ROC AUC and the
+confusion matrix. ``calibrate(..., out_dir=DIR)`` writes the classifier, ``metrics.json``,
+``history.json`` and the calibration report.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from services.eeg.classifier import ErrPClassifier
+from services.eeg.eegnet import EEGNet, count_parameters
+from services.eeg.preprocessing import EpochSet, PreprocessingParams, epochs_from_raw
+
+if TYPE_CHECKING:
+    import mne
+
+SPLIT_FRACTIONS = (0.80, 0.12, 0.08)
+"""Train / validation / test fractions (paper §EEG Classifier Training)."""
+METRICS_FILE = "metrics.json"
+HISTORY_FILE = "history.json"
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """Hyperparameters of calibration training."""
+
+    lr: float = 1e-3
+    """Adam learning rate."""
+    weight_decay: float = 0.0
+    """Adam L2 penalty."""
+    batch_size: int = 32
+    """Minibatch size."""
+    max_epochs: int = 300
+    """Upper bound on training passes over the training split."""
+    patience: int = 40
+    """Stop after this many passes without a lower validation loss."""
+    drop_prob: float = 0.25
+    """EEGNet dropout probability."""
+    kernel_length: int = 32
+    """EEGNet temporal kernel length (samples at the feature rate)."""
+
+
+@dataclass
+class Split:
+    """Indices of the train, validation and test epochs."""
+
+    train: np.ndarray
+    val: np.ndarray
+    test: np.ndarray
+
+
+@dataclass
+class CalibrationResult:
+    """Outcome of :func:`calibrate`.
+
+    Attributes
+    ----------
+    classifier : ErrPClassifier
+        The trained classifier (weights of the best validation epoch).
+    metrics : dict
+        Test metrics and run facts (also in ``metrics.json``).
+    history : dict of list
+        Per-pass ``train_loss``, ``val_loss``, ``val_accuracy``.
+    split : Split
+        Indices into ``epochs``.
+    epochs : EpochSet
+        The data set that was used.
+    out_dir : Path or None
+        Where the artefacts were written.
+    test_proba : ndarray
+        P(error) for the test epochs (in ``split.test`` order).
+    """
+
+    classifier: ErrPClassifier
+    metrics: dict[str, Any]
+    history: dict[str, list[float]]
+    split: Split
+    epochs: EpochSet
+    out_dir: Path | None = None
+    test_proba: np.ndarray = field(default_factory=lambda: np.empty(0))
+
+
+def stratified_split(
+    y: np.ndarray, *, seed: int, fractions: tuple[float, float, float] = SPLIT_FRACTIONS
+) -> Split:
+    """Seeded split keeping the class ratio in every part.
+
+    Per class, ``round(f_test * n_c)`` test and ``round(f_val * n_c)`` validation epochs
+    are drawn at random; the rest is training data.
+    """
+    if not np.isclose(sum(fractions), 1.0):
+        raise ValueError(f"split fractions must sum to 1, got {fractions}")
+    rng = np.random.default_rng(seed)
+    parts: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] = ([], [], [])
+    for cls in np.unique(y):
+        idx = rng.permutation(np.flatnonzero(y == cls))
+        n_test = round(fractions[2] * idx.size)
+        n_val = round(fractions[1] * idx.size)
+        parts[2].append(idx[:n_test])
+        parts[1].append(idx[n_test : n_test + n_val])
+        parts[0].append(idx[n_test + n_val :])
+    train, val, test = (np.sort(np.concatenate(p)) for p in parts)
+    return Split(train=train, val=val, test=test)
+
+
+def roc_auc(y_true: np.ndarray, score: np.ndarray) -> float:
+    """Area under the ROC curve (Mann-Whitney U with tie correction); NaN for one class."""
+    y_true = np.asarray(y_true).astype(bool)
+    n_pos, n_neg = int(y_true.sum()), int((~y_true).sum())
+    if n_pos == 0 or n_neg == 0:
+        return float("nan")
+    order = np.argsort(score, kind="mergesort")
+    ranks = np.empty(score.size)
+    sorted_scores = np.asarray(score)[order]
+    _, first, counts = np.unique(sorted_scores, return_index=True, return_counts=True)
+    mean_ranks = first + (counts + 1) / 2.0  # 1-based average rank of each tie group
+    ranks[order] = np.repeat(mean_ranks, counts)
+    return float((ranks[y_true].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
+
+
+def classification_metrics(y_true: np.ndarray, proba: np.ndarray) -> dict[str, Any]:
+    """Accuracy, balanced accuracy, ROC AUC and confusion matrix at threshold 0.5.
+
+    The confusion matrix has rows = true class, columns = predicted class, in the order
+    (correct, error).
+    """
+    y_true = np.asarray(y_true).astype(np.int64)
+    y_pred = (np.asarray(proba) >= 0.5).astype(np.int64)
+    cm = np.zeros((2, 2), dtype=np.int64)
+    np.add.at(cm, (y_true, y_pred), 1)
+    recalls = [cm[c, c] / cm[c].sum() for c in (0, 1) if cm[c].sum() > 0]
+    return {
+        "test_accuracy": float((y_true == y_pred).mean()) if y_true.size else float("nan"),
+        "balanced_accuracy": float(np.mean(recalls)) if recalls else float("nan"),
+        "roc_auc": roc_auc(y_true, np.asarray(proba)),
+        "confusion_matrix": cm.tolist(),
+    }
+
+
+def _run_pass(
+    model: EEGNet,
+    X: torch.Tensor,
+    y: torch.Tensor,
+    loss_fn: nn.Module,
+    *,
+    optimizer: torch.optim.Optimizer | None = None,
+    batch_size: int = 256,
+    generator: torch.Generator | None = None,
+) -> tuple[float, np.ndarray]:
+    """One pass over (X, y); trains when ``optimizer`` is given. Returns (loss, P(error))."""
+    training = optimizer is not None
+    model.train(training)
+    order = torch.randperm(len(y), generator=generator) if training else torch.arange(len(y))
+    total, probas = 0.0, []
+    with torch.set_grad_enabled(training):
+        for start in range(0, len(y), batch_size):
+            idx = order[start : start + batch_size]
+            if training and idx.numel() < 2:
+                continue  # batch norm needs more than one sample
+            logits = model(X[idx])
+            loss = loss_fn(logits, y[idx])
+            if training:
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                model.apply_max_norm()
+            total += float(loss.detach()) * idx.numel()
+            probas.append(torch.softmax(logits.detach(), dim=1)[:, 1])
+    proba = torch.cat(probas).numpy() if probas else np.empty(0)
+    return total / max(1, len(y)), proba
+
+
+def train_classifier(
+    epochs: EpochSet,
+    *,
+    seed: int = 0,
+    config: TrainingConfig | None = None,
+    split: Split | None = None,
+    progress: bool = False,
+) -> CalibrationResult:
+    """Train EEGNet on ``epochs`` and evaluate it on the held-out test split.
+
+    Parameters
+    ----------
+    epochs : EpochSet
+        Labelled epochs (1 = error).
+    seed : int
+        Seeds the split, the weight initialisation and the minibatch order.
+    config : TrainingConfig | None
+        Hyperparameters; defaults to :class:`TrainingConfig`.
+    split : Split | None
+        Use these indices instead of :func:`stratified_split`.
+    progress : bool
+        Show a tqdm bar over training passes.
+
+    Returns
+    -------
+    CalibrationResult
+        Without ``out_dir``; nothing is written.
+    """
+    config = config or TrainingConfig()
+    y_all = epochs.y
+    if len(np.unique(y_all)) < 2:
+        raise ValueError("calibration needs both correct and error epochs")
+    if len(epochs) < 30:
+        raise ValueError(f"calibration needs at least 30 epochs, got {len(epochs)}")
+    split = split or stratified_split(y_all, seed=seed)
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(seed)
+        generator = torch.Generator().manual_seed(seed)
+        train_X = epochs.X[split.train]
+        input_scale = 1.0 / float(train_X.std())
+        X = torch.from_numpy(np.ascontiguousarray(epochs.X * input_scale, dtype=np.float32))
+        y = torch.from_numpy(y_all.astype(np.int64))
+        n_chans, n_times = epochs.X.shape[1:]
+        model = EEGNet(
+            n_chans, 2, n_times, kernel_length=config.kernel_length, drop_prob=config.drop_prob
+        )
+        counts = np.bincount(y_all[split.train], minlength=2).astype(np.float64)
+        weights = torch.tensor(counts.sum() / (2.0 * np.maximum(counts, 1.0)), dtype=torch.float32)
+        loss_fn = nn.CrossEntropyLoss(weight=weights)
+        optimizer = torch.optim.Adam(
+            model.parameters(), lr=config.lr, weight_decay=config.weight_decay
+        )
+        history: dict[str, list[float]] = {"train_loss": [], "val_loss": [], "val_accuracy": []}
+        best_loss, best_epoch, best_state = np.inf, -1, None
+        passes = range(config.max_epochs)
+        if progress:
+            from tqdm import tqdm
+
+            passes = tqdm(passes, desc="training", unit="epoch")
+        t0 = time.perf_counter()
+        Xtr, ytr = X[split.train], y[split.train]
+        Xva, yva = X[split.val], y[split.val]
+        for epoch in passes:
+            train_loss, _ = _run_pass(
+                model,
+                Xtr,
+                ytr,
+                loss_fn,
+                optimizer=optimizer,
+                batch_size=config.batch_size,
+                generator=generator,
+            )
+            val_loss, val_proba = _run_pass(model, Xva, yva, loss_fn)
+            val_acc = float(((val_proba >= 0.5) == yva.numpy().astype(bool)).mean())
+            history["train_loss"].append(train_loss)
+            history["val_loss"].append(val_loss)
+            history["val_accuracy"].append(val_acc)
+            if val_loss < best_loss:
+                best_loss, best_epoch = val_loss, epoch
+                best_state = {k: v.clone() for k, v in model.state_dict().items()}
+            elif epoch - best_epoch >= config.patience:
+                break
+        train_seconds = time.perf_counter() - t0
+        assert best_state is not None
+        model.load_state_dict(best_state)
+        _, test_proba = _run_pass(model, X[split.test], y[split.test], loss_fn)
+    finally:
+        torch.set_num_threads(previous_threads)
+    metrics = classification_metrics(y_all[split.test], test_proba)
+    metrics.update(
+        {
+            "n_epochs": len(epochs),
+            "n_params": count_parameters(model),
+            "n_train": int(split.train.size),
+            "n_val": int(split.val.size),
+            "n_test": int(split.test.size),
+            "error_fraction": float(y_all.mean()),
+            "best_training_epoch": int(best_epoch),
+            "training_epochs_run": len(history["train_loss"]),
+            "best_val_loss": float(best_loss),
+            "train_seconds": train_seconds,
+            "seed": seed,
+            "synthetic": epochs.synthetic,
+            "training_config": asdict(config),
+        }
+    )
+    classifier = ErrPClassifier(
+        model,
+        epochs.params,
+        epochs.ch_names,
+        epochs.sfreq_in,
+        input_scale,
+        metrics,
+        synthetic=epochs.synthetic,
+    )
+    return CalibrationResult(
+        classifier=classifier,
+        metrics=metrics,
+        history=history,
+        split=split,
+        epochs=epochs,
+        test_proba=test_proba,
+    )
+
+
+def calibrate(
+    data: mne.io.BaseRaw | EpochSet,
+    *,
+    seed: int = 0,
+    out_dir: str | Path | None = None,
+    config: TrainingConfig | None = None,
+    params: PreprocessingParams | None = None,
+    report: bool = True,
+    progress: bool = False,
+) -> CalibrationResult:
+    """Preprocess (if given a recording), train, evaluate and save an ErrP classifier.
+
+    Parameters
+    ----------
+    data : mne.io.BaseRaw | EpochSet
+        A labelled calibration recording (Status codes 1/2) or epochs made from one.
+    seed : int
+        Seeds the split, initialisation and minibatch order.
+    out_dir : str | Path | None
+        If given, write the classifier, ``metrics.json``, ``history.json`` and (with
+        ``report``) ``report.png``/``report.html`` there.
+    config : TrainingConfig | None
+        Training hyperparameters.
+    params : PreprocessingParams | None
+        Preprocessing for a recording (ignored for an EpochSet).
+    report : bool
+        Write the calibration report.
+    progress : bool
+        Show progress bars.
+
+    Returns
+    -------
+    CalibrationResult
+    """
+    if isinstance(data, EpochSet):
+        epochs = data
+    else:
+        epochs = epochs_from_raw(data, params, progress=progress)
+    result = train_classifier(epochs, seed=seed, config=config, progress=progress)
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        result.classifier.save(out)
+        (out / HISTORY_FILE).write_text(json.dumps(result.history))
+        if report:
+            from services.eeg.report import write_report
+
+            write_report(result, out)
+        tmp = out / (METRICS_FILE + ".tmp")
+        tmp.write_text(json.dumps(result.metrics, indent=2))
+        tmp.replace(out / METRICS_FILE)
+        result.out_dir = out
+    return result

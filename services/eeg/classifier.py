@@ -1,0 +1,204 @@
+"""A trained ErrP classifier: EEGNet + the preprocessing and channels it was trained on.
+
+A classifier is only applied to data preprocessed the same way from the same channels at
+the same sampling rate; :meth:`ErrPClassifier.check_compatible` enforces it.
+
+On disk (``save(dir)``)::
+
+    dir/classifier.json    architecture, preprocessing params, channels, rate, metrics
+    dir/model.pt           EEGNet state dict
+    dir/model.torchscript.pt  TorchScript: epochs in volts (n, n_chans, n_times) -> P(error)
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from services.eeg.eegnet import EEGNet, count_parameters
+from services.eeg.preprocessing import PreprocessingParams
+
+CONFIG_FILE = "classifier.json"
+STATE_FILE = "model.pt"
+TORCHSCRIPT_FILE = "model.torchscript.pt"
+FORMAT_VERSION = 1
+
+
+class ErrorProbability(nn.Module):
+    """EEGNet wrapped to map epochs in volts to P(error); the exported TorchScript graph."""
+
+    def __init__(self, model: EEGNet, input_scale: float) -> None:
+        super().__init__()
+        self.model = model
+        self.input_scale = input_scale
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        logits = self.model(x * self.input_scale)
+        return torch.softmax(logits, dim=1)[:, 1]
+
+
+class ErrPClassifier:
+    """EEGNet ErrP decoder bound to its preprocessing and channel list.
+
+    Parameters
+    ----------
+    model : EEGNet
+        Trained network with 2 outputs (index 1 = error).
+    params : PreprocessingParams
+        Preprocessing the training epochs went through.
+    ch_names : sequence of str
+        Channel order of the epochs.
+    sfreq_in : float
+        Sampling rate (Hz) of the raw recording before preprocessing.
+    input_scale : float
+        Factor applied to epochs in volts before the network (1 / training std).
+    metrics : dict
+        Calibration metrics (``test_accuracy``, ``balanced_accuracy``, ``roc_auc``, ...).
+    synthetic : bool
+        True when trained on virtual-subject data.
+    """
+
+    def __init__(
+        self,
+        model: EEGNet,
+        params: PreprocessingParams,
+        ch_names: Sequence[str],
+        sfreq_in: float,
+        input_scale: float,
+        metrics: dict[str, Any] | None = None,
+        *,
+        synthetic: bool = False,
+    ) -> None:
+        if model.n_chans != len(ch_names) or model.n_times != params.n_times_epoch:
+            raise ValueError(
+                f"model expects ({model.n_chans}, {model.n_times}) epochs, preprocessing "
+                f"gives ({len(ch_names)}, {params.n_times_epoch})"
+            )
+        self.model = model.eval()
+        self.params = params
+        self.ch_names = list(ch_names)
+        self.sfreq_in = float(sfreq_in)
+        self.input_scale = float(input_scale)
+        self.metrics: dict[str, Any] = dict(metrics or {})
+        self.synthetic = synthetic
+        self._proba = ErrorProbability(self.model, self.input_scale).eval()
+
+    @property
+    def n_params(self) -> int:
+        return count_parameters(self.model)
+
+    @property
+    def epoch_shape(self) -> tuple[int, int]:
+        """(n_channels, n_times) of one epoch."""
+        return len(self.ch_names), self.params.n_times_epoch
+
+    def check_compatible(self, ch_names: Sequence[str], sfreq: float) -> None:
+        """Raise ``ValueError`` unless data with these channels and rate can be classified.
+
+        Parameters
+        ----------
+        ch_names : sequence of str
+            Channels of the incoming data, in order.
+        sfreq : float
+            Sampling rate (Hz) of the incoming raw data.
+        """
+        if not np.isclose(float(sfreq), self.sfreq_in):
+            raise ValueError(
+                f"sampling rate {sfreq} Hz does not match the classifier's {self.sfreq_in} Hz"
+            )
+        names = list(ch_names)
+        if names != self.ch_names:
+            missing = [c for c in self.ch_names if c not in names]
+            extra = [c for c in names if c not in self.ch_names]
+            if missing or extra:
+                raise ValueError(
+                    f"channels do not match the classifier's: missing {missing[:8]}, "
+                    f"unexpected {extra[:8]} ({len(names)} given, {len(self.ch_names)} expected)"
+                )
+            raise ValueError("channels are the classifier's but in a different order")
+
+    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+        """P(error) per epoch.
+
+        Parameters
+        ----------
+        X : ndarray, shape (n_epochs, n_channels, n_times) or (n_channels, n_times)
+            Preprocessed epochs in volts, channels in ``ch_names`` order.
+
+        Returns
+        -------
+        ndarray, shape (n_epochs,), float64
+        """
+        X = np.asarray(X, dtype=np.float32)
+        if X.ndim == 2:
+            X = X[None]
+        if X.ndim != 3 or X.shape[1:] != self.epoch_shape:
+            raise ValueError(f"expected epochs of shape (n, {self.epoch_shape}), got {X.shape}")
+        if not np.all(np.isfinite(X)):
+            raise ValueError("epochs contain NaN or infinite values")
+        with torch.inference_mode():
+            return self._proba(torch.from_numpy(X)).double().numpy()
+
+    def predict(self, X: np.ndarray, threshold: float = 0.5) -> np.ndarray:
+        """1 (error) where P(error) >= ``threshold``, else 0 (correct)."""
+        return (self.predict_proba(X) >= threshold).astype(np.int64)
+
+    def to_config(self) -> dict[str, Any]:
+        """JSON-serialisable description (everything but the weights)."""
+        m = self.model
+        return {
+            "format_version": FORMAT_VERSION,
+            "architecture": "EEGNet",
+            "model_kwargs": m.hparams,
+            "preprocessing": self.params.model_dump(),
+            "ch_names": self.ch_names,
+            "sfreq_in": self.sfreq_in,
+            "input_scale": self.input_scale,
+            "synthetic": self.synthetic,
+            "metrics": self.metrics,
+        }
+
+    def save(self, directory: str | Path) -> Path:
+        """Write the classifier (config, weights, TorchScript) to ``directory``."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        torch.save(self.model.state_dict(), directory / STATE_FILE)
+        with warnings.catch_warnings():
+            # torch 2.13 deprecates TorchScript; it is still the portable format asked for
+            # (C++/libtorch loadable, no Python needed) and exports in milliseconds.
+            warnings.simplefilter("ignore", DeprecationWarning)
+            torch.jit.script(self._proba).save(str(directory / TORCHSCRIPT_FILE))
+        tmp = directory / (CONFIG_FILE + ".tmp")
+        tmp.write_text(json.dumps(self.to_config(), indent=2))
+        tmp.replace(directory / CONFIG_FILE)
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path) -> ErrPClassifier:
+        """Load a classifier written by :meth:`save`; ``ValueError`` if it is unusable."""
+        directory = Path(directory)
+        config_path = directory / CONFIG_FILE
+        if not config_path.is_file():
+            raise ValueError(f"no classifier in {directory} ({CONFIG_FILE} missing)")
+        config = json.loads(config_path.read_text())
+        if config.get("format_version") != FORMAT_VERSION:
+            raise ValueError(f"unsupported classifier format {config.get('format_version')}")
+        model = EEGNet(**config["model_kwargs"])
+        state = torch.load(directory / STATE_FILE, map_location="cpu", weights_only=True)
+        model.load_state_dict(state)
+        return cls(
+            model,
+            PreprocessingParams(**config["preprocessing"]),
+            config["ch_names"],
+            config["sfreq_in"],
+            config["input_scale"],
+            config["metrics"],
+            synthetic=config["synthetic"],
+        )

@@ -1,0 +1,440 @@
+"""ErrP preprocessing shared by calibration (offline) and live decoding (online).
+
+One causal pipeline serves both paths, so a classifier trained on a recording sees exactly
+the features it will see live (paper §EEG Classifier Training; DESIGN §1, §4):
+
+1. anti-alias low-pass at the input rate (Butterworth, ``antialias_order`` at
+   ``antialias_cutoff`` Hz), then keep every ``q``-th sample, ``q = sfreq_in / sfreq_out``
+   (2048 Hz / 16 = 128 Hz);
+2. band-pass ``l_freq``-``h_freq`` Hz at the output rate (Butterworth, ``filter_order``
+   per band edge, as second-order sections);
+3. a ring buffer of filtered samples with their timestamps, from which the epoch
+   ``[tmin, tmax]`` s after an action onset is cut.
+
+Both filters are causal IIR filters whose state is kept across chunks, so feeding a
+recording in pieces of any size gives the same samples as feeding it at once.
+:func:`epochs_from_raw` (calibration) runs the same :class:`OnlinePreprocessor` over a
+recording in chunks, exactly as live ingest does.
+
+Epoch length rule (MNE's): ``n_times_epoch = round(tmax * sfreq_out) - round(tmin *
+sfreq_out) + 1``; both ends are included, so [0, 0.8] s at 128 Hz has 103 samples. An
+epoch starts at the buffered sample nearest to ``onset + tmin`` (ties go to the later
+sample).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy import signal
+
+from services.core.actions import TRIGGER_ERROR
+
+if TYPE_CHECKING:
+    import mne
+
+_TIE_EPS_S = 1e-6
+"""Tolerance (s) that makes sample selection at an exact tie independent of float rounding."""
+
+
+class PreprocessingParams(BaseModel):
+    """Parameters of the ErrP preprocessing (saved with every classifier).
+
+    Attributes
+    ----------
+    l_freq, h_freq : float
+        Band-pass edges in Hz (paper: 1-40 Hz).
+    filter_order : int
+        Butterworth order per band edge of the band-pass (the filter has ``2 *
+        filter_order`` poles).
+    sfreq_out : float
+        Sampling rate of the features in Hz (paper: 128 Hz). The input rate must be an
+        integer multiple of it.
+    antialias_cutoff : float
+        -3 dB cut-off in Hz of the anti-alias low-pass applied before decimation.
+    antialias_order : int
+        Butterworth order of the anti-alias low-pass.
+    tmin, tmax : float
+        Epoch window in s relative to the action onset (paper: [0, 0.8] s).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    l_freq: float = Field(1.0, gt=0)
+    h_freq: float = Field(40.0, gt=0)
+    filter_order: int = Field(2, ge=1, le=8)
+    sfreq_out: float = Field(128.0, gt=0)
+    antialias_cutoff: float = Field(48.0, gt=0)
+    antialias_order: int = Field(8, ge=2, le=16)
+    tmin: float = 0.0
+    tmax: float = 0.8
+
+    @model_validator(mode="after")
+    def _check_consistent(self) -> PreprocessingParams:
+        nyquist_out = self.sfreq_out / 2
+        if not self.l_freq < self.h_freq < nyquist_out:
+            raise ValueError(
+                f"need l_freq < h_freq < sfreq_out / 2, got {self.l_freq}, {self.h_freq}, "
+                f"{nyquist_out}"
+            )
+        if not self.h_freq <= self.antialias_cutoff < nyquist_out:
+            raise ValueError(
+                f"antialias_cutoff must lie in [h_freq, sfreq_out / 2), got {self.antialias_cutoff}"
+            )
+        if self.tmax <= self.tmin:
+            raise ValueError(f"tmax ({self.tmax}) must be greater than tmin ({self.tmin})")
+        return self
+
+    @property
+    def n_times_epoch(self) -> int:
+        """Samples per epoch: ``round(tmax * sfreq_out) - round(tmin * sfreq_out) + 1``."""
+        return round(self.tmax * self.sfreq_out) - round(self.tmin * self.sfreq_out) + 1
+
+    def decimation_factor(self, sfreq_in: float) -> int:
+        """Integer ratio ``sfreq_in / sfreq_out``; ``ValueError`` if it is not an integer."""
+        ratio = sfreq_in / self.sfreq_out
+        q = round(ratio)
+        if q < 1 or not math.isclose(ratio, q, rel_tol=0, abs_tol=1e-9):
+            raise ValueError(
+                f"sampling rate {sfreq_in} Hz is not an integer multiple of the feature "
+                f"rate {self.sfreq_out} Hz"
+            )
+        return q
+
+    def antialias_sos(self, sfreq_in: float) -> np.ndarray:
+        """Second-order sections of the anti-alias low-pass at the input rate."""
+        return signal.butter(
+            self.antialias_order, self.antialias_cutoff, btype="lowpass", fs=sfreq_in, output="sos"
+        )
+
+    def bandpass_sos(self) -> np.ndarray:
+        """Second-order sections of the band-pass at the output rate."""
+        return signal.butter(
+            self.filter_order,
+            [self.l_freq, self.h_freq],
+            btype="bandpass",
+            fs=self.sfreq_out,
+            output="sos",
+        )
+
+
+class EpochUnavailableError(LookupError):
+    """The requested epoch starts before the oldest sample still buffered."""
+
+
+class _CausalSosStage:
+    """A causal SOS filter over channels whose state persists across chunks.
+
+    The state is initialised from the first sample (steady state for a constant input),
+    so a DC offset at the start of a stream causes no step response.
+    """
+
+    def __init__(self, sos: np.ndarray) -> None:
+        self.sos = sos
+        self._zi_unit = signal.sosfilt_zi(sos)  # (n_sections, 2)
+        self._zi: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self._zi = None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Filter ``x`` of shape (n_channels, n_times) along time."""
+        if x.shape[1] == 0:
+            return x
+        if self._zi is None:
+            self._zi = self._zi_unit[:, None, :] * x[None, :, 0, None]
+        y, self._zi = signal.sosfilt(self.sos, x, axis=1, zi=self._zi)
+        return y
+
+
+class OnlinePreprocessor:
+    """Causal filter, decimator and timestamped ring buffer for one EEG stream.
+
+    Parameters
+    ----------
+    ch_names : sequence of str
+        Channel names, in the column order of the samples passed to :meth:`push`.
+    sfreq_in : float
+        Sampling rate of the incoming samples in Hz (an integer multiple of
+        ``params.sfreq_out``).
+    params : PreprocessingParams | None
+        Filter and epoch parameters; defaults to the paper's.
+    buffer_s : float
+        Seconds of filtered data kept for :meth:`epoch_at`.
+
+    Notes
+    -----
+    Timestamps of the samples in a chunk are ``first_timestamp + i / sfreq_in``. Call
+    :meth:`reset` after a discontinuity (gap, clock jump, reconnect): the filter restarts
+    from the next sample and the buffer is emptied, so no epoch spans the break.
+    """
+
+    def __init__(
+        self,
+        ch_names: Sequence[str],
+        sfreq_in: float,
+        params: PreprocessingParams | None = None,
+        *,
+        buffer_s: float = 30.0,
+    ) -> None:
+        self.params = params or PreprocessingParams()
+        self.ch_names = list(ch_names)
+        if not self.ch_names:
+            raise ValueError("no channels given")
+        if len(set(self.ch_names)) != len(self.ch_names):
+            raise ValueError("channel names must be unique")
+        self.sfreq_in = float(sfreq_in)
+        self.decimation = self.params.decimation_factor(self.sfreq_in)
+        if buffer_s <= self.params.tmax - self.params.tmin:
+            raise ValueError(f"buffer_s ({buffer_s}) must exceed the epoch length")
+        self._capacity = math.ceil(buffer_s * self.params.sfreq_out)
+        n_ch = len(self.ch_names)
+        self._antialias = _CausalSosStage(self.params.antialias_sos(self.sfreq_in))
+        self._bandpass = _CausalSosStage(self.params.bandpass_sos())
+        self._data = np.empty((n_ch, 2 * self._capacity))
+        self._times = np.empty(2 * self._capacity)
+        self._n_in = 0
+        self._start = 0
+        self._stop = 0
+
+    @property
+    def n_channels(self) -> int:
+        return len(self.ch_names)
+
+    @property
+    def n_times_epoch(self) -> int:
+        return self.params.n_times_epoch
+
+    @property
+    def n_buffered(self) -> int:
+        """Number of filtered output samples in the buffer."""
+        return self._stop - self._start
+
+    @property
+    def latest_timestamp(self) -> float | None:
+        """Timestamp of the newest buffered output sample (None if empty)."""
+        return float(self._times[self._stop - 1]) if self.n_buffered else None
+
+    @property
+    def oldest_timestamp(self) -> float | None:
+        """Timestamp of the oldest buffered output sample (None if empty)."""
+        return float(self._times[self._start]) if self.n_buffered else None
+
+    def reset(self) -> None:
+        """Forget filter state and buffered data (after a discontinuity in the stream)."""
+        self._antialias.reset()
+        self._bandpass.reset()
+        self._n_in = 0
+        self._start = self._stop = 0
+
+    def push(self, samples: np.ndarray, first_timestamp: float) -> None:
+        """Filter a chunk of samples and append the decimated result to the buffer.
+
+        Parameters
+        ----------
+        samples : ndarray, shape (n_times, n_channels)
+            EEG in volts, columns in ``ch_names`` order.
+        first_timestamp : float
+            Time (s) of ``samples[0]`` on the stream's clock.
+        """
+        samples = np.asarray(samples)
+        if samples.ndim != 2 or samples.shape[1] != self.n_channels:
+            raise ValueError(
+                f"expected samples of shape (n_times, {self.n_channels}), got {samples.shape}"
+            )
+        n = samples.shape[0]
+        if n == 0:
+            return
+        x = np.ascontiguousarray(samples.T, dtype=np.float64)
+        if not np.all(np.isfinite(x)):
+            raise ValueError("samples contain NaN or infinite values")
+        y = self._antialias(x)
+        offset = (-self._n_in) % self.decimation
+        y = np.ascontiguousarray(y[:, offset :: self.decimation])
+        self._n_in += n
+        if y.shape[1] == 0:
+            return
+        z = self._bandpass(y)
+        times = first_timestamp + (offset + self.decimation * np.arange(z.shape[1])) / (
+            self.sfreq_in
+        )
+        self._append(z, times)
+
+    def _append(self, z: np.ndarray, times: np.ndarray) -> None:
+        k = z.shape[1]
+        if k >= self._capacity:
+            z, times, k = z[:, -self._capacity :], times[-self._capacity :], self._capacity
+        if self._stop + k > self._data.shape[1]:
+            keep = min(self.n_buffered, self._capacity - k)
+            self._data[:, :keep] = self._data[:, self._stop - keep : self._stop]
+            self._times[:keep] = self._times[self._stop - keep : self._stop]
+            self._start, self._stop = 0, keep
+        self._data[:, self._stop : self._stop + k] = z
+        self._times[self._stop : self._stop + k] = times
+        self._stop += k
+        self._start = max(self._start, self._stop - self._capacity)
+
+    def epoch_at(self, onset: float) -> np.ndarray | None:
+        """The preprocessed epoch ``[tmin, tmax]`` s after ``onset``.
+
+        Parameters
+        ----------
+        onset : float
+            Action onset on the stream's clock (s).
+
+        Returns
+        -------
+        ndarray, shape (n_channels, n_times_epoch), float32, or None
+            The epoch in volts; None while the window is not yet complete.
+
+        Raises
+        ------
+        EpochUnavailableError
+            If the window starts before the oldest buffered sample (expired or before the
+            stream started).
+        """
+        p = self.params
+        if self.n_buffered == 0:
+            return None
+        times = self._times[self._start : self._stop]
+        target = onset + p.tmin
+        half = 0.5 / p.sfreq_out
+        if target < times[0] - half - _TIE_EPS_S:
+            raise EpochUnavailableError(
+                f"epoch at {onset:.3f} s starts before the oldest buffered sample "
+                f"({times[0]:.3f} s)"
+            )
+        i = int(np.searchsorted(times, target - half + _TIE_EPS_S, side="left"))
+        n = p.n_times_epoch
+        if i + n > times.size:
+            return None
+        return self._data[:, self._start + i : self._start + i + n].astype(np.float32)
+
+
+@dataclass(frozen=True)
+class EpochSet:
+    """Labelled ErrP epochs ready for the classifier.
+
+    Attributes
+    ----------
+    X : ndarray, shape (n_epochs, n_channels, n_times_epoch), float32
+        Preprocessed epochs in volts.
+    y : ndarray, shape (n_epochs,), int64
+        1 = error (trigger code 2), 0 = correct (trigger code 1).
+    ch_names : list of str
+        Channel order of ``X``.
+    params : PreprocessingParams
+        Preprocessing that produced ``X``.
+    sfreq_in : float
+        Sampling rate (Hz) of the recording before preprocessing.
+    synthetic : bool
+        True when the recording came from the virtual subject.
+    """
+
+    X: np.ndarray
+    y: np.ndarray
+    ch_names: list[str]
+    params: PreprocessingParams
+    sfreq_in: float
+    synthetic: bool = False
+
+    def __post_init__(self) -> None:
+        if self.X.ndim != 3 or self.X.shape[0] != self.y.shape[0]:
+            raise ValueError(f"X {self.X.shape} and y {self.y.shape} do not match")
+        if self.X.shape[1] != len(self.ch_names):
+            raise ValueError(f"X has {self.X.shape[1]} channels, ch_names {len(self.ch_names)}")
+
+    def __len__(self) -> int:
+        return int(self.y.shape[0])
+
+
+def epochs_from_raw(
+    raw: mne.io.BaseRaw,
+    params: PreprocessingParams | None = None,
+    *,
+    picks: str | Sequence[str] = "eeg",
+    chunk_s: float = 4.0,
+    progress: bool = False,
+) -> EpochSet:
+    """Preprocess a recording with :class:`OnlinePreprocessor` and cut labelled epochs.
+
+    Parameters
+    ----------
+    raw : mne.io.BaseRaw
+        Preloaded recording with a ``Status`` trigger channel (codes 1 correct, 2 error).
+    params : PreprocessingParams | None
+        Defaults to the paper's parameters.
+    picks : str | sequence of str
+        Channels to use (MNE picks), default all EEG channels.
+    chunk_s : float
+        Seconds fed to the preprocessor per push (any value gives the same epochs).
+    progress : bool
+        Show a tqdm progress bar over the recording.
+
+    Returns
+    -------
+    EpochSet
+        Epochs whose window lies fully inside the recording, in onset order.
+    """
+    from services.eeg.io import action_events, is_synthetic
+
+    params = params or PreprocessingParams()
+    pick_idx = _pick_indices(raw, picks)
+    ch_names = [raw.ch_names[i] for i in pick_idx]
+    sfreq = float(raw.info["sfreq"])
+    events = action_events(raw)
+    if len(events) == 0:
+        raise ValueError("recording has no action events in its Status channel")
+    onsets = (events[:, 0] - raw.first_samp) / sfreq
+    labels = (events[:, 2] == TRIGGER_ERROR).astype(np.int64)
+    pre = OnlinePreprocessor(ch_names, sfreq, params, buffer_s=max(30.0, 4 * chunk_s))
+    chunk = max(1, round(chunk_s * sfreq))
+    X = np.empty((len(events), len(ch_names), params.n_times_epoch), dtype=np.float32)
+    done = np.zeros(len(events), dtype=bool)
+    next_event = 0
+    starts = range(0, raw.n_times, chunk)
+    if progress:
+        from tqdm import tqdm
+
+        starts = tqdm(starts, desc="preprocessing", unit="chunk")
+    for start in starts:
+        stop = min(start + chunk, raw.n_times)
+        data = raw.get_data(picks=pick_idx, start=start, stop=stop)
+        pre.push(data.T, start / sfreq)
+        while next_event < len(events):
+            epoch = pre.epoch_at(float(onsets[next_event]))
+            if epoch is None:
+                break
+            X[next_event] = epoch
+            done[next_event] = True
+            next_event += 1
+    return EpochSet(
+        X=X[done],
+        y=labels[done],
+        ch_names=ch_names,
+        params=params,
+        sfreq_in=sfreq,
+        synthetic=is_synthetic(raw),
+    )
+
+
+def _pick_indices(raw: mne.io.BaseRaw, picks: str | Sequence[str]) -> np.ndarray:
+    """Channel indices for ``picks`` ("eeg" or channel names); ``ValueError`` if none."""
+    import mne
+
+    if isinstance(picks, str) and picks == "eeg":
+        idx = mne.pick_types(raw.info, eeg=True, exclude="bads")
+    else:
+        names = [picks] if isinstance(picks, str) else list(picks)
+        missing = sorted(set(names) - set(raw.ch_names))
+        if missing:
+            raise ValueError(f"channels not in the recording: {missing}")
+        idx = mne.pick_channels(raw.ch_names, include=names, ordered=True)
+    if len(idx) == 0:
+        raise ValueError(f"no channels match picks={picks!r}")
+    return np.asarray(idx)

@@ -1,0 +1,167 @@
+"""Calibration report: ErrP grand averages, topographies, training curves, confusion matrix.
+
+Writes ``report.png`` and a small ``report.html`` (metrics table + the figure). Figures are
+drawn with matplotlib's Agg canvas (no display needed). Reports of virtual-subject data say
+SYNTHETIC in the title and in the page.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from services.eeg.calibration import CalibrationResult
+    from services.eeg.preprocessing import EpochSet
+
+REPORT_PNG = "report.png"
+REPORT_HTML = "report.html"
+WAVEFORM_CHANNELS = ("FCz", "Cz")
+
+
+def difference_wave(epochs: EpochSet, channel: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Grand averages in microvolts at ``channel``: (error, correct, error - correct)."""
+    i = epochs.ch_names.index(channel)
+    error = epochs.X[epochs.y == 1, i].mean(axis=0) * 1e6
+    correct = epochs.X[epochs.y == 0, i].mean(axis=0) * 1e6
+    return error, correct, error - correct
+
+
+def _epoch_times(epochs: EpochSet) -> np.ndarray:
+    p = epochs.params
+    return (round(p.tmin * p.sfreq_out) + np.arange(p.n_times_epoch)) / p.sfreq_out
+
+
+def _topomap_info(epochs: EpochSet):
+    """MNE Info with the biosemi64 montage, or None if the channels are not all in it."""
+    import mne
+
+    montage = mne.channels.make_standard_montage("biosemi64")
+    if not set(epochs.ch_names) <= set(montage.ch_names):
+        return None
+    info = mne.create_info(epochs.ch_names, epochs.params.sfreq_out, "eeg")
+    info.set_montage(montage)
+    return info
+
+
+def draw_report(result: CalibrationResult) -> Figure:
+    """The calibration report figure (2 x 3 panels)."""
+    import mne
+
+    epochs, metrics, history = result.epochs, result.metrics, result.history
+    times_ms = _epoch_times(epochs) * 1e3
+    fig = Figure(figsize=(15, 8.5), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 3)
+    tag = "SYNTHETIC (virtual subject) - " if epochs.synthetic else ""
+    fig.suptitle(
+        f"{tag}ErrP calibration: test accuracy {metrics['test_accuracy']:.2f}, balanced "
+        f"{metrics['balanced_accuracy']:.2f}, ROC AUC {metrics['roc_auc']:.2f} "
+        f"({metrics['n_epochs']} epochs, {int(np.sum(epochs.y))} errors)"
+    )
+    channels = [c for c in WAVEFORM_CHANNELS if c in epochs.ch_names]
+    ax = axes[0, 0]
+    diff_ref = None
+    for channel, color in zip(channels, ("C0", "C3"), strict=False):
+        error, correct, diff = difference_wave(epochs, channel)
+        ax.plot(times_ms, diff, color=color, lw=2, label=f"{channel} error - correct")
+        ax.plot(times_ms, error, color=color, lw=0.8, ls="--", label=f"{channel} error")
+        ax.plot(times_ms, correct, color=color, lw=0.8, ls=":", label=f"{channel} correct")
+        diff_ref = diff if diff_ref is None else diff_ref
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set(xlabel="time after action (ms)", ylabel="µV", title="Grand average (causal 1-40 Hz)")
+    ax.legend(fontsize=7)
+
+    info = _topomap_info(epochs)
+    diff_all = (epochs.X[epochs.y == 1].mean(0) - epochs.X[epochs.y == 0].mean(0)) * 1e6
+    for ax, pick in zip(axes[0, 1:], (np.argmin, np.argmax), strict=True):
+        if info is None or diff_ref is None:
+            ax.axis("off")
+            ax.text(0.5, 0.5, "no topography: channels not in biosemi64", ha="center")
+            continue
+        k = int(pick(diff_ref))
+        values = diff_all[:, k]
+        lim = float(np.abs(values).max()) or 1.0
+        im, _ = mne.viz.plot_topomap(
+            values, info, axes=ax, show=False, cmap="RdBu_r", vlim=(-lim, lim)
+        )
+        fig.colorbar(im, ax=ax, shrink=0.7, label="µV")
+        kind = "negative" if pick is np.argmin else "positive"
+        ax.set_title(f"Error - correct at {kind} peak ({times_ms[k]:.0f} ms)")
+
+    ax = axes[1, 0]
+    passes = np.arange(1, len(history["train_loss"]) + 1)
+    ax.plot(passes, history["train_loss"], label="train loss")
+    ax.plot(passes, history["val_loss"], label="validation loss")
+    ax.axvline(metrics["best_training_epoch"] + 1, color="k", ls="--", lw=0.8, label="kept")
+    ax.set(xlabel="training epoch", ylabel="weighted cross-entropy", title="Training curves")
+    ax.legend(fontsize=8)
+    ax = axes[1, 1]
+    ax.plot(passes, history["val_accuracy"], color="C2")
+    ax.set(xlabel="training epoch", ylabel="accuracy", title="Validation accuracy", ylim=(0, 1))
+
+    ax = axes[1, 2]
+    cm = np.asarray(metrics["confusion_matrix"])
+    ax.imshow(cm, cmap="Blues")
+    for (r, c), v in np.ndenumerate(cm):
+        ax.text(c, r, str(v), ha="center", va="center", fontsize=14)
+    ax.set(
+        xticks=[0, 1],
+        yticks=[0, 1],
+        xticklabels=["correct", "error"],
+        yticklabels=["correct", "error"],
+        xlabel="predicted",
+        ylabel="true",
+        title=f"Test confusion matrix (n={cm.sum()})",
+    )
+    return fig
+
+
+def write_report(result: CalibrationResult, out_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``report.png`` and ``report.html`` to ``out_dir``; returns their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    png, page = out / REPORT_PNG, out / REPORT_HTML
+    draw_report(result).savefig(png, dpi=90)
+    m = result.metrics
+    keys = (
+        "test_accuracy",
+        "balanced_accuracy",
+        "roc_auc",
+        "n_epochs",
+        "n_train",
+        "n_val",
+        "n_test",
+        "error_fraction",
+        "n_params",
+        "best_training_epoch",
+        "train_seconds",
+        "seed",
+    )
+    rows = "\n".join(
+        f"<tr><th>{k}</th><td>{v:.3f}</td></tr>"
+        if isinstance(v, float)
+        else f"<tr><th>{k}</th><td>{html.escape(str(v))}</td></tr>"
+        for k in keys
+        if (v := m.get(k)) is not None
+    )
+    banner = (
+        '<p style="color:#b00;font-weight:bold">SYNTHETIC data (virtual subject), not a '
+        "real recording.</p>"
+        if result.epochs.synthetic
+        else ""
+    )
+    page.write_text(
+        "<!doctype html><html><head><meta charset='utf-8'><title>ErrP calibration report"
+        f"</title></head><body><h1>ErrP calibration report</h1>{banner}"
+        f"<table>{rows}</table><p>Confusion matrix (rows true, columns predicted; "
+        f"correct, error): {html.escape(str(m['confusion_matrix']))}</p>"
+        f"<img src='{REPORT_PNG}' alt='calibration report figure' style='max-width:100%'>"
+        "</body></html>"
+    )
+    return png, page

@@ -1,0 +1,122 @@
+"""Calibration: split, metrics, a real training run on the virtual subject, save/load."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from services.eeg.calibration import (
+    Split,
+    TrainingConfig,
+    calibrate,
+    classification_metrics,
+    roc_auc,
+    stratified_split,
+    train_classifier,
+)
+from services.eeg.classifier import TORCHSCRIPT_FILE, ErrPClassifier
+from services.eeg.preprocessing import EpochSet, PreprocessingParams
+from services.eeg.virtual_subject import eeg_channel_names, simulate_recording
+
+CH_NAMES = eeg_channel_names()
+
+
+def _toy_epochs(n: int = 120, seed: int = 0) -> EpochSet:
+    """Test data (not EEG): white noise with a fixed pattern added to class-1 epochs."""
+    rng = np.random.default_rng(seed)
+    y = (rng.random(n) < 0.3).astype(np.int64)
+    X = rng.normal(scale=10e-6, size=(n, 64, 103)).astype(np.float32)
+    X[y == 1, 10:20, 30:50] += 8e-6
+    return EpochSet(X, y, CH_NAMES, PreprocessingParams(), 2048.0, synthetic=True)
+
+
+def test_stratified_split_fractions_and_determinism() -> None:
+    y = np.array([1] * 200 + [0] * 500)
+    split = stratified_split(y, seed=3)
+    assert (split.train.size, split.val.size, split.test.size) == (560, 84, 56)
+    assert y[split.test].sum() == 16 and y[split.val].sum() == 24
+    all_idx = np.concatenate([split.train, split.val, split.test])
+    assert np.array_equal(np.sort(all_idx), np.arange(y.size))
+    again = stratified_split(y, seed=3)
+    assert np.array_equal(split.test, again.test)
+    assert not np.array_equal(split.test, stratified_split(y, seed=4).test)
+
+
+def test_roc_auc_and_metrics() -> None:
+    y = np.array([0, 0, 1, 1])
+    assert roc_auc(y, np.array([0.1, 0.2, 0.8, 0.9])) == 1.0
+    assert roc_auc(y, np.array([0.9, 0.8, 0.2, 0.1])) == 0.0
+    assert roc_auc(y, np.array([0.5, 0.5, 0.5, 0.5])) == 0.5
+    assert roc_auc(y, np.array([0.1, 0.4, 0.35, 0.8])) == 0.75
+    m = classification_metrics(np.array([0, 0, 0, 1, 1]), np.array([0.1, 0.6, 0.2, 0.7, 0.4]))
+    assert m["confusion_matrix"] == [[2, 1], [1, 1]]
+    assert m["test_accuracy"] == pytest.approx(0.6)
+    assert m["balanced_accuracy"] == pytest.approx((2 / 3 + 1 / 2) / 2)
+
+
+def test_training_refuses_single_class() -> None:
+    epochs = _toy_epochs()
+    one_class = EpochSet(epochs.X, np.zeros_like(epochs.y), CH_NAMES, epochs.params, 2048.0)
+    with pytest.raises(ValueError, match="both correct and error"):
+        train_classifier(one_class)
+
+
+def test_calibration_on_virtual_subject_beats_chance() -> None:
+    """A clean SYNTHETIC subject: the held-out ROC AUC and balanced accuracy exceed chance."""
+    from services.eeg.preprocessing import epochs_from_raw
+
+    labels = np.random.default_rng(5).random(300) >= 0.4
+    epochs = epochs_from_raw(simulate_recording(labels, quality=1.0, seed=5))
+    split = stratified_split(epochs.y, seed=5, fractions=(0.6, 0.15, 0.25))
+    result = train_classifier(epochs, seed=5, split=split, config=TrainingConfig(max_epochs=60))
+    m = result.metrics
+    assert m["n_test"] == 75
+    assert m["roc_auc"] > 0.7, m
+    assert m["balanced_accuracy"] > 0.6, m
+
+
+def test_save_load_round_trip_and_torchscript(tmp_path) -> None:
+    epochs = _toy_epochs()
+    result = calibrate(epochs, seed=1, out_dir=tmp_path, config=TrainingConfig(max_epochs=4))
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    for key in ("test_accuracy", "balanced_accuracy", "roc_auc", "n_epochs", "n_params"):
+        assert key in metrics
+    assert metrics["n_epochs"] == 120 and metrics["n_params"] == 786
+    assert (tmp_path / "report.png").stat().st_size > 10_000
+    assert "SYNTHETIC" in (tmp_path / "report.html").read_text()
+
+    loaded = ErrPClassifier.load(tmp_path)
+    assert loaded.ch_names == CH_NAMES and loaded.params == PreprocessingParams()
+    assert loaded.metrics["roc_auc"] == pytest.approx(result.metrics["roc_auc"], nan_ok=True)
+    p = result.classifier.predict_proba(epochs.X[:7])
+    np.testing.assert_allclose(loaded.predict_proba(epochs.X[:7]), p, rtol=1e-6)
+    scripted = torch.jit.load(str(tmp_path / TORCHSCRIPT_FILE))
+    np.testing.assert_allclose(
+        scripted(torch.from_numpy(epochs.X[:7])).detach().numpy(), p, rtol=1e-5, atol=1e-6
+    )
+    assert loaded.predict_proba(epochs.X[0]).shape == (1,)
+
+
+def test_mismatched_data_is_refused() -> None:
+    epochs = _toy_epochs(60)
+    split = Split(np.arange(40), np.arange(40, 50), np.arange(50, 60))
+    clf = train_classifier(epochs, split=split, config=TrainingConfig(max_epochs=1)).classifier
+    clf.check_compatible(CH_NAMES, 2048.0)
+    with pytest.raises(ValueError, match="missing \\['Cz'\\]"):
+        clf.check_compatible([c for c in CH_NAMES if c != "Cz"], 2048.0)
+    with pytest.raises(ValueError, match="different order"):
+        clf.check_compatible(CH_NAMES[::-1], 2048.0)
+    with pytest.raises(ValueError, match="sampling rate"):
+        clf.check_compatible(CH_NAMES, 1024.0)
+    with pytest.raises(ValueError, match="shape"):
+        clf.predict_proba(np.zeros((2, 63, 103), dtype=np.float32))
+    with pytest.raises(ValueError, match="NaN"):
+        clf.predict_proba(np.full((1, 64, 103), np.nan, dtype=np.float32))
+
+
+def test_load_refuses_missing_classifier(tmp_path) -> None:
+    with pytest.raises(ValueError, match=r"classifier\.json"):
+        ErrPClassifier.load(tmp_path)
