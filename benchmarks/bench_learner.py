@@ -1,0 +1,178 @@
+"""Learner benchmark: PPO throughput vs Stable-Baselines3, Fhat update rate, time to 0.7 SPL.
+
+Every figure is measured against a peer in the same process:
+
+* ``ppo_steps_per_second`` of our PPO vs SB3 PPO on the same env (BrainNav SSSG, sparse),
+  same network (separate 64-64 tanh actor and critic), same rollout settings (128 steps,
+  64 epochs, minibatch 64, lr 3e-4), single thread: ratio ``ours / sb3``, in wall-clock and
+  in process CPU time (the robust figure on a shared machine).
+* ``fhat_labels_per_second`` with K_HF replay updates per label, against the same learner
+  with K_HF = 0 (the cost of a single SGD step per label).
+* ``time_to_spl_0_7`` of HF+sparse (C = 0.7, stage 2 included) against RL-sparse with the
+  same seed, both stopped when the greedy policy first reaches SPL 0.7 or at 40k steps.
+
+Run: ``bgrl bench learner --out DIR`` (writes ``DIR/learner.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from services.learner.experiments import SPL_TARGET, make_spec, ppo_config_for
+from services.learner.feedback import (
+    FeedbackConfig,
+    FeedbackLearner,
+    OracleFeedbackSource,
+    collect_feedback,
+)
+from services.learner.networks import ObsNormalizer
+from services.learner.ppo import Callback, PPOConfig, train
+
+ENV_ID = "services.sim:BrainNav-SSSG-v0"
+
+
+def _ppo_throughput_ours(steps: int) -> tuple[float, float]:
+    config = PPOConfig(env_id=ENV_ID, total_steps=steps, eval_every=10 * steps)
+    start, cpu_start = time.perf_counter(), time.process_time()
+    train(config)
+    return steps / (time.perf_counter() - start), steps / (time.process_time() - cpu_start)
+
+
+def _ppo_throughput_sb3(steps: int) -> tuple[float, float]:
+    from stable_baselines3 import PPO
+
+    start, cpu_start = time.perf_counter(), time.process_time()  # env construction included
+    env = gym.make(ENV_ID, reward_mode="sparse")
+    model = PPO(
+        "MlpPolicy",
+        env,
+        learning_rate=3e-4,
+        n_steps=128,
+        batch_size=64,
+        n_epochs=64,
+        gamma=0.99,
+        gae_lambda=0.95,
+        clip_range=0.2,
+        ent_coef=0.02,
+        vf_coef=0.5,
+        max_grad_norm=25.0,
+        policy_kwargs={"net_arch": {"pi": [64, 64], "vf": [64, 64]}},
+        seed=0,
+        device="cpu",
+        verbose=0,
+    )
+    model.learn(total_timesteps=steps)
+    elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
+    env.close()
+    return steps / elapsed, steps / cpu
+
+
+def _fhat_rate(n_labels: int, replay_updates: int) -> float:
+    space = gym.spaces.Box(low=np.zeros(13, np.float32), high=np.full(13, 13.0, np.float32))
+    learner = FeedbackLearner(
+        ObsNormalizer.from_space(space), FeedbackConfig(replay_updates=replay_updates), seed=0
+    )
+    rng = np.random.default_rng(0)
+    obs = rng.uniform(0, 13, size=(n_labels, 13)).astype(np.float32)
+    actions = rng.integers(0, 3, n_labels)
+    labels = rng.random(n_labels) < 0.5
+    start = time.perf_counter()
+    for i in range(n_labels):
+        learner.add(obs[i], int(actions[i]), bool(labels[i]))
+    return n_labels / (time.perf_counter() - start)
+
+
+class _StopAtTarget(Callback):
+    def __init__(self) -> None:
+        self.reached_at: int | None = None
+
+    def on_eval(self, global_step: int, spl: float) -> bool:
+        if spl >= SPL_TARGET and self.reached_at is None:
+            self.reached_at = global_step
+        return self.reached_at is None
+
+
+def _time_to_target(method: str, seed: int, total_steps: int) -> dict[str, Any]:
+    spec = make_spec(
+        "sssg",
+        method,
+        seed,
+        accuracy=0.7 if method == "hf_sparse" else None,
+        ppo_overrides={"total_steps": total_steps},
+    )
+    config = ppo_config_for(spec)
+    start = time.perf_counter()
+    hf_policy = None
+    if method == "hf_sparse":
+        env = gym.make(config.env_id, **config.env_kwargs)
+        hf_policy = collect_feedback(
+            env, OracleFeedbackSource(0.7, seed=seed + 7919), 1000, seed=seed
+        ).policy
+        env.close()
+    stopper = _StopAtTarget()
+    result = train(config, stopper, hf_policy=hf_policy)
+    return {
+        "method": method,
+        "seed": seed,
+        "env_steps_to_0_7": stopper.reached_at,
+        "wall_seconds": time.perf_counter() - start,
+        "env_steps_run": result.global_step,
+    }
+
+
+def run_benchmark(
+    out_dir: str | Path, *, steps: int = 4096, target_steps: int = 40_000
+) -> dict[str, Any]:
+    """Measure everything and write ``out_dir/learner.json``.
+
+    ``steps`` env steps per throughput measurement; ``target_steps`` is the budget of the
+    two time-to-0.7 runs (each stops as soon as its greedy policy reaches SPL 0.7).
+    """
+    torch.set_num_threads(1)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    gym.make(ENV_ID).close()  # warm-up: builds the oracle's disk cache once
+    ours, ours_cpu = _ppo_throughput_ours(steps)
+    sb3, sb3_cpu = _ppo_throughput_sb3(steps)
+    fhat = _fhat_rate(300, FeedbackConfig().replay_updates)
+    fhat_single = _fhat_rate(300, 0)
+    hf_run = _time_to_target("hf_sparse", seed=0, total_steps=target_steps)
+    rl_run = _time_to_target("rl_sparse", seed=0, total_steps=target_steps)
+    figures = {
+        "ppo_steps_per_second": ours,
+        "sb3_ppo_steps_per_second": sb3,
+        "ppo_speedup_vs_sb3": ours / sb3,
+        "ppo_steps_per_cpu_second": ours_cpu,
+        "sb3_ppo_steps_per_cpu_second": sb3_cpu,
+        "ppo_speedup_vs_sb3_cpu_time": ours_cpu / sb3_cpu,
+        "fhat_labels_per_second_k_hf": fhat,
+        "fhat_k_hf": FeedbackConfig().replay_updates,
+        "fhat_labels_per_second_k0": fhat_single,
+        "hf_sparse_c0_7_steps_to_0_7": hf_run["env_steps_to_0_7"],
+        "hf_sparse_c0_7_seconds": hf_run["wall_seconds"],
+        "rl_sparse_steps_to_0_7": rl_run["env_steps_to_0_7"],
+        "rl_sparse_seconds": rl_run["wall_seconds"],
+    }
+    result = {
+        "name": "learner",
+        "figures": figures,
+        "runs": [hf_run, rl_run],
+        "settings": {
+            "throughput_steps": steps,
+            "time_to_target_budget_steps": target_steps,
+            "env": ENV_ID,
+            "torch_threads": torch.get_num_threads(),
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+        },
+    }
+    (out / "learner.json").write_text(json.dumps(result, indent=1))
+    return result

@@ -1,0 +1,148 @@
+"""``bgrl reproduce`` (the paper's simulated-feedback experiment) and ``bgrl bench learner``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from tqdm import tqdm
+
+
+def _split(value: str) -> list[str]:
+    return [item.strip() for item in value.split(",") if item.strip()]
+
+
+def reproduce(
+    out: Annotated[Path, typer.Option(help="Output folder (results.json, CSV, plots).")],
+    quick: Annotated[
+        bool, typer.Option(help="2 seeds: a < 20 min check of every task and method.")
+    ] = False,
+    seeds: Annotated[
+        int | None, typer.Option(min=1, help="Seeds per configuration (default 10, quick 2).")
+    ] = None,
+    first_seed: Annotated[int, typer.Option(min=0, help="First seed.")] = 0,
+    workers: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 2,
+    tasks: Annotated[str, typer.Option(help="Comma-separated: sssg,vssg.")] = "sssg,vssg",
+    methods: Annotated[
+        str, typer.Option(help="Comma-separated: rl_sparse,rl_rich,hf_sparse.")
+    ] = "rl_sparse,rl_rich,hf_sparse",
+    accuracies: Annotated[
+        str, typer.Option(help="Comma-separated feedback accuracies C.")
+    ] = "0.55,0.6,0.7",
+    treatments: Annotated[
+        str, typer.Option(help="HF-step treatments: authors,truncated_is.")
+    ] = "authors",
+    map_path: Annotated[
+        Path | None, typer.Option("--map", help="Map JSON (default: the sim's default map).")
+    ] = None,
+    reward_scale: Annotated[
+        float | None, typer.Option(help="Override PPO's reward scale (all methods).")
+    ] = None,
+    total_steps: Annotated[
+        int | None, typer.Option(min=128, help="Override the 40k-step budget.")
+    ] = None,
+    hf_guide_sampling: Annotated[
+        bool, typer.Option(help="HF episodes sample from pi_HF instead of its argmax.")
+    ] = False,
+) -> None:
+    """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG."""
+    from services.learner.experiments import FULL_SEEDS, QUICK_SEEDS, build_specs
+    from services.learner.experiments import reproduce as run_reproduction
+
+    n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
+    overrides: dict[str, float | int | bool] = {}
+    if hf_guide_sampling:
+        overrides["hf_guide_sampling"] = True
+    if reward_scale is not None:
+        overrides["reward_scale"] = reward_scale
+    if total_steps is not None:
+        overrides["total_steps"] = total_steps
+    try:
+        specs = build_specs(
+            seeds=n_seeds,
+            first_seed=first_seed,
+            tasks=_split(tasks),
+            methods=_split(methods),
+            accuracies=[float(c) for c in _split(accuracies)],
+            treatments=_split(treatments),
+            map_path=None if map_path is None else str(map_path),
+            ppo_overrides=overrides,
+        )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    with tqdm(total=len(specs), desc="reproduce", unit="run") as bar:
+
+        def done(record: dict) -> None:
+            bar.set_postfix_str(
+                f"{record['task']} {record['method']} C={record['accuracy']} "
+                f"seed={record['seed']} SPL={record['final_spl']:.2f}"
+            )
+            bar.update(1)
+
+        document = run_reproduction(
+            out,
+            specs,
+            workers=workers,
+            config_note={"cli": {"quick": quick, "seeds": n_seeds, "overrides": overrides}},
+            on_done=done,
+        )
+        bar.n = len(document["runs"])
+        bar.refresh()
+    typer.echo((out / "summary.md").read_text())
+    typer.echo(f"wrote {out / 'results.json'}, results.csv, summary.md and fig3_*.png")
+
+
+def hf_sweep(
+    out: Annotated[Path, typer.Option(help="Output folder; writes hf_policies.json.")],
+    seeds: Annotated[int, typer.Option(min=1, help="Seeds per task and C.")] = 10,
+    workers: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
+    tasks: Annotated[str, typer.Option(help="Comma-separated: sssg,vssg.")] = "sssg,vssg",
+    accuracies: Annotated[
+        str, typer.Option(help="Comma-separated feedback accuracies C.")
+    ] = "0.55,0.6,0.7",
+) -> None:
+    """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs feedback accuracy C."""
+    from services.learner.experiments import hf_policy_sweep
+
+    rows = hf_policy_sweep(
+        out,
+        tasks=_split(tasks),
+        accuracies=[float(c) for c in _split(accuracies)],
+        seeds=seeds,
+        workers=workers,
+    )
+    groups: dict[tuple[str, float], list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["task"], row["accuracy"]), []).append(row)
+    for (task, accuracy), members in sorted(groups.items()):
+        greedy = [m["greedy_spl"] for m in members]
+        sampled = [m["sampled_success_rate"] for m in members]
+        typer.echo(
+            f"{task} C={accuracy:g} n={len(members)} greedy SPL "
+            f"{sum(greedy) / len(greedy):.2f}, sampled success {sum(sampled) / len(sampled):.2f}"
+        )
+
+
+def bench_learner(
+    out: Annotated[Path, typer.Option(help="Output folder; writes learner.json.")],
+    steps: Annotated[
+        int, typer.Option(min=256, help="Env steps per throughput measurement.")
+    ] = 4096,
+    target_steps: Annotated[
+        int, typer.Option(min=2000, help="Budget of the time-to-0.7-SPL runs.")
+    ] = 40_000,
+) -> None:
+    """PPO throughput vs Stable-Baselines3, Fhat update rate, HF+sparse time to 0.7 SPL."""
+    from benchmarks.bench_learner import run_benchmark
+
+    result = run_benchmark(out, steps=steps, target_steps=target_steps)
+    typer.echo(json.dumps(result["figures"], indent=1))
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``reproduce``, ``hf-sweep`` and ``bench learner``."""
+    app.command("reproduce")(reproduce)
+    app.command("hf-sweep")(hf_sweep)
+    bench_app.command("learner")(bench_learner)

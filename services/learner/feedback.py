@@ -1,0 +1,487 @@
+"""Stage 2 of Brain-Guided RL: the feedback model Fhat and the human-feedback policy pi_HF.
+
+Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
+§Human Feedback Policy and Algorithm 1 (``Train the HF policy``).
+
+* :class:`FeedbackModel` is Fhat: observation (13) -> hidden (16, tanh) -> one logit per
+  action. ``sigmoid(Fhat(s)[a])`` is the predicted probability that ``a`` is judged correct.
+  Training uses binary cross-entropy on the output of the *taken* action only.
+* :class:`FeedbackReplayBuffer` keeps every training label. The "newer is more important"
+  rule (DESIGN §2, from the authors' code): each replay minibatch is, with probability
+  ``newest_fraction`` (0.3), the ``batch_size`` newest labels, otherwise a uniform sample of
+  all labels. So the newest labels are replayed far more often than old ones.
+* :class:`FeedbackLearner` applies Algorithm 1's update per label: one SGD step on the new
+  label, then ``replay_updates`` (K_HF) minibatch steps from the buffer. Every label is held
+  out for validation with probability ``validation_fraction`` (0.2) and never trained on.
+* :class:`HFPolicy` samples from ``softmax(beta * sigmoid(Fhat(s)))`` (beta = 8) while
+  labels are collected, so the labelled actions stay diverse, and acts greedily
+  (``argmax_a Fhat(s, a)``, the paper's pi_HF) when it guides RL.
+* Feedback sources share the :class:`FeedbackSource` protocol: the noisy oracle
+  (:class:`OracleFeedbackSource`), decoded EEG feedback from a queue or callable
+  (:class:`StreamFeedbackSource`) and stored labels (:class:`ReplayFeedbackSource`).
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+from services.core.actions import N_ACTIONS
+from services.learner.networks import ObsNormalizer, layer_init
+
+
+@dataclass
+class FeedbackConfig:
+    """Hyperparameters of Fhat, its replay buffer and pi_HF."""
+
+    hidden_size: int = 16
+    """Width of Fhat's single hidden layer (paper: 16)."""
+    lr: float = 1e-3
+    """Adam learning rate of Fhat."""
+    replay_updates: int = 16
+    """K_HF: replay minibatch updates after each new training label."""
+    batch_size: int = 32
+    """Replay minibatch size."""
+    newest_fraction: float = 0.3
+    """Probability that a replay minibatch is the newest ``batch_size`` labels."""
+    validation_fraction: float = 0.2
+    """Probability that a label is held out for validation instead of trained on."""
+    beta: float = 8.0
+    """Inverse temperature of the sampling policy softmax(beta * sigmoid(Fhat))."""
+
+    def __post_init__(self) -> None:
+        if self.hidden_size < 1 or self.batch_size < 1 or self.replay_updates < 0:
+            raise ValueError("hidden_size and batch_size must be >= 1, replay_updates >= 0")
+        if not 0.0 <= self.newest_fraction <= 1.0:
+            raise ValueError(f"newest_fraction must be in [0, 1], got {self.newest_fraction}")
+        if not 0.0 <= self.validation_fraction < 1.0:
+            raise ValueError(
+                f"validation_fraction must be in [0, 1), got {self.validation_fraction}"
+            )
+
+
+class FeedbackModel(nn.Module):
+    """Fhat(s, .): fixed normalisation -> Linear(n_obs, hidden) -> tanh -> Linear(hidden, 3).
+
+    Parameters
+    ----------
+    normalizer : ObsNormalizer
+        Fixed observation normalisation (part of the model).
+    hidden_size : int
+        Width of the hidden layer (paper: 16).
+    n_actions : int
+        Number of discrete actions (one output each).
+    """
+
+    def __init__(
+        self, normalizer: ObsNormalizer, hidden_size: int = 16, n_actions: int = N_ACTIONS
+    ) -> None:
+        super().__init__()
+        self.normalizer = normalizer
+        self.hidden = layer_init(nn.Linear(normalizer.n_obs, hidden_size))
+        self.output = layer_init(nn.Linear(hidden_size, n_actions), std=1.0)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Logits of "action judged correct", shape (..., n_actions)."""
+        return self.output(torch.tanh(self.hidden(self.normalizer(obs))))
+
+    def loss(self, obs: torch.Tensor, actions: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        """Binary cross-entropy on the taken action's output only."""
+        logits = self(obs).gather(-1, actions.long().unsqueeze(-1)).squeeze(-1)
+        return nn.functional.binary_cross_entropy_with_logits(logits, labels.float())
+
+
+class FeedbackReplayBuffer:
+    """All training labels ``(s, a, f)``; replay minibatches favour the newest labels.
+
+    Rule: with probability ``newest_fraction`` a minibatch is the ``batch_size`` newest labels;
+    otherwise it is drawn uniformly (with replacement) from all labels.
+    """
+
+    def __init__(self, n_obs: int, capacity: int = 100_000) -> None:
+        self.obs = np.zeros((capacity, n_obs), dtype=np.float32)
+        self.actions = np.zeros(capacity, dtype=np.int64)
+        self.labels = np.zeros(capacity, dtype=np.float32)
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs: np.ndarray, action: int, label: bool) -> None:
+        """Append one label."""
+        if self.size == len(self.labels):
+            raise OverflowError(f"feedback buffer is full ({self.size} labels)")
+        self.obs[self.size] = obs
+        self.actions[self.size] = action
+        self.labels[self.size] = float(label)
+        self.size += 1
+
+    def sample_indices(
+        self, rng: np.random.Generator, batch_size: int, newest_fraction: float
+    ) -> np.ndarray:
+        """Indices of one replay minibatch under the recency rule."""
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty feedback buffer")
+        if rng.random() < newest_fraction:
+            return np.arange(max(0, self.size - batch_size), self.size)
+        return rng.integers(0, self.size, size=min(batch_size, self.size))
+
+    def tensors(self, indices: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(obs, actions, labels) tensors of the given rows."""
+        return (
+            torch.from_numpy(self.obs[indices]),
+            torch.from_numpy(self.actions[indices]),
+            torch.from_numpy(self.labels[indices]),
+        )
+
+
+@dataclass
+class FeedbackRecord:
+    """One labelled step of a feedback session."""
+
+    obs: list[float]
+    action: int
+    label: bool
+    """The feedback received (True = judged correct)."""
+    optimal: bool | None
+    """The oracle's truth, when known (simulation); None for real EEG feedback."""
+    validation: bool
+    """Held out for validation (never trained on)."""
+
+
+class FeedbackLearner:
+    """Online training of Fhat from a stream of labels (Algorithm 1, stage 2)."""
+
+    def __init__(
+        self, normalizer: ObsNormalizer, config: FeedbackConfig | None = None, seed: int = 0
+    ) -> None:
+        self.config = config or FeedbackConfig()
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.model = FeedbackModel(normalizer, self.config.hidden_size)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.config.lr)
+        self.buffer = FeedbackReplayBuffer(normalizer.n_obs)
+        self.rng = np.random.default_rng(seed)
+        self.validation: list[FeedbackRecord] = []
+        self.n_updates = 0
+
+    def _step(self, obs: torch.Tensor, actions: torch.Tensor, labels: torch.Tensor) -> float:
+        loss = self.model.loss(obs, actions, labels)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.n_updates += 1
+        return float(loss.detach())
+
+    def add(
+        self, obs: np.ndarray, action: int, label: bool, optimal: bool | None = None
+    ) -> FeedbackRecord:
+        """Route a label to validation or training; a training label triggers 1 + K_HF steps."""
+        obs = np.asarray(obs, dtype=np.float32)
+        is_validation = bool(self.rng.random() < self.config.validation_fraction)
+        record = FeedbackRecord(
+            obs=obs.tolist(),
+            action=int(action),
+            label=bool(label),
+            optimal=None if optimal is None else bool(optimal),
+            validation=is_validation,
+        )
+        if is_validation:
+            self.validation.append(record)
+            return record
+        self._step(
+            torch.from_numpy(obs[None]),
+            torch.tensor([int(action)]),
+            torch.tensor([float(label)]),
+        )
+        self.buffer.add(obs, action, label)
+        for _ in range(self.config.replay_updates):
+            indices = self.buffer.sample_indices(
+                self.rng, self.config.batch_size, self.config.newest_fraction
+            )
+            self._step(*self.buffer.tensors(indices))
+        return record
+
+    def validation_accuracy(self) -> tuple[float | None, float | None]:
+        """Accuracy of ``sigmoid(Fhat(s)[a]) > 0.5`` on held-out labels: (noisy, true).
+
+        The second figure uses the oracle's truth and is None when no truth is known.
+        """
+        if not self.validation:
+            return None, None
+        obs = torch.tensor([r.obs for r in self.validation], dtype=torch.float32)
+        actions = torch.tensor([r.action for r in self.validation])
+        with torch.no_grad():
+            logits = self.model(obs).gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+        predicted = (logits > 0).numpy()
+        noisy = np.array([r.label for r in self.validation])
+        acc_noisy = float(np.mean(predicted == noisy))
+        known = [r for r in self.validation if r.optimal is not None]
+        if not known:
+            return acc_noisy, None
+        mask = np.array([r.optimal is not None for r in self.validation])
+        truth = np.array([bool(r.optimal) for r in known])
+        return acc_noisy, float(np.mean(predicted[mask] == truth))
+
+
+class HFPolicy:
+    """pi_HF built on Fhat: softened sampling during label collection, argmax for guidance.
+
+    Parameters
+    ----------
+    model : FeedbackModel
+        The feedback model Fhat.
+    beta : float
+        Inverse temperature of ``softmax(beta * sigmoid(Fhat(s)))`` used when sampling.
+    """
+
+    def __init__(self, model: FeedbackModel, beta: float = 8.0) -> None:
+        self.model = model
+        self.beta = beta
+
+    def scores(self, obs: np.ndarray) -> np.ndarray:
+        """``sigmoid(Fhat(s, a))`` for every action."""
+        with torch.no_grad():
+            logits = self.model(torch.as_tensor(np.asarray(obs, dtype=np.float32)))
+        return torch.sigmoid(logits).numpy()
+
+    def sampling_probs(self, obs: np.ndarray) -> np.ndarray:
+        """``softmax(beta * sigmoid(Fhat(s)))``, the label-collection policy."""
+        z = self.beta * self.scores(obs)
+        z = np.exp(z - z.max(axis=-1, keepdims=True))
+        return z / z.sum(axis=-1, keepdims=True)
+
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> int:
+        """Greedy action when ``rng`` is None (guiding RL), else a softened sample."""
+        if rng is None:
+            return int(np.argmax(self.scores(obs)))
+        probs = self.sampling_probs(obs)
+        return int(min(np.searchsorted(np.cumsum(probs), rng.random()), len(probs) - 1))
+
+
+@runtime_checkable
+class FeedbackSource(Protocol):
+    """Anything that judges the action just taken.
+
+    ``feedback(obs, action, optimal)`` returns True (correct), False (error) or None (no
+    label for this step, e.g. a rejected EEG epoch). ``optimal`` is the oracle's truth when
+    the caller knows it (simulation), else None.
+    """
+
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None: ...
+
+
+class OracleFeedbackSource:
+    """Simulated feedback: the Dijkstra oracle's judgement flipped at the given accuracy.
+
+    Parameters
+    ----------
+    accuracy : float, optional
+        Probability C that the feedback matches the truth, for good and bad actions alike.
+    good_accuracy, bad_accuracy : float, optional
+        Separate accuracies for optimal and sub-optimal actions (instead of ``accuracy``).
+    seed : int, optional
+        Seed of the label noise.
+    """
+
+    def __init__(
+        self,
+        accuracy: float | None = None,
+        *,
+        good_accuracy: float | None = None,
+        bad_accuracy: float | None = None,
+        seed: int | None = None,
+    ) -> None:
+        from services.sim.oracle import NoisyOracleFeedback
+
+        self.noisy = NoisyOracleFeedback(
+            accuracy, good_accuracy=good_accuracy, bad_accuracy=bad_accuracy, seed=seed
+        )
+
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool:
+        """Noisy version of ``optimal`` (which must be known)."""
+        if optimal is None:
+            raise ValueError("OracleFeedbackSource needs the oracle's truth (optimal=None given)")
+        return bool(self.noisy.feedback(optimal))
+
+
+class StreamFeedbackSource:
+    """Decoded EEG feedback arriving from a live pipeline.
+
+    Parameters
+    ----------
+    stream : queue.Queue or callable
+        A queue of ``bool`` feedback items, or a callable ``get(timeout_s) -> bool | None``.
+    timeout_s : float
+        How long to wait for the decision of the current action; a missing decision yields
+        None (the step gets no label). Default 1.5 s, one action period.
+    """
+
+    def __init__(
+        self,
+        stream: queue.Queue[bool] | Callable[[float], bool | None],
+        timeout_s: float = 1.5,
+    ) -> None:
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be positive, got {timeout_s}")
+        self.stream = stream
+        self.timeout_s = timeout_s
+
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
+        """The next decoded decision, or None if none arrives in time."""
+        if isinstance(self.stream, queue.Queue):
+            try:
+                item = self.stream.get(timeout=self.timeout_s)
+            except queue.Empty:
+                return None
+        else:
+            item = self.stream(self.timeout_s)
+        return None if item is None else bool(item)
+
+
+class ReplayFeedbackSource:
+    """Stored labels replayed in order (reproduces a recorded session in a seeded env)."""
+
+    def __init__(self, labels: Iterable[bool | None]) -> None:
+        self.labels = list(labels)
+        self.position = 0
+
+    @classmethod
+    def from_records(cls, records: Sequence[FeedbackRecord]) -> ReplayFeedbackSource:
+        """Replay the labels of a previous session's records."""
+        return cls(r.label for r in records)
+
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
+        """The next stored label; raises when the recording is exhausted."""
+        if self.position >= len(self.labels):
+            raise IndexError(f"all {len(self.labels)} stored labels have been replayed")
+        label = self.labels[self.position]
+        self.position += 1
+        return None if label is None else bool(label)
+
+
+@dataclass
+class HFResult:
+    """Outcome of a feedback session (stage 2)."""
+
+    model: FeedbackModel
+    config: FeedbackConfig
+    records: list[FeedbackRecord]
+    n_steps: int
+    n_episodes: int
+    validation_accuracy_noisy: float | None
+    validation_accuracy_true: float | None
+    label_accuracy: float | None
+    """Fraction of received labels that match the oracle's truth (the realised C)."""
+    wall_seconds: float
+
+    @property
+    def policy(self) -> HFPolicy:
+        """The greedy-capable pi_HF built on this Fhat."""
+        return HFPolicy(self.model, self.config.beta)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-able figures (no model weights, no records)."""
+        return {
+            "n_labels": len(self.records),
+            "n_steps": self.n_steps,
+            "n_episodes": self.n_episodes,
+            "validation_accuracy_noisy": self.validation_accuracy_noisy,
+            "validation_accuracy_true": self.validation_accuracy_true,
+            "label_accuracy": self.label_accuracy,
+            "wall_seconds": self.wall_seconds,
+            "config": asdict(self.config),
+        }
+
+
+def _optimal_now(env: gym.Env, action: int) -> bool | None:
+    oracle_actions = getattr(env.unwrapped, "optimal_actions", None)
+    return None if oracle_actions is None else action in oracle_actions()
+
+
+def collect_feedback(
+    env: gym.Env,
+    source: FeedbackSource,
+    n_labels: int = 1000,
+    *,
+    config: FeedbackConfig | None = None,
+    seed: int = 0,
+    max_steps: int | None = None,
+    on_label: Callable[[FeedbackRecord], None] | None = None,
+) -> HFResult:
+    """Run Algorithm 1's stage 2: act with pi_HF (sampling), label, update Fhat.
+
+    Parameters
+    ----------
+    env : gymnasium.Env
+        The task; if it has ``optimal_actions()``, the oracle's truth is recorded per label.
+    source : FeedbackSource
+        Where the feedback comes from.
+    n_labels : int
+        Labels to collect (training and validation together).
+    config : FeedbackConfig, optional
+        Fhat and buffer hyperparameters.
+    seed : int
+        Seeds Fhat's initialisation, the sampling, the validation split and the first reset.
+    max_steps : int, optional
+        Give up after this many env steps (default ``10 * n_labels``) if labels go missing.
+    on_label : callable, optional
+        Called with each new record (progress bars, persistence).
+
+    Returns
+    -------
+    HFResult
+        The trained Fhat, every record and the validation accuracies.
+    """
+    if n_labels < 1:
+        raise ValueError(f"n_labels must be >= 1, got {n_labels}")
+    config = config or FeedbackConfig()
+    max_steps = 10 * n_labels if max_steps is None else max_steps
+    start = time.perf_counter()
+    learner = FeedbackLearner(ObsNormalizer.from_space(env.observation_space), config, seed)
+    policy = HFPolicy(learner.model, config.beta)
+    rng = np.random.default_rng([seed, 1])
+    obs, _ = env.reset(seed=seed)
+    records: list[FeedbackRecord] = []
+    n_steps, n_episodes = 0, 1
+    while len(records) < n_labels:
+        if n_steps >= max_steps:
+            raise RuntimeError(
+                f"only {len(records)}/{n_labels} labels arrived in {max_steps} steps"
+            )
+        action = policy.act(obs, rng)
+        optimal = _optimal_now(env, action)
+        next_obs, _, terminated, truncated, _ = env.step(action)
+        n_steps += 1
+        label = source.feedback(obs, action, optimal)
+        if label is not None:
+            record = learner.add(obs, action, label, optimal)
+            records.append(record)
+            if on_label is not None:
+                on_label(record)
+        obs = next_obs
+        if terminated or truncated:
+            obs, _ = env.reset()
+            n_episodes += 1
+    known = [r for r in records if r.optimal is not None]
+    label_accuracy = float(np.mean([r.label == r.optimal for r in known])) if known else None
+    acc_noisy, acc_true = learner.validation_accuracy()
+    return HFResult(
+        model=learner.model,
+        config=config,
+        records=records,
+        n_steps=n_steps,
+        n_episodes=n_episodes,
+        validation_accuracy_noisy=acc_noisy,
+        validation_accuracy_true=acc_true,
+        label_accuracy=label_accuracy,
+        wall_seconds=time.perf_counter() - start,
+    )

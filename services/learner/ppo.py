@@ -1,0 +1,646 @@
+"""Stage 3 of Brain-Guided RL: PPO from sparse reward, with pi_HF guiding exploration.
+
+Akinola et al., ICRA 2020, §Efficient Sparse-Reward RL with Guided Exploration and
+Algorithm 1 (``Train the RL policy``). Written top to bottom in the style of CleanRL's
+``ppo.py`` (one env, explicit GAE, clipped surrogate), but exposed as
+``train(config, callback) -> TrainResult``.
+
+Guided exploration. At the start of every episode the behaviour policy is the greedy pi_HF
+with probability ``eps_HF(t)``, else pi_RL. ``eps_HF`` is 1 during an optional HF-only
+warm-up of ``hf_warmup_steps``, then falls linearly from ``hf_eps_init`` (0.8) to 0 at
+``hf_t_trans_fraction`` (50 %) of ``total_steps``. Without an HF policy this is plain PPO, so
+RL-sparse, RL-rich and HF+sparse share the network, the hyperparameters and this code.
+
+Two treatments of the steps that pi_HF chose (``hf_treatment``):
+
+* ``"authors"`` - what the authors' code does: the step is stored with pi_RL's log-prob of
+  the HF action and used as if pi_RL had sampled it (no importance correction). This is
+  biased: the surrogate pushes up pi_RL(a_HF|s) in proportion to the advantage, i.e. it acts
+  like advantage-weighted imitation of pi_HF.
+* ``"truncated_is"`` - off-policy-correct: the behaviour policy mu is stored per step
+  (mu(a_HF|s) = 1 for the greedy pi_HF, mu = pi_RL for RL steps). Advantages use traces cut
+  by ``c_t = min(1, pi_old/mu)`` (Retrace, Munos et al. 2016), the surrogate of each step is
+  weighted by ``rho_t = min(is_clip, pi_old/mu)`` and the value target is
+  ``V + rho_t * A_t`` (V-trace, Espeholt et al. 2018); the PPO clip is taken against the
+  policy that collected the batch (decoupled PPO, Hilton et al. 2022). On RL steps
+  ``pi_old/mu = 1`` and everything reduces to standard PPO.
+
+Reward scale. Rewards are multiplied by ``reward_scale`` before GAE, identically for every
+method (0.01 by default: +-100 terminal rewards become +-1; DESIGN §2 reports that a 2-D
+mock-up only learned with 1/100). Time-limit truncation is bootstrapped with
+``gamma * V(s_T)``.
+
+Determinism and resume. All randomness comes from ``config.seed`` (torch init under a forked
+RNG, a numpy Generator for sampling, episode ``k`` reset with seed ``seed * 10**6 + k``).
+Checkpoints are written at update boundaries; resuming re-seeds the env and replays the
+current episode's actions (the env is deterministic), so a resumed run ends identically.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+from services.learner.evaluation import EVAL_SEED_BASE, evaluate_spl
+from services.learner.feedback import HFPolicy
+from services.learner.networks import ObsNormalizer, TwinMLP
+
+HFTreatment = Literal["authors", "truncated_is"]
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class PPOConfig:
+    """Hyperparameters of (guided) PPO; defaults follow DESIGN §2 (the authors' code)."""
+
+    env_id: str = "services.sim:BrainNav-SSSG-v0"
+    """Gymnasium id of the task (its TimeLimit applies)."""
+    env_kwargs: dict[str, Any] = field(default_factory=lambda: {"reward_mode": "sparse"})
+    """Keyword arguments of ``gymnasium.make`` (reward_mode, map_path, ...)."""
+    seed: int = 0
+    """Seed of everything (network init, sampling, resets, minibatches)."""
+    total_steps: int = 40_000
+    """Environment steps of training (the paper's budget)."""
+    n_steps: int = 128
+    """Rollout length per update (one env)."""
+    n_epochs: int = 64
+    """Passes over each rollout (a very high replay ratio, as the authors)."""
+    minibatch_size: int = 64
+    """Minibatch size of the PPO update."""
+    learning_rate: float = 3e-4
+    """Adam learning rate (constant)."""
+    adam_eps: float = 1e-5
+    """Adam epsilon."""
+    gamma: float = 0.99
+    """Discount factor."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    clip_coef: float = 0.2
+    """PPO ratio clip."""
+    ent_coef: float = 0.02
+    """Entropy bonus coefficient."""
+    vf_coef: float = 0.5
+    """Value loss coefficient."""
+    max_grad_norm: float = 25.0
+    """Global gradient-norm clip."""
+    norm_adv: bool = True
+    """Normalise advantages per minibatch (CleanRL default)."""
+    reward_scale: float = 0.01
+    """Multiplier of every reward before learning; identical for all methods."""
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    """Hidden layers of the (separate) actor and critic MLPs, tanh activations."""
+    eval_every: int = 2000
+    """Evaluate the greedy pi_RL every this many env steps (and at step 0)."""
+    eval_seeds: tuple[int, ...] = (EVAL_SEED_BASE,)
+    """Reset seeds of the fixed evaluation starts (see ``evaluation.eval_seeds``)."""
+    hf_eps_init: float = 0.8
+    """eps_HF at the end of the warm-up: probability that an episode follows pi_HF."""
+    hf_t_trans_fraction: float = 0.5
+    """eps_HF reaches 0 at this fraction of ``total_steps``."""
+    hf_warmup_steps: int = 0
+    """Initial steps during which every episode follows pi_HF."""
+    hf_treatment: HFTreatment = "authors"
+    """How PPO uses the steps pi_HF chose: ``authors`` or ``truncated_is`` (module doc)."""
+    is_clip: float = 1.0
+    """rho-bar, the truncation of the importance weight of the surrogate (truncated_is)."""
+    hf_guide_sampling: bool = False
+    """HF episodes sample from pi_HF's softened distribution instead of its argmax (the
+    paper's greedy pi_HF is the default; a factor studied in docs/reproduction.md)."""
+
+    def __post_init__(self) -> None:
+        self.hidden_sizes = tuple(self.hidden_sizes)
+        self.eval_seeds = tuple(self.eval_seeds)
+        if self.n_steps % self.minibatch_size != 0:
+            raise ValueError(
+                f"n_steps ({self.n_steps}) must be a multiple of minibatch_size "
+                f"({self.minibatch_size})"
+            )
+        if self.total_steps < self.n_steps:
+            raise ValueError("total_steps must be at least n_steps")
+        if self.hf_treatment not in ("authors", "truncated_is"):
+            raise ValueError(
+                f"hf_treatment must be 'authors' or 'truncated_is', not {self.hf_treatment!r}"
+            )
+        if not 0.0 <= self.hf_eps_init <= 1.0:
+            raise ValueError(f"hf_eps_init must be in [0, 1], got {self.hf_eps_init}")
+        if not 0.0 < self.hf_t_trans_fraction <= 1.0:
+            raise ValueError("hf_t_trans_fraction must be in (0, 1]")
+        if self.eval_every < 1 or not self.eval_seeds:
+            raise ValueError("eval_every must be >= 1 and eval_seeds non-empty")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> PPOConfig:
+        """Rebuild from ``asdict`` output (e.g. JSON)."""
+        return cls(**data)
+
+
+def hf_epsilon(global_step: int, config: PPOConfig) -> float:
+    """eps_HF at a step: 1 in the warm-up, then linear from eps_init to 0 at t_trans."""
+    if global_step < config.hf_warmup_steps:
+        return 1.0
+    t_trans = config.hf_t_trans_fraction * config.total_steps
+    span = t_trans - config.hf_warmup_steps
+    if span <= 0:
+        return 0.0
+    progress = (global_step - config.hf_warmup_steps) / span
+    return max(0.0, config.hf_eps_init * (1.0 - progress))
+
+
+class ActorCritic(nn.Module):
+    """Fixed observation normalisation, then separate actor and critic tanh MLPs.
+
+    The two towers share nothing but are evaluated together (:class:`TwinMLP`).
+    """
+
+    def __init__(
+        self, normalizer: ObsNormalizer, n_actions: int, hidden_sizes: tuple[int, ...]
+    ) -> None:
+        super().__init__()
+        self.normalizer = normalizer
+        self.towers = TwinMLP(normalizer.n_obs, hidden_sizes, n_actions)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(action logits, state value) for one observation or a batch."""
+        single = obs.dim() == 1
+        out = self.towers(self.normalizer(obs.unsqueeze(0) if single else obs))
+        logits, value = out[0], out[1, :, 0]
+        return (logits[0], value[0]) if single else (logits, value)
+
+
+class PolicyExport(nn.Module):
+    """What TorchScript export contains: normalisation + actor. ``forward`` gives logits."""
+
+    def __init__(self, agent: ActorCritic) -> None:
+        super().__init__()
+        self.agent = agent
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Action logits for raw (unnormalised) observations, one or a batch."""
+        logits, _ = self.agent(obs)
+        return logits
+
+    @torch.jit.export
+    def act(self, obs: torch.Tensor) -> torch.Tensor:
+        """Greedy action(s)."""
+        return torch.argmax(self.forward(obs), dim=-1)
+
+
+def compute_advantages(
+    rewards: np.ndarray,
+    values: np.ndarray,
+    episode_ends: np.ndarray,
+    next_value: float,
+    gamma: float,
+    gae_lambda: float,
+    traces: np.ndarray | None = None,
+) -> np.ndarray:
+    """GAE(lambda), optionally with per-step trace cutting (Retrace-style).
+
+    Parameters
+    ----------
+    rewards, values : ndarray of shape (T,)
+        Reward after step t and V(s_t).
+    episode_ends : ndarray of shape (T,)
+        1 where the episode ended after step t (no bootstrap across it).
+    next_value : float
+        V of the observation after the last step (ignored if that step ended an episode).
+    traces : ndarray of shape (T,), optional
+        ``c_t = min(1, pi/mu)`` of each step; the recursion into step t+1 is multiplied by
+        ``c_{t+1}``. None means on-policy (all ones), i.e. plain GAE.
+
+    Returns
+    -------
+    ndarray of shape (T,)
+        ``A_t = delta_t + gamma * lambda * c_{t+1} * (1 - end_t) * A_{t+1}``.
+    """
+    n = len(rewards)
+    advantages = np.zeros(n, dtype=np.float64)
+    last = 0.0
+    for t in reversed(range(n)):
+        nonterminal = 1.0 - float(episode_ends[t])
+        v_next = next_value if t == n - 1 else values[t + 1]
+        c_next = 1.0 if traces is None or t == n - 1 else float(traces[t + 1])
+        delta = rewards[t] + gamma * v_next * nonterminal - values[t]
+        last = delta + gamma * gae_lambda * c_next * nonterminal * last
+        advantages[t] = last
+    return advantages
+
+
+def ppo_loss(
+    agent: ActorCritic,
+    obs: torch.Tensor,
+    actions: torch.Tensor,
+    old_logp: torch.Tensor,
+    advantages: torch.Tensor,
+    returns: torch.Tensor,
+    weights: torch.Tensor,
+    config: PPOConfig,
+    *,
+    with_stats: bool = True,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Clipped PPO loss of one minibatch.
+
+    ``weights`` multiplies each step's surrogate (1 on-policy; the truncated importance weight
+    rho for off-policy HF steps). Returns the loss and CleanRL-named statistics (empty unless
+    ``with_stats``: computing them costs about a tenth of an update step).
+    """
+    logits, value = agent(obs)
+    log_probs = torch.log_softmax(logits, dim=-1)
+    new_logp = log_probs.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+    entropy = -(log_probs.exp() * log_probs).sum(-1).mean()
+    log_ratio = new_logp - old_logp
+    ratio = log_ratio.exp()
+    if config.norm_adv and len(advantages) > 1:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    surrogate = torch.max(
+        -advantages * ratio,
+        -advantages * torch.clamp(ratio, 1 - config.clip_coef, 1 + config.clip_coef),
+    )
+    pg_loss = (weights * surrogate).mean()
+    v_loss = 0.5 * ((value - returns) ** 2).mean()
+    loss = pg_loss - config.ent_coef * entropy + config.vf_coef * v_loss
+    if not with_stats:
+        return loss, {}
+    with torch.no_grad():
+        stats = {
+            "losses/policy_loss": float(pg_loss),
+            "losses/value_loss": float(v_loss),
+            "losses/entropy": float(entropy),
+            "losses/approx_kl": float(((ratio - 1) - log_ratio).mean()),
+            "losses/clipfrac": float(((ratio - 1.0).abs() > config.clip_coef).float().mean()),
+        }
+    return loss, stats
+
+
+class Callback:
+    """Progress hooks; each returns False to stop training (SB3 style)."""
+
+    def on_step(self, global_step: int, info: dict[str, Any]) -> bool:
+        """After every env step."""
+        return True
+
+    def on_update(self, global_step: int, metrics: dict[str, float]) -> bool:
+        """After every PPO update (metrics named like CleanRL's)."""
+        return True
+
+    def on_eval(self, global_step: int, spl: float) -> bool:
+        """After every SPL evaluation."""
+        return True
+
+
+@dataclass
+class TrainResult:
+    """Outcome of :func:`train`."""
+
+    config: PPOConfig
+    agent: ActorCritic
+    curve: list[tuple[int, float]]
+    """``(env_steps, SPL of the greedy pi_RL)`` at every evaluation."""
+    metrics: list[dict[str, float]]
+    """One CleanRL-named metrics dict per update."""
+    global_step: int
+    n_episodes: int
+    n_hf_episodes: int
+    episodes: list[tuple[int, int, bool, bool, bool]]
+    """Per finished training episode: (env step at its end, length, success, collision,
+    followed pi_HF)."""
+    stopped_early: bool
+    wall_seconds: float
+
+    @property
+    def final_spl(self) -> float:
+        """SPL at the last evaluation."""
+        return self.curve[-1][1]
+
+    def act(self, obs: np.ndarray) -> int:
+        """Greedy action of the trained policy."""
+        with torch.no_grad():
+            logits, _ = self.agent(torch.as_tensor(np.asarray(obs, dtype=np.float32)))
+        return int(torch.argmax(logits))
+
+    def export_torchscript(self, path: str | Path) -> Path:
+        """Save normalisation + actor as TorchScript (``torch.jit.load`` needs no project)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with warnings.catch_warnings():  # TorchScript is deprecated but still the format
+            warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit.load reads anywhere
+            scripted = torch.jit.script(PolicyExport(self.agent).eval())
+        meta = {"config": asdict(self.config), "final_spl": self.final_spl}
+        scripted.save(str(path), _extra_files={"bgrl_meta.json": json.dumps(meta)})
+        return path
+
+
+@dataclass
+class _RunState:
+    """Everything that changes during training (what a checkpoint holds besides weights)."""
+
+    global_step: int = 0
+    n_updates: int = 0
+    n_episodes: int = 0
+    n_hf_episodes: int = 0
+    episode_seed: int = 0
+    episode_actions: list[int] = field(default_factory=list)
+    episode_is_hf: bool = False
+    episode_return: float = 0.0
+    episodes: list[tuple[int, int, bool, bool, bool]] = field(default_factory=list)
+    curve: list[tuple[int, float]] = field(default_factory=list)
+    metrics: list[dict[str, float]] = field(default_factory=list)
+
+
+def _episode_seed(config: PPOConfig, episode: int) -> int:
+    return config.seed * 1_000_000 + episode
+
+
+def _save_checkpoint(
+    path: Path,
+    agent: ActorCritic,
+    optimizer: torch.optim.Optimizer,
+    rng: np.random.Generator,
+    state: _RunState,
+    config: PPOConfig,
+    hf_policy: HFPolicy | None,
+) -> None:
+    payload = {
+        "version": CHECKPOINT_VERSION,
+        "config": asdict(config),
+        "agent": agent.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "rng": rng.bit_generator.state,
+        "state": asdict(state),
+        "hf_model": None if hf_policy is None else hf_policy.model.state_dict(),
+    }
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)  # atomic: never a half-written checkpoint
+
+
+def _load_checkpoint(path: Path, config: PPOConfig) -> dict[str, Any]:
+    payload = torch.load(path, weights_only=False)
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: unsupported checkpoint version {payload.get('version')}")
+    if PPOConfig.from_dict(payload["config"]) != config:
+        raise ValueError(f"{path}: checkpoint was written with a different PPOConfig")
+    return payload
+
+
+def train(
+    config: PPOConfig,
+    callback: Callback | None = None,
+    *,
+    hf_policy: HFPolicy | None = None,
+    checkpoint_path: str | Path | None = None,
+    checkpoint_every: int = 10,
+) -> TrainResult:
+    """Train pi_RL with PPO, guided by ``hf_policy`` if given.
+
+    Parameters
+    ----------
+    config : PPOConfig
+        Hyperparameters, task and seed.
+    callback : Callback, optional
+        Progress hooks; any hook returning False stops training after that point.
+    hf_policy : HFPolicy, optional
+        pi_HF (used greedily) for guided exploration; None gives plain PPO.
+    checkpoint_path : path, optional
+        Where to write a checkpoint every ``checkpoint_every`` updates (and at the end).
+        If the file exists, training resumes from it.
+    checkpoint_every : int
+        Updates between checkpoints.
+
+    Returns
+    -------
+    TrainResult
+    """
+    start_time = time.perf_counter()
+    callback = callback or Callback()
+    env = gym.make(config.env_id, **config.env_kwargs)
+    eval_env = gym.make(config.env_id, **config.env_kwargs)
+    n_actions = int(env.action_space.n)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        agent = ActorCritic(
+            ObsNormalizer.from_space(env.observation_space), n_actions, config.hidden_sizes
+        )
+    parameters = list(agent.parameters())
+    optimizer = torch.optim.Adam(parameters, lr=config.learning_rate, eps=config.adam_eps)
+    rng = np.random.default_rng(config.seed)
+    state = _RunState()
+    checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
+
+    if checkpoint is not None and checkpoint.exists():
+        payload = _load_checkpoint(checkpoint, config)
+        agent.load_state_dict(payload["agent"])
+        optimizer.load_state_dict(payload["optimizer"])
+        rng.bit_generator.state = payload["rng"]
+        state = _RunState(**payload["state"])
+        state.curve = [tuple(point) for point in state.curve]
+        state.episodes = [tuple(e) for e in state.episodes]
+        if hf_policy is not None and payload["hf_model"] is not None:
+            hf_policy.model.load_state_dict(payload["hf_model"])
+        obs, _ = env.reset(seed=state.episode_seed)
+        for action in state.episode_actions:  # replay the current episode
+            obs, *_ = env.step(action)
+    else:
+        state.episode_seed = _episode_seed(config, 0)
+        obs, _ = env.reset(seed=state.episode_seed)
+        state.episode_is_hf = hf_policy is not None and rng.random() < hf_epsilon(0, config)
+
+    def greedy(o: np.ndarray) -> int:
+        with torch.no_grad():
+            logits, _ = agent(torch.as_tensor(o))
+        return int(torch.argmax(logits))
+
+    def evaluate() -> bool:
+        spl = evaluate_spl(eval_env, greedy, config.eval_seeds)
+        state.curve.append((state.global_step, spl))
+        return callback.on_eval(state.global_step, spl)
+
+    keep_going = True
+    if not state.curve:
+        keep_going = evaluate()
+    n_obs = env.observation_space.shape[0]
+    buf_obs = np.zeros((config.n_steps, n_obs), dtype=np.float32)
+    buf_actions = np.zeros(config.n_steps, dtype=np.int64)
+    buf_pi_logp = np.zeros(config.n_steps, dtype=np.float32)
+    buf_mu_logp = np.zeros(config.n_steps, dtype=np.float32)
+    buf_is_hf = np.zeros(config.n_steps, dtype=bool)
+    buf_rewards = np.zeros(config.n_steps, dtype=np.float64)
+    buf_values = np.zeros(config.n_steps, dtype=np.float64)
+    buf_ends = np.zeros(config.n_steps, dtype=np.float64)
+    last_returns: list[float] = []
+
+    while keep_going and state.global_step < config.total_steps:
+        rollout_start = time.perf_counter()
+        # ---- 1. collect a rollout of n_steps with the behaviour policy ----------------------
+        for t in range(config.n_steps):
+            obs_tensor = torch.as_tensor(obs)
+            with torch.no_grad():
+                logits, value = agent(obs_tensor)
+                log_probs = torch.log_softmax(logits, dim=-1).numpy()
+            if state.episode_is_hf:
+                if config.hf_guide_sampling:
+                    hf_probs = hf_policy.sampling_probs(obs).astype(np.float64)
+                    cdf = np.cumsum(hf_probs)
+                    action = int(min(np.searchsorted(cdf, rng.random() * cdf[-1]), n_actions - 1))
+                    mu_logp = float(np.log(hf_probs[action]))
+                else:
+                    action = hf_policy.act(obs)  # greedy pi_HF: mu(a|s) = 1
+                    mu_logp = 0.0
+            else:
+                cdf = np.cumsum(np.exp(log_probs.astype(np.float64)))
+                action = int(min(np.searchsorted(cdf, rng.random() * cdf[-1]), n_actions - 1))
+                mu_logp = float(log_probs[action])
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            reward = float(reward) * config.reward_scale
+            if truncated and not terminated:  # time limit: bootstrap the cut-off tail
+                with torch.no_grad():
+                    _, tail_value = agent(torch.as_tensor(next_obs))
+                reward += config.gamma * float(tail_value)
+            buf_obs[t] = obs
+            buf_actions[t] = action
+            buf_pi_logp[t] = log_probs[action]
+            buf_mu_logp[t] = mu_logp
+            buf_is_hf[t] = state.episode_is_hf
+            buf_rewards[t] = reward
+            buf_values[t] = float(value)
+            buf_ends[t] = float(terminated or truncated)
+            state.global_step += 1
+            state.episode_actions.append(action)
+            state.episode_return += float(reward)
+            obs = next_obs
+            if terminated or truncated:
+                last_returns.append(state.episode_return)
+                state.episodes.append(
+                    (
+                        state.global_step,
+                        len(state.episode_actions),
+                        bool(info.get("is_success", False)),
+                        bool(info.get("collision", False)),
+                        state.episode_is_hf,
+                    )
+                )
+                state.n_episodes += 1
+                state.n_hf_episodes += int(state.episode_is_hf)
+                state.episode_seed = _episode_seed(config, state.n_episodes)
+                state.episode_actions = []
+                state.episode_return = 0.0
+                obs, _ = env.reset(seed=state.episode_seed)
+                state.episode_is_hf = hf_policy is not None and rng.random() < hf_epsilon(
+                    state.global_step, config
+                )
+            keep_going &= callback.on_step(state.global_step, info)
+            if state.global_step % config.eval_every == 0:
+                keep_going &= evaluate()
+        rollout_seconds = time.perf_counter() - rollout_start
+
+        # ---- 2. advantages: GAE (authors) or trace-cut GAE + rho weights (truncated_is) -----
+        with torch.no_grad():
+            _, next_value = agent(torch.as_tensor(obs))
+        if config.hf_treatment == "truncated_is":
+            ratio_to_mu = np.exp(buf_pi_logp.astype(np.float64) - buf_mu_logp)
+            traces = np.minimum(1.0, ratio_to_mu)
+            weights = np.minimum(config.is_clip, ratio_to_mu)
+        else:
+            traces = None
+            weights = np.ones(config.n_steps)
+        advantages = compute_advantages(
+            buf_rewards,
+            buf_values,
+            buf_ends,
+            float(next_value),
+            config.gamma,
+            config.gae_lambda,
+            traces,
+        )
+        returns = buf_values + weights * advantages
+
+        # ---- 3. n_epochs of minibatch updates ------------------------------------------------
+        b_obs = torch.from_numpy(buf_obs)
+        b_actions = torch.from_numpy(buf_actions)
+        b_logp = torch.from_numpy(buf_pi_logp)
+        b_adv = torch.from_numpy(advantages.astype(np.float32))
+        b_returns = torch.from_numpy(returns.astype(np.float32))
+        b_weights = torch.from_numpy(weights.astype(np.float32))
+        update_start = time.perf_counter()
+        stats_sum: dict[str, float] = {}  # loss statistics of the last epoch
+        n_minibatches = 0
+        for epoch in range(config.n_epochs):
+            last_epoch = epoch == config.n_epochs - 1
+            order = rng.permutation(config.n_steps)
+            for begin in range(0, config.n_steps, config.minibatch_size):
+                mb = torch.from_numpy(order[begin : begin + config.minibatch_size])
+                loss, stats = ppo_loss(
+                    agent,
+                    b_obs[mb],
+                    b_actions[mb],
+                    b_logp[mb],
+                    b_adv[mb],
+                    b_returns[mb],
+                    b_weights[mb],
+                    config,
+                    with_stats=last_epoch,
+                )
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
+                optimizer.step()
+                for key, val in stats.items():
+                    stats_sum[key] = stats_sum.get(key, 0.0) + val
+                n_minibatches += int(last_epoch)
+        state.n_updates += 1
+        var_returns = float(np.var(returns))
+        metrics = {key: val / n_minibatches for key, val in stats_sum.items()}
+        metrics.update(
+            {
+                "global_step": float(state.global_step),
+                "losses/explained_variance": (
+                    float("nan")
+                    if var_returns == 0
+                    else 1.0 - float(np.var(returns - buf_values)) / var_returns
+                ),
+                "charts/SPS": config.n_steps / max(time.perf_counter() - rollout_start, 1e-9),
+                "charts/rollout_seconds": rollout_seconds,
+                "charts/update_seconds": time.perf_counter() - update_start,
+                "charts/eps_hf": hf_epsilon(state.global_step, config)
+                if hf_policy is not None
+                else 0.0,
+                "charts/hf_step_fraction": float(np.mean(buf_is_hf))
+                if hf_policy is not None
+                else 0.0,
+                "charts/episodic_return": float(np.mean(last_returns))
+                if last_returns
+                else float("nan"),
+                "charts/learning_rate": config.learning_rate,
+            }
+        )
+        last_returns = []
+        state.metrics.append(metrics)
+        keep_going &= callback.on_update(state.global_step, metrics)
+        if checkpoint is not None and (state.n_updates % checkpoint_every == 0 or not keep_going):
+            _save_checkpoint(checkpoint, agent, optimizer, rng, state, config, hf_policy)
+
+    if checkpoint is not None:
+        _save_checkpoint(checkpoint, agent, optimizer, rng, state, config, hf_policy)
+    env.close()
+    eval_env.close()
+    return TrainResult(
+        config=config,
+        agent=agent,
+        curve=list(state.curve),
+        metrics=state.metrics,
+        global_step=state.global_step,
+        n_episodes=state.n_episodes,
+        n_hf_episodes=state.n_hf_episodes,
+        episodes=[tuple(e) for e in state.episodes],
+        stopped_early=state.global_step < config.total_steps,
+        wall_seconds=time.perf_counter() - start_time,
+    )

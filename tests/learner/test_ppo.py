@@ -1,0 +1,193 @@
+"""Guided PPO: GAE, the loss, the eps_HF schedule, determinism, resume, export, learning."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from dataclasses import replace
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from services.learner.feedback import FeedbackConfig, OracleFeedbackSource, collect_feedback
+from services.learner.networks import ObsNormalizer
+from services.learner.ppo import (
+    ActorCritic,
+    Callback,
+    PPOConfig,
+    compute_advantages,
+    hf_epsilon,
+    ppo_loss,
+    train,
+)
+
+
+def _toy_config(env_id: str, **overrides) -> PPOConfig:
+    base = PPOConfig(
+        env_id=env_id,
+        env_kwargs={"reward_mode": "sparse"},
+        total_steps=1024,
+        n_epochs=4,
+        eval_every=256,
+        eval_seeds=(0,),
+    )
+    return replace(base, **overrides)
+
+
+def test_gae_matches_hand_computed_values() -> None:
+    rewards = np.array([1.0, 0.0, 2.0])
+    values = np.array([0.5, 0.4, 0.3])
+    ends = np.array([0.0, 1.0, 0.0])
+    adv = compute_advantages(rewards, values, ends, 0.6, gamma=0.9, gae_lambda=0.8)
+    # t=2: 2 + 0.9*0.6 - 0.3 = 2.24; t=1 ends: 0 - 0.4; t=0: 1 + 0.36 - 0.5 + 0.72 * -0.4
+    assert np.allclose(adv, [0.572, -0.4, 2.24])
+    cut = compute_advantages(
+        rewards, np.zeros(3), np.zeros(3), 0.0, 1.0, 1.0, traces=np.array([1.0, 0.5, 0.0])
+    )
+    # A2 = 2; A1 = 0 + 0 * A2 = 0; A0 = 1 + 0.5 * A1 = 1
+    assert np.allclose(cut, [1.0, 0.0, 2.0])
+
+
+def test_ppo_loss_on_a_tiny_batch() -> None:
+    space = gym.spaces.Box(low=-np.ones(2, np.float32), high=np.ones(2, np.float32))
+    torch.manual_seed(0)
+    agent = ActorCritic(ObsNormalizer.from_space(space), 3, (8,))
+    config = PPOConfig(norm_adv=False, ent_coef=0.0, vf_coef=0.5, clip_coef=0.2)
+    obs = torch.tensor([[0.1, -0.2], [0.3, 0.4]])
+    actions = torch.tensor([0, 2])
+    with torch.no_grad():
+        logits, values = agent(obs)
+        logp = torch.log_softmax(logits, -1).gather(-1, actions[:, None]).squeeze(-1)
+    adv = torch.tensor([1.0, -2.0])
+    returns = values + 1.0
+    ones = torch.ones(2)
+    # ratio 1: policy loss = -mean(A) = 0.5, value loss = 0.5 * 1.
+    loss, stats = ppo_loss(agent, obs, actions, logp, adv, returns, ones, config)
+    assert math.isclose(stats["losses/policy_loss"], 0.5, abs_tol=1e-6)
+    assert math.isclose(stats["losses/value_loss"], 0.5, abs_tol=1e-6)
+    assert math.isclose(float(loss.detach()), 0.5 + 0.5 * 0.5, abs_tol=1e-6)
+    # old log-prob lower by 0.5 -> ratio e^0.5 = 1.65: A>0 clipped at 1.2, A<0 unclipped.
+    _, stats = ppo_loss(agent, obs, actions, logp - 0.5, adv, returns, ones, config)
+    expected = (-1.0 * 1.2 + 2.0 * math.exp(0.5)) / 2
+    assert math.isclose(stats["losses/policy_loss"], expected, rel_tol=1e-5)
+    assert stats["losses/clipfrac"] == 1.0
+    # importance weights scale each step's surrogate
+    weights = torch.tensor([0.5, 0.0])
+    _, stats = ppo_loss(agent, obs, actions, logp, adv, returns, weights, config)
+    assert math.isclose(stats["losses/policy_loss"], -0.25, abs_tol=1e-6)
+
+
+def test_eps_hf_schedule() -> None:
+    config = PPOConfig(total_steps=40_000)
+    assert hf_epsilon(0, config) == pytest.approx(0.8)
+    assert hf_epsilon(10_000, config) == pytest.approx(0.4)
+    assert hf_epsilon(20_000, config) == 0.0 and hf_epsilon(39_000, config) == 0.0
+    warm = replace(config, hf_warmup_steps=1000)
+    assert hf_epsilon(999, warm) == 1.0
+    assert hf_epsilon(1000, warm) == pytest.approx(0.8)
+    assert hf_epsilon(10_500, warm) == pytest.approx(0.4)
+
+
+def test_config_rejects_bad_values() -> None:
+    with pytest.raises(ValueError, match="multiple"):
+        PPOConfig(n_steps=100, minibatch_size=64)
+    with pytest.raises(ValueError, match="hf_treatment"):
+        PPOConfig(hf_treatment="magic")
+
+
+def test_training_is_deterministic_under_a_seed(toy_env_id) -> None:
+    config = _toy_config(toy_env_id, total_steps=512)
+    a, b = train(config), train(config)
+    assert a.curve == b.curve
+    assert [m["losses/value_loss"] for m in a.metrics] == [
+        m["losses/value_loss"] for m in b.metrics
+    ]
+    for p, q in zip(a.agent.parameters(), b.agent.parameters(), strict=True):
+        assert torch.equal(p, q)
+    c = train(replace(config, seed=1))
+    assert any(
+        not torch.equal(p, q)
+        for p, q in zip(a.agent.parameters(), c.agent.parameters(), strict=True)
+    )
+
+
+class _StopAfterUpdates(Callback):
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.updates = 0
+
+    def on_update(self, global_step: int, metrics: dict[str, float]) -> bool:
+        self.updates += 1
+        return self.updates < self.n
+
+
+def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path) -> None:
+    env = gym.make(toy_env_id)
+    hf = collect_feedback(
+        env, OracleFeedbackSource(0.9, seed=0), 150, config=FeedbackConfig(replay_updates=2)
+    )
+    config = _toy_config(toy_env_id, hf_treatment="truncated_is")
+    full = train(config, hf_policy=hf.policy)
+    checkpoint = tmp_path / "run.pt"
+    stopped = train(config, _StopAfterUpdates(3), hf_policy=hf.policy, checkpoint_path=checkpoint)
+    assert stopped.stopped_early and stopped.global_step == 3 * config.n_steps
+    resumed = train(config, hf_policy=hf.policy, checkpoint_path=checkpoint)
+    assert resumed.curve == full.curve
+    assert resumed.n_hf_episodes == full.n_hf_episodes > 0
+    for p, q in zip(full.agent.parameters(), resumed.agent.parameters(), strict=True):
+        assert torch.equal(p, q)
+    with pytest.raises(ValueError, match="different PPOConfig"):
+        train(replace(config, seed=5), checkpoint_path=checkpoint)
+
+
+def test_rich_reward_run_improves(toy_env_id) -> None:
+    config = _toy_config(
+        toy_env_id, env_kwargs={"reward_mode": "rich"}, total_steps=4096, n_epochs=10,
+        eval_every=512,
+    )  # fmt: skip
+    result = train(config)
+    assert result.curve[0][1] == 0.0
+    assert max(spl for _, spl in result.curve[-3:]) == 1.0
+
+
+@pytest.mark.parametrize("sampling", [False, True])
+def test_guided_training_uses_the_hf_policy_then_stops(toy_env_id, sampling) -> None:
+    env = gym.make(toy_env_id)
+    hf = collect_feedback(
+        env, OracleFeedbackSource(1.0, seed=0), 150, config=FeedbackConfig(replay_updates=2)
+    )
+    config = _toy_config(
+        toy_env_id,
+        total_steps=2048,
+        hf_warmup_steps=256,
+        hf_guide_sampling=sampling,
+        hf_treatment="truncated_is",
+    )
+    result = train(config, hf_policy=hf.policy)
+    fractions = [m["charts/hf_step_fraction"] for m in result.metrics]
+    assert fractions[0] == 1.0  # warm-up: only pi_HF
+    assert fractions[-1] == 0.0  # after t_trans: only pi_RL
+    assert result.n_hf_episodes > 0
+
+
+def test_torchscript_export_loads_without_the_project(toy_env_id, tmp_path) -> None:
+    result = train(_toy_config(toy_env_id, total_steps=256))
+    path = result.export_torchscript(tmp_path / "policy.pt")
+    obs = np.array([1, 2, 1, 0, 1], dtype=np.float32)
+    code = (
+        "import sys; sys.modules['services'] = None\n"
+        "import torch\n"
+        f"m = torch.jit.load({str(path)!r})\n"
+        f"x = torch.tensor({obs.tolist()})\n"
+        "print(int(m.act(x)), m(x).tolist())\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path
+    ).stdout.split(maxsplit=1)
+    assert int(out[0]) == result.act(obs)
+    with torch.no_grad():
+        expected, _ = result.agent(torch.as_tensor(obs))
+    assert np.allclose(eval(out[1]), expected.numpy(), atol=1e-6)
