@@ -251,6 +251,7 @@ class EEGService:
         self.live: LiveSession | None = None
         self.subscribers: set[asyncio.Queue[dict[str, Any]]] = set()
         self.loop: asyncio.AbstractEventLoop | None = None
+        self.fail_interrupted_jobs()
 
     # recordings
     def recording(self, recording_id: str) -> RecordingPublic:
@@ -269,6 +270,27 @@ class EEGService:
         if not job_id.isalnum() or not path.is_file():
             raise HTTPException(404, f"no job {job_id!r}")
         return JobPublic.model_validate_json(path.read_text())
+
+    def fail_interrupted_jobs(self) -> None:
+        """Mark jobs a previous process left queued or running as failed, with the reason.
+
+        The executor lives in this process, so such a job can never finish; its half-written
+        classifier folder is removed and the recording stays stored for a new job.
+        """
+        for path in self.jobs_dir.glob("*.json"):
+            job = JobPublic.model_validate_json(path.read_text())
+            if job.state in ("queued", "running"):
+                shutil.rmtree(self.classifiers_dir / f".{job.id}.part", ignore_errors=True)
+                self.save_job(
+                    job.model_copy(
+                        update={
+                            "state": "failed",
+                            "error": "interrupted: the EEG service stopped before the job "
+                            "finished; start a new job",
+                            "finished_at": _now(),
+                        }
+                    )
+                )
 
     def save_job(self, job: JobPublic) -> None:
         _write_json(self.jobs_dir / f"{job.id}.json", job.model_dump())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -258,3 +259,25 @@ def test_live_lsl_source_classifies_markers(client):
             publisher.close()
         client.delete("/live")
         player.stop()
+
+
+def test_jobs_cut_off_by_a_restart_are_marked_failed(tmp_path):
+    settings = EEGSettings(data_dir=tmp_path)
+    with TestClient(create_app(settings)) as first:
+        service = first.app.state.service
+        job = {
+            "id": "abcdef0123456789",
+            "recording_id": "0123456789abcdef",
+            "seed": 0,
+            "max_epochs": 5,
+            "state": "running",
+            "created_at": "2026-01-01T00:00:00+00:00",
+        }
+        (service.jobs_dir / f"{job['id']}.json").write_text(json.dumps(job))
+        staging = service.classifiers_dir / f".{job['id']}.part"
+        staging.mkdir()
+    with TestClient(create_app(settings)) as second:
+        restored = second.get(f"/jobs/{job['id']}").json()
+    assert restored["state"] == "failed"
+    assert "interrupted" in restored["error"]
+    assert not staging.exists()
