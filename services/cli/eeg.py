@@ -20,6 +20,7 @@ def calibrate_command(
     seed: Annotated[int, typer.Option(help="Seed of the split, initialisation and batches.")] = 0,
     max_epochs: Annotated[int, typer.Option(min=1, help="Upper bound on training epochs.")] = 300,
     report: Annotated[bool, typer.Option(help="Write report.png / report.html.")] = True,
+    onnx: Annotated[bool, typer.Option(help="Also export model.onnx.")] = True,
 ) -> None:
     """Train and evaluate the ErrP classifier on RECORDING; writes OUT/metrics.json."""
     from services.eeg.calibration import TrainingConfig, calibrate
@@ -36,6 +37,7 @@ def calibrate_command(
             out_dir=out,
             config=TrainingConfig(max_epochs=max_epochs),
             report=report,
+            onnx=onnx,
             progress=True,
         )
     except ValueError as exc:

@@ -317,6 +317,7 @@ def calibrate(
     config: TrainingConfig | None = None,
     params: PreprocessingParams | None = None,
     report: bool = True,
+    onnx: bool = False,
     progress: bool = False,
 ) -> CalibrationResult:
     """Preprocess (if given a recording), train, evaluate and save an ErrP classifier.
@@ -336,6 +337,8 @@ def calibrate(
         Preprocessing for a recording (ignored for an EpochSet).
     report : bool
         Write the calibration report.
+    onnx : bool
+        Also export ``model.onnx`` (a few seconds).
     progress : bool
         Show progress bars.
 
@@ -352,6 +355,8 @@ def calibrate(
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         result.classifier.save(out)
+        if onnx:
+            result.classifier.export_onnx(out)
         (out / HISTORY_FILE).write_text(json.dumps(result.history))
         if report:
             from services.eeg.report import write_report

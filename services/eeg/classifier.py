@@ -8,6 +8,8 @@ On disk (``save(dir)``)::
     dir/classifier.json    architecture, preprocessing params, channels, rate, metrics
     dir/model.pt           EEGNet state dict
     dir/model.torchscript.pt  TorchScript: epochs in volts (n, n_chans, n_times) -> P(error)
+    dir/model.onnx         the same graph as ONNX (``export_onnx``; input "epochs", output
+                           "p_error", dynamic batch), for runtimes without torch
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from services.eeg.preprocessing import PreprocessingParams
 CONFIG_FILE = "classifier.json"
 STATE_FILE = "model.pt"
 TORCHSCRIPT_FILE = "model.torchscript.pt"
+ONNX_FILE = "model.onnx"
 FORMAT_VERSION = 1
 
 
@@ -179,6 +182,30 @@ class ErrPClassifier:
         tmp.write_text(json.dumps(self.to_config(), indent=2))
         tmp.replace(directory / CONFIG_FILE)
         return directory
+
+    def export_onnx(self, directory: str | Path) -> Path:
+        """Write ``model.onnx`` (epochs in volts -> P(error), any batch size) to ``directory``.
+
+        Uses torch's dynamo exporter (needs ``onnx`` and ``onnxscript``; runs offline) and
+        takes a few seconds, so it is separate from :meth:`save`.
+        """
+        path = Path(directory) / ONNX_FILE
+        path.parent.mkdir(parents=True, exist_ok=True)
+        example = torch.zeros((2, *self.epoch_shape), dtype=torch.float32)
+        batch = torch.export.Dim("batch", min=1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(
+                self._proba.eval(),
+                (example,),
+                input_names=["epochs"],
+                output_names=["p_error"],
+                dynamic_shapes={"x": {0: batch}},
+                dynamo=True,
+                verbose=False,
+            )
+        program.save(str(path))
+        return path
 
     @classmethod
     def load(cls, directory: str | Path) -> ErrPClassifier:

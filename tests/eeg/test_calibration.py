@@ -17,7 +17,7 @@ from services.eeg.calibration import (
     stratified_split,
     train_classifier,
 )
-from services.eeg.classifier import TORCHSCRIPT_FILE, ErrPClassifier
+from services.eeg.classifier import ONNX_FILE, TORCHSCRIPT_FILE, ErrPClassifier
 from services.eeg.preprocessing import EpochSet, PreprocessingParams
 from services.eeg.virtual_subject import eeg_channel_names, simulate_recording
 
@@ -98,6 +98,25 @@ def test_save_load_round_trip_and_torchscript(tmp_path) -> None:
         scripted(torch.from_numpy(epochs.X[:7])).detach().numpy(), p, rtol=1e-5, atol=1e-6
     )
     assert loaded.predict_proba(epochs.X[0]).shape == (1,)
+
+
+def test_onnx_export_matches_torch(tmp_path) -> None:
+    ort = pytest.importorskip("onnxruntime", reason="onnxruntime checks the exported graph")
+    epochs = _toy_epochs()
+    result = calibrate(
+        epochs,
+        seed=2,
+        out_dir=tmp_path,
+        config=TrainingConfig(max_epochs=2),
+        report=False,
+        onnx=True,
+    )
+    session = ort.InferenceSession(str(tmp_path / ONNX_FILE))
+    for n in (1, 5):  # the batch dimension is dynamic
+        (p_onnx,) = session.run(None, {"epochs": epochs.X[:n]})
+        np.testing.assert_allclose(
+            p_onnx, result.classifier.predict_proba(epochs.X[:n]), rtol=1e-4, atol=1e-6
+        )
 
 
 def test_mismatched_data_is_refused() -> None:
