@@ -255,11 +255,11 @@ def reproduce(
             "use another output folder"
         )
     done = {spec_key(r["spec"]) for r in runs}
-    todo = [s for s in specs if spec_key(s) not in done]
-    if todo:
+    pending = [s for s in specs if spec_key(s) not in done]
+    if pending:
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init) as pool:
-            futures = [pool.submit(run_one, spec) for spec in todo]
+            futures = [pool.submit(run_one, spec) for spec in pending]
             for future in as_completed(futures):
                 record = future.result()
                 runs.append(record)
