@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from services.core.actions import N_ACTIONS
+from services.core.actions import N_ACTIONS, Action
 
 
 def spl(
@@ -82,6 +82,66 @@ def random_policy_success_rate(
             env.reset(seed=seed + episode)
             for _ in range(MAX_EPISODE_STEPS):
                 _, _, terminated, _, info = env.step(int(rng.integers(N_ACTIONS)))
+                if terminated:
+                    successes += info["is_success"]
+                    collisions += info["collision"]
+                    break
+    finally:
+        env.close()
+    return RandomPolicyResult(
+        episodes=episodes,
+        successes=successes,
+        collisions=collisions,
+        success_rate=successes / episodes,
+        collision_rate=collisions / episodes,
+    )
+
+
+def wall_averse_policy_success_rate(
+    task: str = "vssg",
+    *,
+    episodes: int = 10_000,
+    seed: int = 0,
+    map_path: str | Path | None = None,
+    forward_probability: float = 1.0 / 3.0,
+    min_clearance: float = 1.0,
+    central_rays: int = 4,
+    progress: bool = False,
+) -> RandomPolicyResult:
+    """Like :func:`random_policy_success_rate`, for a random walker that avoids walls.
+
+    Each step: if any of the ``central_rays`` central ray distances (of the 10 over
+    -90..+90 deg) is below ``min_clearance`` metres, turn left or right with equal
+    probability; otherwise drive forward with probability ``forward_probability`` and turn
+    left or right with equal probability otherwise (1/3 is the uniform walker's mix).
+
+    This is what a sparse-reward learner tends to become first (the collision penalty is
+    its only frequent signal), so it says how hard a map is for that learner more than the
+    uniform walker does (``docs/reproduction.md``, ``docs/map-study.md``).
+    """
+    from services.sim import MAX_EPISODE_STEPS
+    from services.sim.env import BrainNavEnv
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    if not 0.0 <= forward_probability <= 1.0:
+        raise ValueError(f"forward_probability must be in [0, 1], got {forward_probability}")
+    if not 1 <= central_rays <= 10:
+        raise ValueError(f"central_rays must be in 1..10, got {central_rays}")
+    first = (10 - central_rays) // 2
+    rng = np.random.default_rng(seed)
+    env = BrainNavEnv(task=task, map_path=map_path)  # type: ignore[arg-type]
+    successes = collisions = 0
+    try:
+        for episode in tqdm(range(episodes), desc="wall-averse episodes", disable=not progress):
+            obs, _ = env.reset(seed=seed + episode)
+            for _ in range(MAX_EPISODE_STEPS):
+                blocked = float(np.min(obs[first : first + central_rays])) < min_clearance
+                if not blocked and rng.random() < forward_probability:
+                    action = int(Action.FORWARD)
+                else:
+                    action = int(Action.TURN_LEFT if rng.random() < 0.5 else Action.TURN_RIGHT)
+                obs, _, terminated, _, info = env.step(action)
                 if terminated:
                     successes += info["is_success"]
                     collisions += info["collision"]

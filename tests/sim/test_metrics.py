@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from services.sim.maps import MAPS_DIR
-from services.sim.metrics import random_policy_success_rate, spl
+from services.sim.metrics import random_policy_success_rate, spl, wall_averse_policy_success_rate
 
 
 def test_spl_hand_computed() -> None:
@@ -43,3 +43,22 @@ def test_random_policy_success_rate_counts() -> None:
     assert again == result
     with pytest.raises(ValueError, match="episodes"):
         random_policy_success_rate(episodes=0)
+
+
+def test_wall_averse_policy_success_rate_rarely_crashes() -> None:
+    kwargs = {"episodes": 20, "seed": 3, "map_path": MAPS_DIR / "open.json"}
+    result = wall_averse_policy_success_rate("sssg", **kwargs)
+    assert result.episodes == 20
+    assert result.success_rate == result.successes / 20
+    # Turning away from anything closer than 1 m: almost no collisions (uniform: > 30 %).
+    assert result.collision_rate <= 0.1
+    assert wall_averse_policy_success_rate("sssg", **kwargs) == result
+    # Never forward: it turns in place until the time limit.
+    still = wall_averse_policy_success_rate("sssg", forward_probability=0.0, **kwargs)
+    assert still.successes == still.collisions == 0
+    with pytest.raises(ValueError, match="forward_probability"):
+        wall_averse_policy_success_rate(forward_probability=1.5)
+    with pytest.raises(ValueError, match="central_rays"):
+        wall_averse_policy_success_rate(central_rays=0)
+    with pytest.raises(ValueError, match="episodes"):
+        wall_averse_policy_success_rate(episodes=0)
