@@ -81,15 +81,14 @@ def reproduce(
             )
             bar.update(1)
 
-        document = run_reproduction(
+        run_reproduction(
             out,
             specs,
             workers=workers,
             config_note={"cli": {"quick": quick, "seeds": n_seeds, "overrides": overrides}},
             on_done=done,
+            on_resume=bar.update,
         )
-        bar.n = len(document["runs"])
-        bar.refresh()
     typer.echo((out / "summary.md").read_text())
     typer.echo(f"wrote {out / 'results.json'}, results.csv, summary.md and fig3_*.png")
 

@@ -227,8 +227,12 @@ def reproduce(
     workers: int = 2,
     config_note: dict[str, Any] | None = None,
     on_done: Callable[[dict[str, Any]], None] | None = None,
+    on_resume: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """Run every spec (skipping ones already in ``out_dir/results.json``) and write outputs.
+
+    ``on_done`` is called with each new run's record, ``on_resume`` once with the number of
+    specs skipped because they are already done (progress bars start there).
 
     ``out_dir`` accumulates: runs from earlier calls stay in ``results.json`` and in the
     summary and plots, so a reproduction can be extended by more seeds or methods. Runs
@@ -256,6 +260,8 @@ def reproduce(
         )
     done = {spec_key(r["spec"]) for r in runs}
     pending = [s for s in specs if spec_key(s) not in done]
+    if on_resume is not None:
+        on_resume(len(specs) - len(pending))
     if pending:
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init) as pool:

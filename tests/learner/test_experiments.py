@@ -77,8 +77,10 @@ def test_reproduce_writes_results_json_with_the_schema(tmp_path) -> None:
         "rl_sparse", "rl_rich", "hf_sparse C=0.6",
     }  # fmt: skip
     # A second call finds every run done and only rewrites the outputs.
-    again = reproduce(tmp_path, specs, workers=1)
+    skipped: list[int] = []
+    again = reproduce(tmp_path, specs, workers=1, on_resume=skipped.append)
     assert [r["wall_seconds"] for r in again["runs"]] == [r["wall_seconds"] for r in runs]
+    assert skipped == [3]
     other = make_spec("sssg", "rl_sparse", 1, ppo_overrides={**TINY, "reward_scale": 1.0})
     with pytest.raises(ValueError, match="other settings"):
         reproduce(tmp_path, [other], workers=1)
