@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,31 +69,14 @@ def random_policy_success_rate(
     The paper's premise is that random exploration rarely finds the sparse reward; the
     default map aims at about 0.1 % (see ``docs/sim.md``).
     """
-    from services.sim import MAX_EPISODE_STEPS
-    from services.sim.env import BrainNavEnv
-
-    if episodes < 1:
-        raise ValueError(f"episodes must be at least 1, got {episodes}")
-    rng = np.random.default_rng(seed)
-    env = BrainNavEnv(task=task, map_path=map_path)  # type: ignore[arg-type]
-    successes = collisions = 0
-    try:
-        for episode in tqdm(range(episodes), desc="random episodes", disable=not progress):
-            env.reset(seed=seed + episode)
-            for _ in range(MAX_EPISODE_STEPS):
-                _, _, terminated, _, info = env.step(int(rng.integers(N_ACTIONS)))
-                if terminated:
-                    successes += info["is_success"]
-                    collisions += info["collision"]
-                    break
-    finally:
-        env.close()
-    return RandomPolicyResult(
+    return _walker_success_rate(
+        lambda obs, rng: int(rng.integers(N_ACTIONS)),
+        task,
         episodes=episodes,
-        successes=successes,
-        collisions=collisions,
-        success_rate=successes / episodes,
-        collision_rate=collisions / episodes,
+        seed=seed,
+        map_path=map_path,
+        description="random episodes",
+        progress=progress,
     )
 
 
@@ -119,29 +102,54 @@ def wall_averse_policy_success_rate(
     its only frequent signal), so it says how hard a map is for that learner more than the
     uniform walker does (``docs/reproduction.md``, ``docs/map-study.md``).
     """
-    from services.sim import MAX_EPISODE_STEPS
-    from services.sim.env import BrainNavEnv
-
-    if episodes < 1:
-        raise ValueError(f"episodes must be at least 1, got {episodes}")
     if not 0.0 <= forward_probability <= 1.0:
         raise ValueError(f"forward_probability must be in [0, 1], got {forward_probability}")
     if not 1 <= central_rays <= 10:
         raise ValueError(f"central_rays must be in 1..10, got {central_rays}")
     first = (10 - central_rays) // 2
+
+    def wall_averse(obs: np.ndarray, rng: np.random.Generator) -> int:
+        blocked = float(np.min(obs[first : first + central_rays])) < min_clearance
+        if not blocked and rng.random() < forward_probability:
+            return int(Action.FORWARD)
+        return int(Action.TURN_LEFT if rng.random() < 0.5 else Action.TURN_RIGHT)
+
+    return _walker_success_rate(
+        wall_averse,
+        task,
+        episodes=episodes,
+        seed=seed,
+        map_path=map_path,
+        description="wall-averse episodes",
+        progress=progress,
+    )
+
+
+def _walker_success_rate(
+    policy: Callable[[np.ndarray, np.random.Generator], int],
+    task: str,
+    *,
+    episodes: int,
+    seed: int,
+    map_path: str | Path | None,
+    description: str,
+    progress: bool,
+) -> RandomPolicyResult:
+    """Run ``policy(obs, rng)`` through the real env for 120-step episodes, reset seeds
+    ``seed, seed + 1, ...``, and count successes and collisions."""
+    from services.sim import MAX_EPISODE_STEPS
+    from services.sim.env import BrainNavEnv
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
     rng = np.random.default_rng(seed)
     env = BrainNavEnv(task=task, map_path=map_path)  # type: ignore[arg-type]
     successes = collisions = 0
     try:
-        for episode in tqdm(range(episodes), desc="wall-averse episodes", disable=not progress):
+        for episode in tqdm(range(episodes), desc=description, disable=not progress):
             obs, _ = env.reset(seed=seed + episode)
             for _ in range(MAX_EPISODE_STEPS):
-                blocked = float(np.min(obs[first : first + central_rays])) < min_clearance
-                if not blocked and rng.random() < forward_probability:
-                    action = int(Action.FORWARD)
-                else:
-                    action = int(Action.TURN_LEFT if rng.random() < 0.5 else Action.TURN_RIGHT)
-                obs, _, terminated, _, info = env.step(action)
+                obs, _, terminated, _, info = env.step(policy(obs, rng))
                 if terminated:
                     successes += info["is_success"]
                     collisions += info["collision"]
