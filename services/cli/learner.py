@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from tqdm import tqdm
@@ -12,6 +13,44 @@ from tqdm import tqdm
 
 def _split(value: str) -> list[str]:
     return [item.strip() for item in value.split(",") if item.strip()]
+
+
+def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
+    """``["n_epochs=10", "reward_scale=1"]`` -> typed PPOConfig overrides (checked)."""
+    from services.learner.ppo import PPOConfig
+
+    fields = {f.name: f for f in dataclasses.fields(PPOConfig)}
+    fixed = {"env_id", "env_kwargs", "seed", "eval_seeds", "hf_treatment"}
+    defaults = PPOConfig()
+    overrides: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        key = key.strip()
+        if not sep or not raw.strip():
+            raise ValueError(f"--ppo expects KEY=VALUE, got {item!r}")
+        if key in fixed:
+            raise ValueError(f"--ppo {key} is set per run by the experiment and cannot be changed")
+        if key not in fields:
+            raise ValueError(
+                f"--ppo: unknown PPO setting {key!r}; known: {sorted(set(fields) - fixed)}"
+            )
+        default = getattr(defaults, key)
+        try:
+            if isinstance(default, bool):
+                if raw.strip().lower() not in ("true", "false", "1", "0"):
+                    raise ValueError
+                value: Any = raw.strip().lower() in ("true", "1")
+            elif isinstance(default, tuple):
+                value = tuple(int(v) for v in _split(raw))
+            else:
+                value = type(default)(raw.strip())
+        except ValueError:
+            raise ValueError(
+                f"--ppo {key}: {raw!r} is not a valid {type(default).__name__}"
+            ) from None
+        overrides[key] = value
+    PPOConfig(**overrides)  # validates combinations (e.g. n_steps vs minibatch_size)
+    return overrides
 
 
 def reproduce(
@@ -37,29 +76,21 @@ def reproduce(
     map_path: Annotated[
         Path | None, typer.Option("--map", help="Map JSON (default: the sim's default map).")
     ] = None,
-    reward_scale: Annotated[
-        float | None, typer.Option(help="Override PPO's reward scale (all methods).")
+    ppo: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Override a PPO setting for every method, KEY=VALUE (repeatable), e.g. "
+            "--ppo n_epochs=10 --ppo reward_scale=1 --ppo hf_guide_sampling=true."
+        ),
     ] = None,
-    total_steps: Annotated[
-        int | None, typer.Option(min=128, help="Override the 40k-step budget.")
-    ] = None,
-    hf_guide_sampling: Annotated[
-        bool, typer.Option(help="HF episodes sample from pi_HF instead of its argmax.")
-    ] = False,
 ) -> None:
     """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG."""
     from services.learner.experiments import FULL_SEEDS, QUICK_SEEDS, build_specs
     from services.learner.experiments import reproduce as run_reproduction
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
-    overrides: dict[str, float | int | bool] = {}
-    if hf_guide_sampling:
-        overrides["hf_guide_sampling"] = True
-    if reward_scale is not None:
-        overrides["reward_scale"] = reward_scale
-    if total_steps is not None:
-        overrides["total_steps"] = total_steps
     try:
+        overrides = parse_ppo_overrides(ppo or [])
         specs = build_specs(
             seeds=n_seeds,
             first_seed=first_seed,

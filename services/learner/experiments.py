@@ -14,6 +14,7 @@ budget, as in the paper, where pi_HF is learned in a separate session before RL.
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 import multiprocessing
@@ -276,8 +277,9 @@ def reproduce(
     _write_json(results_path, document)
     write_csv(out / "results.csv", runs)
     summary = summarize(runs)
-    (out / "summary.md").write_text(summary_markdown(summary))
-    _write_json(out / "summary.json", {"groups": summary})
+    claims = paper_claims(summary)
+    (out / "summary.md").write_text(summary_markdown(summary) + "\n" + claims_markdown(claims))
+    _write_json(out / "summary.json", {"groups": summary, "claims": claims})
     plot_figure3(runs, out)
     return document
 
@@ -333,6 +335,9 @@ def summarize(runs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             {
                 "task": task,
                 "group": label,
+                "method": members[0]["method"],
+                "accuracy": members[0]["accuracy"],
+                "hf_treatment": members[0]["hf_treatment"],
                 "n_seeds": len(members),
                 "final_spl_mean": float(finals.mean()),
                 "final_spl_std": float(finals.std()),
@@ -383,6 +388,113 @@ def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
             f"{r['runs_reaching_0_7']}/{r['n_seeds']} | {fmt(r['median_steps_to_0_7'], 0)} | "
             f"{hf} |"
         )
+    return "\n".join(lines) + "\n"
+
+
+CLAIM_SPARSE_MAX = 0.3
+CLAIM_LEARNED_MIN = 0.8
+
+
+def paper_claims(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Check the paper's Fig. 3 claims against :func:`summarize` rows, per task.
+
+    Claims (issue #4; means over seeds of the final SPL at the budget): RL-sparse <= 0.3;
+    RL-rich >= 0.8; HF+sparse at C = 0.6 and 0.7 >= 0.8 and its mean curve reaching 0.7
+    sooner than RL-sparse's mean curve ever does; the HF policy's SPL increasing with C
+    (read as: never lower at a higher C, and higher at the highest C than at the lowest).
+    HF+sparse at C = 0.55 is reported without a verdict (the paper finds it helps least).
+    Every HF group present is checked (one per treatment/guidance). ``holds`` is None where
+    the folder lacks what a claim compares against.
+    """
+    claims: list[dict[str, Any]] = []
+
+    def add(task: str, claim: str, holds: bool | None, measured: str, n: int) -> None:
+        claims.append(
+            {"task": task, "claim": claim, "holds": holds, "measured": measured, "n_seeds": n}
+        )
+
+    def final(row: dict[str, Any]) -> str:
+        return f"final SPL {row['final_spl_mean']:.2f} ± {row['final_spl_std']:.2f}"
+
+    def reach(row: dict[str, Any]) -> str:
+        at = row["mean_curve_steps_to_0_7"]
+        return "mean curve never reaches 0.7" if at is None else f"mean curve reaches 0.7 at {at}"
+
+    for task in sorted({r["task"] for r in rows}):
+        by_group = {r["group"]: r for r in rows if r["task"] == task}
+        sparse = by_group.get("rl_sparse")
+        if sparse is not None:
+            add(
+                task,
+                "RL-sparse final SPL <= 0.3",
+                sparse["final_spl_mean"] <= CLAIM_SPARSE_MAX,
+                final(sparse),
+                sparse["n_seeds"],
+            )
+        rich = by_group.get("rl_rich")
+        if rich is not None:
+            add(
+                task,
+                "RL-rich final SPL >= 0.8",
+                rich["final_spl_mean"] >= CLAIM_LEARNED_MIN,
+                final(rich),
+                rich["n_seeds"],
+            )
+        hf_rows = sorted(
+            (r for r in by_group.values() if r["method"] == "hf_sparse"),
+            key=lambda r: (r["hf_treatment"], r["accuracy"]),
+        )
+        for row in hf_rows:
+            label = row["group"].replace("hf_sparse", "HF+sparse")
+            if row["accuracy"] < 0.56:
+                add(task, f"{label}: reported as measured", None, final(row), row["n_seeds"])
+                continue
+            add(
+                task,
+                f"{label} final SPL >= 0.8",
+                row["final_spl_mean"] >= CLAIM_LEARNED_MIN,
+                final(row),
+                row["n_seeds"],
+            )
+            if sparse is None:
+                holds = None
+            else:
+                hf_at, sparse_at = row["mean_curve_steps_to_0_7"], sparse["mean_curve_steps_to_0_7"]
+                holds = hf_at is not None and (sparse_at is None or hf_at < sparse_at)
+            add(
+                task,
+                f"{label} reaches 0.7 sooner than RL-sparse ever does",
+                holds,
+                f"{reach(row)}; RL-sparse: {reach(sparse) if sparse else 'not run'}",
+                row["n_seeds"],
+            )
+        for treatment in sorted({r["hf_treatment"] for r in hf_rows}):
+            members = [r for r in hf_rows if r["hf_treatment"] == treatment]
+            if len(members) < 2:
+                continue
+            spl = [r["hf_policy_spl_mean"] for r in members]
+            holds = all(b >= a for a, b in itertools.pairwise(spl)) and spl[-1] > spl[0]
+            add(
+                task,
+                f"HF policy SPL increases with C [{treatment}]",
+                holds,
+                ", ".join(
+                    f"C={r['accuracy']:g}: {v:.2f}" for r, v in zip(members, spl, strict=True)
+                ),
+                min(r["n_seeds"] for r in members),
+            )
+    return claims
+
+
+def claims_markdown(claims: Sequence[dict[str, Any]]) -> str:
+    """The claim checks as a Markdown table."""
+    verdict = {True: "holds", False: "**does not hold**", None: "-"}
+    lines = ["| task | claim | verdict | measured | seeds |", "|---|---|---|---|---|"]
+    lines += [
+        f"| {c['task'].upper()} | {c['claim']} | {verdict[c['holds']]} | {c['measured']} | "
+        f"{c['n_seeds']} |"
+        for c in claims
+    ]
     return "\n".join(lines) + "\n"
 
 

@@ -11,6 +11,7 @@ from services.learner.experiments import (
     episode_stats,
     hf_policy_run,
     make_spec,
+    paper_claims,
     reproduce,
     run_one,
     steps_to_reach,
@@ -73,6 +74,8 @@ def test_reproduce_writes_results_json_with_the_schema(tmp_path) -> None:
             assert run["accuracy"] is None and run["hf_policy_spl"] is None
     for name in ("results.csv", "summary.md", "summary.json", "fig3_sssg.png"):
         assert (tmp_path / name).stat().st_size > 0
+    summary_doc = json.loads((tmp_path / "summary.json").read_text())
+    assert {c["claim"] for c in summary_doc["claims"]} >= {"RL-sparse final SPL <= 0.3"}
     assert {row["group"] for row in summarize(runs)} == {
         "rl_sparse", "rl_rich", "hf_sparse C=0.6",
     }  # fmt: skip
@@ -102,3 +105,62 @@ def test_episode_stats_windows() -> None:
         "success_rate": 0.0, "collision_rate": 1.0,
     }  # fmt: skip
     assert rows[1]["success_rate"] == 1.0
+
+
+def test_cli_ppo_overrides_are_typed_and_checked() -> None:
+    from services.cli.learner import parse_ppo_overrides
+
+    assert parse_ppo_overrides(["n_epochs=10", "reward_scale=1", "hf_guide_sampling=true"]) == {
+        "n_epochs": 10,
+        "reward_scale": 1.0,
+        "hf_guide_sampling": True,
+    }
+    assert parse_ppo_overrides(["hidden_sizes=32,32"]) == {"hidden_sizes": (32, 32)}
+    for bad, message in [
+        (["n_epochs"], "KEY=VALUE"),
+        (["n_epochs=ten"], "not a valid int"),
+        (["no_such=1"], "unknown PPO setting"),
+        (["seed=3"], "set per run"),
+        (["hf_guide_sampling=maybe"], "not a valid bool"),
+        (["minibatch_size=100"], "multiple of minibatch_size"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            parse_ppo_overrides(bad)
+
+
+def _run(method: str, seed: int, curve: list[float], accuracy=None, hf_spl=None) -> dict:
+    steps = [[2000 * k, spl] for k, spl in enumerate(curve)]
+    return {
+        "task": "vssg", "method": method, "accuracy": accuracy, "seed": seed,
+        "hf_treatment": "authors" if method == "hf_sparse" else None, "curve": steps,
+        "final_spl": curve[-1], "hf_policy_spl": hf_spl,
+        "steps_to_0_7": next((s for s, v in steps if v >= 0.7), None),
+    }  # fmt: skip
+
+
+def test_paper_claims_verdicts() -> None:
+    runs = [
+        _run("rl_sparse", 0, [0, 0, 0, 0.8]),  # mean curve 0.4 at the end
+        _run("rl_sparse", 1, [0, 0, 0, 0.0]),
+        _run("rl_rich", 0, [0, 0.9, 0.9, 0.9]),
+        _run("rl_rich", 1, [0, 0.5, 0.8, 0.7]),
+        _run("hf_sparse", 0, [0, 0.8, 0.9, 0.9], 0.7, 0.4),
+        _run("hf_sparse", 1, [0, 0.6, 0.9, 0.8], 0.7, 0.2),
+        _run("hf_sparse", 0, [0, 0, 0.2, 0.3], 0.6, 0.1),
+        _run("hf_sparse", 1, [0, 0, 0.2, 0.3], 0.6, 0.1),
+        _run("hf_sparse", 0, [0, 0, 0, 0], 0.55, 0.0),
+    ]
+    verdicts = {c["claim"]: c["holds"] for c in paper_claims(summarize(runs))}
+    assert verdicts == {
+        "RL-sparse final SPL <= 0.3": False,  # mean 0.4
+        "RL-rich final SPL >= 0.8": True,  # mean 0.8
+        "HF+sparse C=0.55: reported as measured": None,
+        "HF+sparse C=0.6 final SPL >= 0.8": False,
+        "HF+sparse C=0.6 reaches 0.7 sooner than RL-sparse ever does": False,
+        "HF+sparse C=0.7 final SPL >= 0.8": True,  # mean 0.85
+        "HF+sparse C=0.7 reaches 0.7 sooner than RL-sparse ever does": True,  # 2000 vs never
+        "HF policy SPL increases with C [authors]": True,  # 0.0, 0.1, 0.3
+    }
+    flat = [r | {"hf_policy_spl": 0.1} if r["method"] == "hf_sparse" else r for r in runs]
+    flat_verdicts = {c["claim"]: c["holds"] for c in paper_claims(summarize(flat))}
+    assert flat_verdicts["HF policy SPL increases with C [authors]"] is False
