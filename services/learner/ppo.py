@@ -52,7 +52,7 @@ from torch import nn
 
 from services.learner.evaluation import EVAL_SEED_BASE, evaluate_spl
 from services.learner.feedback import HFPolicy
-from services.learner.networks import ObsNormalizer, TwinMLP
+from services.learner.networks import FlatAdam, ObsNormalizer, TwinMLP
 
 HFTreatment = Literal["authors", "truncated_is"]
 CHECKPOINT_VERSION = 1
@@ -170,10 +170,12 @@ class ActorCritic(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(action logits, state value) for one observation or a batch."""
-        single = obs.dim() == 1
-        out = self.towers(self.normalizer(obs.unsqueeze(0) if single else obs))
-        logits, value = out[0], out[1, :, 0]
-        return (logits[0], value[0]) if single else (logits, value)
+        # .forward: nn.Module's call machinery costs ~1 us a submodule on this hot path
+        if obs.dim() == 1:
+            out = self.towers.forward(self.normalizer.forward(obs.unsqueeze(0)))
+            return out[0, 0], out[1, 0, 0]
+        out = self.towers.forward(self.normalizer.forward(obs))
+        return out[0], out[1, :, 0]
 
 
 class PolicyExport(nn.Module):
@@ -242,16 +244,18 @@ def ppo_loss(
     old_logp: torch.Tensor,
     advantages: torch.Tensor,
     returns: torch.Tensor,
-    weights: torch.Tensor,
+    weights: torch.Tensor | None,
     config: PPOConfig,
     *,
     with_stats: bool = True,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Clipped PPO loss of one minibatch.
 
-    ``weights`` multiplies each step's surrogate (1 on-policy; the truncated importance weight
-    rho for off-policy HF steps). Returns the loss and CleanRL-named statistics (empty unless
-    ``with_stats``: computing them costs about a tenth of an update step).
+    ``advantages`` are used as given (``train`` normalises them per minibatch if
+    ``config.norm_adv``). ``weights`` multiplies each step's surrogate (the truncated
+    importance weight rho for off-policy HF steps; None means 1, on-policy). Returns the loss
+    and CleanRL-named statistics (empty unless ``with_stats``: computing them costs about a
+    tenth of an update step).
     """
     logits, value = agent(obs)
     log_probs = torch.log_softmax(logits, dim=-1)
@@ -259,13 +263,16 @@ def ppo_loss(
     entropy = -(log_probs.exp() * log_probs).sum(-1).mean()
     log_ratio = new_logp - old_logp
     ratio = log_ratio.exp()
-    if config.norm_adv and len(advantages) > 1:
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-    surrogate = torch.max(
-        -advantages * ratio,
-        -advantages * torch.clamp(ratio, 1 - config.clip_coef, 1 + config.clip_coef),
-    )
-    pg_loss = (weights * surrogate).mean()
+    # max(unclipped, clipped) of CleanRL. The clipped term only wins where the ratio is
+    # outside the clip range, where it has no gradient; where the two are equal, max's
+    # backward gives each half the gradient, which sums to the unclipped one. So the clipped
+    # term can be detached: same values, same gradients, a smaller graph.
+    neg_adv = -advantages
+    unclipped = neg_adv * ratio
+    with torch.no_grad():
+        clipped = neg_adv * torch.clamp(ratio, 1 - config.clip_coef, 1 + config.clip_coef)
+    surrogate = torch.where(unclipped >= clipped, unclipped, clipped)
+    pg_loss = (surrogate if weights is None else weights * surrogate).mean()
     v_loss = 0.5 * ((value - returns) ** 2).mean()
     loss = pg_loss - config.ent_coef * entropy + config.vf_coef * v_loss
     if not with_stats:
@@ -363,7 +370,7 @@ def _episode_seed(config: PPOConfig, episode: int) -> int:
 def _save_checkpoint(
     path: Path,
     agent: ActorCritic,
-    optimizer: torch.optim.Optimizer,
+    optimizer: FlatAdam,
     rng: np.random.Generator,
     state: _RunState,
     config: PPOConfig,
@@ -430,8 +437,7 @@ def train(
         agent = ActorCritic(
             ObsNormalizer.from_space(env.observation_space), n_actions, config.hidden_sizes
         )
-    parameters = list(agent.parameters())
-    optimizer = torch.optim.Adam(parameters, lr=config.learning_rate, eps=config.adam_eps)
+    optimizer = FlatAdam(agent.parameters(), lr=config.learning_rate, eps=config.adam_eps)
     rng = np.random.default_rng(config.seed)
     state = _RunState()
     checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
@@ -455,7 +461,7 @@ def train(
         state.episode_is_hf = hf_policy is not None and rng.random() < hf_epsilon(0, config)
 
     def greedy(o: np.ndarray) -> int:
-        with torch.no_grad():
+        with torch.inference_mode():
             logits, _ = agent(torch.as_tensor(o))
         return int(torch.argmax(logits))
 
@@ -483,7 +489,7 @@ def train(
         # ---- 1. collect a rollout of n_steps with the behaviour policy ----------------------
         for t in range(config.n_steps):
             obs_tensor = torch.as_tensor(obs)
-            with torch.no_grad():
+            with torch.inference_mode():
                 logits, value = agent(obs_tensor)
                 log_probs = torch.log_softmax(logits, dim=-1).numpy()
             if state.episode_is_hf:
@@ -502,7 +508,7 @@ def train(
             next_obs, reward, terminated, truncated, info = env.step(action)
             reward = float(reward) * config.reward_scale
             if truncated and not terminated:  # time limit: bootstrap the cut-off tail
-                with torch.no_grad():
+                with torch.inference_mode():
                     _, tail_value = agent(torch.as_tensor(next_obs))
                 reward += config.gamma * float(tail_value)
             buf_obs[t] = obs
@@ -543,7 +549,7 @@ def train(
         rollout_seconds = time.perf_counter() - rollout_start
 
         # ---- 2. advantages: GAE (authors) or trace-cut GAE + rho weights (truncated_is) -----
-        with torch.no_grad():
+        with torch.inference_mode():
             _, next_value = agent(torch.as_tensor(obs))
         if config.hf_treatment == "truncated_is":
             ratio_to_mu = np.exp(buf_pi_logp.astype(np.float64) - buf_mu_logp)
@@ -564,38 +570,36 @@ def train(
         returns = buf_values + weights * advantages
 
         # ---- 3. n_epochs of minibatch updates ------------------------------------------------
-        b_obs = torch.from_numpy(buf_obs)
-        b_actions = torch.from_numpy(buf_actions)
-        b_logp = torch.from_numpy(buf_pi_logp)
-        b_adv = torch.from_numpy(advantages.astype(np.float32))
-        b_returns = torch.from_numpy(returns.astype(np.float32))
-        b_weights = torch.from_numpy(weights.astype(np.float32))
+        # All epochs' permutations are drawn first (the same draws as one per epoch), then every
+        # minibatch is gathered, and its advantages normalised, by one op per rollout.
         update_start = time.perf_counter()
+        order = np.concatenate([rng.permutation(config.n_steps) for _ in range(config.n_epochs)])
+        index = torch.from_numpy(order).view(-1, config.minibatch_size)
+        mb_adv = torch.from_numpy(advantages.astype(np.float32))[index]
+        if config.norm_adv and config.minibatch_size > 1:
+            mb_adv = (mb_adv - mb_adv.mean(1, keepdim=True)) / (mb_adv.std(1, keepdim=True) + 1e-8)
+        minibatches = zip(  # the arguments of ppo_loss, one row per minibatch
+            torch.from_numpy(buf_obs)[index],
+            torch.from_numpy(buf_actions)[index],
+            torch.from_numpy(buf_pi_logp)[index],
+            mb_adv,
+            torch.from_numpy(returns.astype(np.float32))[index],
+            torch.from_numpy(weights.astype(np.float32))[index]
+            if config.hf_treatment == "truncated_is"
+            else [None] * len(index),  # all weights 1: skip the multiplication
+            strict=True,
+        )
+        n_minibatches = config.n_steps // config.minibatch_size  # per epoch
         stats_sum: dict[str, float] = {}  # loss statistics of the last epoch
-        n_minibatches = 0
-        for epoch in range(config.n_epochs):
-            last_epoch = epoch == config.n_epochs - 1
-            order = rng.permutation(config.n_steps)
-            for begin in range(0, config.n_steps, config.minibatch_size):
-                mb = torch.from_numpy(order[begin : begin + config.minibatch_size])
-                loss, stats = ppo_loss(
-                    agent,
-                    b_obs[mb],
-                    b_actions[mb],
-                    b_logp[mb],
-                    b_adv[mb],
-                    b_returns[mb],
-                    b_weights[mb],
-                    config,
-                    with_stats=last_epoch,
-                )
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
-                optimizer.step()
-                for key, val in stats.items():
-                    stats_sum[key] = stats_sum.get(key, 0.0) + val
-                n_minibatches += int(last_epoch)
+        for i, minibatch in enumerate(minibatches):
+            last_epoch = i >= len(index) - n_minibatches
+            loss, stats = ppo_loss(agent, *minibatch, config, with_stats=last_epoch)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.clip_grad_norm_(config.max_grad_norm)
+            optimizer.step()
+            for key, val in stats.items():
+                stats_sum[key] = stats_sum.get(key, 0.0) + val
         state.n_updates += 1
         var_returns = float(np.var(returns))
         metrics = {key: val / n_minibatches for key, val in stats_sum.items()}

@@ -11,6 +11,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from services.learner.feedback import FeedbackConfig, OracleFeedbackSource, collect_feedback
 from services.learner.networks import ObsNormalizer
@@ -191,3 +192,34 @@ def test_torchscript_export_loads_without_the_project(toy_env_id, tmp_path) -> N
     with torch.no_grad():
         expected, _ = result.agent(torch.as_tensor(obs))
     assert np.allclose(eval(out[1]), expected.numpy(), atol=1e-6)
+
+
+def test_flat_adam_matches_torch_clip_and_adam_exactly() -> None:
+    from services.learner.networks import FlatAdam, TwinMLP
+
+    def make() -> TwinMLP:
+        torch.manual_seed(3)
+        return TwinMLP(13, (64, 64), 3)
+
+    ours, reference = make(), make()
+    flat = FlatAdam(ours.parameters(), lr=3e-4, eps=1e-5)
+    adam = torch.optim.Adam(reference.parameters(), lr=3e-4, eps=1e-5)
+    generator = torch.Generator().manual_seed(0)
+    for step in range(5):
+        x = torch.randn(64, 13, generator=generator) * (10.0 if step == 2 else 1.0)
+        flat.zero_grad()
+        ours(x).square().sum().backward()
+        norm = flat.clip_grad_norm_(0.5)  # small: the clip is active
+        flat.step()
+        adam.zero_grad()
+        reference(x).square().sum().backward()
+        reference_norm = nn.utils.clip_grad_norm_(reference.parameters(), 0.5)
+        adam.step()
+        assert torch.equal(norm, reference_norm)
+    for mine, theirs in zip(ours.parameters(), reference.parameters(), strict=True):
+        assert torch.equal(mine, theirs)
+    # its state_dict is torch.optim.Adam's, both ways
+    restored = FlatAdam(make().parameters(), lr=3e-4, eps=1e-5)
+    restored.load_state_dict(adam.state_dict())
+    assert torch.equal(restored.exp_avg_sq, flat.exp_avg_sq) and restored.n_steps == 5
+    adam.load_state_dict(flat.state_dict())
