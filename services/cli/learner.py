@@ -171,8 +171,24 @@ def bench_learner(
     typer.echo(json.dumps(result["figures"], indent=1))
 
 
+def compare(
+    folders: Annotated[list[Path], typer.Argument(help="`bgrl reproduce` output folders.")],
+    out: Annotated[Path, typer.Option(help="Output folder (compare.md/json, plots).")],
+) -> None:
+    """Factor studies side by side: a table and per-run plots over several reproductions."""
+    from services.learner.experiments import compare_studies
+
+    try:
+        compare_studies(folders, out)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    typer.echo((out / "compare.md").read_text())
+    typer.echo(f"wrote {out / 'compare.md'}, compare.json and compare_*.png")
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``reproduce``, ``hf-sweep`` and ``bench learner``."""
     app.command("reproduce")(reproduce)
     app.command("hf-sweep")(hf_sweep)
+    app.command("compare")(compare)
     bench_app.command("learner")(bench_learner)

@@ -536,6 +536,82 @@ def plot_figure3(runs: Sequence[dict[str, Any]], out_dir: Path) -> list[Path]:
     return paths
 
 
+def load_study(folder: str | Path) -> tuple[str, dict[str, Any], list[dict[str, Any]]]:
+    """(name, PPO overrides, runs) of a reproduction folder; a clear error if it is none."""
+    path = Path(folder) / "results.json"
+    if not path.is_file():
+        raise ValueError(f"{folder}: no results.json (not a `bgrl reproduce` folder)")
+    try:
+        runs = json.loads(path.read_text())["runs"]
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a reproduction results file ({exc})") from exc
+    overrides = runs[0]["spec"]["ppo_overrides"] if runs else {}
+    return Path(folder).name, overrides, runs
+
+
+def compare_studies(folders: Sequence[str | Path], out_dir: str | Path) -> list[dict[str, Any]]:
+    """Factor studies side by side: one :func:`summarize` row per study, task and group.
+
+    Writes ``out_dir/compare.md`` (table), ``compare.json`` and ``compare_<task>.png``: every
+    run's mean SPL over its last five evaluations (dots) with each group's mean ± std, so
+    studies that differ in one factor (treatment, guidance, PPO setting) can be read together.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    studies = [load_study(folder) for folder in folders]
+    rows: list[dict[str, Any]] = []
+    tails: dict[tuple[str, str, str], list[float]] = {}
+    for name, overrides, runs in studies:
+        for row in summarize(runs):
+            rows.append({"study": name, "ppo_overrides": overrides, **row})
+        for run in runs:
+            key = (run["task"], name, group_label(run))
+            tails.setdefault(key, []).append(
+                float(np.mean([spl for _, spl in run["curve"][-LAST_EVALS:]]))
+            )
+    lines = [
+        "| task | study | PPO overrides | method | seeds | final SPL | last-5 SPL | "
+        "runs reaching 0.7 | median steps to 0.7 | HF policy SPL |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(rows, key=lambda r: (r["task"], r["group"], r["study"])):
+        override_text = ", ".join(f"{k}={v}" for k, v in sorted(r["ppo_overrides"].items()))
+        median = r["median_steps_to_0_7"]
+        hf = r["hf_policy_spl_mean"]
+        lines.append(
+            f"| {r['task'].upper()} | {r['study']} | {override_text or '-'} | {r['group']} | "
+            f"{r['n_seeds']} | {r['final_spl_mean']:.2f} ± {r['final_spl_std']:.2f} | "
+            f"{r['last5_spl_mean']:.2f} ± {r['last5_spl_std']:.2f} | "
+            f"{r['runs_reaching_0_7']}/{r['n_seeds']} | "
+            f"{'-' if median is None else f'{median:.0f}'} | "
+            f"{'-' if hf is None else f'{hf:.2f}'} |"
+        )
+    (out / "compare.md").write_text("\n".join(lines) + "\n")
+    _write_json(out / "compare.json", {"rows": rows})
+    for task in sorted({key[0] for key in tails}):
+        keys = sorted((k for k in tails if k[0] == task), key=lambda k: (k[2], k[1]))
+        fig, ax = plt.subplots(figsize=(max(6.0, 0.55 * len(keys) + 2), 4.5))
+        rng = np.random.default_rng(0)
+        for x, key in enumerate(keys):
+            values = np.array(tails[key])
+            ax.scatter(x + rng.uniform(-0.15, 0.15, len(values)), values, s=12, alpha=0.6)
+            ax.errorbar(x, values.mean(), yerr=values.std(), fmt="D", color="black", capsize=4)
+        ax.set_xticks(range(len(keys)), [f"{k[2]}\n{k[1]}" for k in keys], rotation=60, fontsize=7)
+        ax.set_ylabel("SPL, mean of the last 5 evaluations")
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_title(f"{task.upper()}: every run (dots), mean ± std per study and method")
+        ax.grid(axis="y", alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / f"compare_{task}.png", dpi=110)
+        plt.close(fig)
+    return rows
+
+
 def hf_policy_run(task: str, accuracy: float, seed: int, n_labels: int = 1000) -> dict[str, Any]:
     """Stage 2 alone: train pi_HF from simulated feedback and measure it (no RL).
 

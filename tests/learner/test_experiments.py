@@ -8,6 +8,7 @@ import pytest
 
 from services.learner.experiments import (
     build_specs,
+    compare_studies,
     episode_stats,
     hf_policy_run,
     make_spec,
@@ -87,6 +88,15 @@ def test_reproduce_writes_results_json_with_the_schema(tmp_path) -> None:
     other = make_spec("sssg", "rl_sparse", 1, ppo_overrides={**TINY, "reward_scale": 1.0})
     with pytest.raises(ValueError, match="other settings"):
         reproduce(tmp_path, [other], workers=1)
+    # Studies side by side: one row per study and group, the overrides named.
+    rows = compare_studies([tmp_path], tmp_path / "compare")
+    assert {(r["study"], r["group"]) for r in rows} == {
+        (tmp_path.name, g) for g in ("rl_sparse", "rl_rich", "hf_sparse C=0.6")
+    }
+    assert "n_epochs=2" in (tmp_path / "compare" / "compare.md").read_text()
+    assert (tmp_path / "compare" / "compare_sssg.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="not a `bgrl reproduce` folder"):
+        compare_studies([tmp_path / "compare"], tmp_path / "compare2")
 
 
 def test_hf_policy_run_measures_stage_two_alone() -> None:
