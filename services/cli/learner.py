@@ -163,11 +163,14 @@ def bench_learner(
     target_steps: Annotated[
         int, typer.Option(min=2000, help="Budget of the time-to-0.7-SPL runs.")
     ] = 40_000,
+    target_seeds: Annotated[
+        int, typer.Option(min=1, help="Seeds per method of the time-to-0.7-SPL runs.")
+    ] = 3,
 ) -> None:
     """PPO throughput vs Stable-Baselines3, Fhat update rate, HF+sparse time to 0.7 SPL."""
     from benchmarks.bench_learner import run_benchmark
 
-    result = run_benchmark(out, steps=steps, target_steps=target_steps)
+    result = run_benchmark(out, steps=steps, target_steps=target_steps, target_seeds=target_seeds)
     typer.echo(json.dumps(result["figures"], indent=1))
 
 
