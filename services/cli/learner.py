@@ -190,7 +190,7 @@ def compare(
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``reproduce``, ``hf-sweep`` and ``bench learner``."""
+    """Add ``reproduce``, ``hf-sweep``, ``compare`` and ``bench learner``."""
     app.command("reproduce")(reproduce)
     app.command("hf-sweep")(hf_sweep)
     app.command("compare")(compare)

@@ -589,9 +589,9 @@ def compare_studies(folders: Sequence[str | Path], out_dir: str | Path) -> list[
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    studies = [load_study(folder) for folder in folders]  # bad input fails before writing
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    studies = [load_study(folder) for folder in folders]
     rows: list[dict[str, Any]] = []
     tails: dict[tuple[str, str, str], list[float]] = {}
     for name, overrides, runs in studies:

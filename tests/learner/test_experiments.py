@@ -188,3 +188,17 @@ def test_paper_claims_verdicts() -> None:
     flat = [r | {"hf_policy_spl": 0.1} if r["method"] == "hf_sparse" else r for r in runs]
     flat_verdicts = {c["claim"]: c["holds"] for c in paper_claims(summarize(flat))}
     assert flat_verdicts["HF policy SPL increases with C [authors]"] is False
+
+
+def test_cli_refuses_bad_input_with_a_clear_message(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from services.cli.main import app
+
+    runner = CliRunner()
+    result = runner.invoke(app, ["reproduce", "--out", str(tmp_path / "r"), "--ppo", "n_epochs"])
+    assert result.exit_code == 2 and "KEY=VALUE" in result.output
+    assert not (tmp_path / "r").exists()  # nothing written
+    result = runner.invoke(app, ["compare", str(tmp_path), "--out", str(tmp_path / "c")])
+    assert result.exit_code == 2 and "not a `bgrl reproduce` folder" in result.output
+    assert not (tmp_path / "c").exists()
