@@ -344,6 +344,7 @@ def summarize(runs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
                 "final_spl_std": float(finals.std()),
                 "last5_spl_mean": float(tails.mean()),
                 "last5_spl_std": float(tails.std()),
+                "last5_spl": tails.tolist(),
                 "mean_spl_over_training": areas,
                 "max_mean_curve_spl": float(mean_curve.max()),
                 "mean_curve_steps_to_0_7": steps_to_reach(
@@ -592,16 +593,11 @@ def compare_studies(folders: Sequence[str | Path], out_dir: str | Path) -> list[
     studies = [load_study(folder) for folder in folders]  # bad input fails before writing
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rows: list[dict[str, Any]] = []
-    tails: dict[tuple[str, str, str], list[float]] = {}
-    for name, overrides, runs in studies:
-        for row in summarize(runs):
-            rows.append({"study": name, "ppo_overrides": overrides, **row})
-        for run in runs:
-            key = (run["task"], name, group_label(run))
-            tails.setdefault(key, []).append(
-                float(np.mean([spl for _, spl in run["curve"][-LAST_EVALS:]]))
-            )
+    rows = [
+        {"study": name, "ppo_overrides": overrides, **row}
+        for name, overrides, runs in studies
+        for row in summarize(runs)
+    ]
     lines = [
         "| task | study | PPO overrides | method | seeds | final SPL | last-5 SPL | "
         "mean SPL over training | runs reaching 0.7 | median steps to 0.7 | HF policy SPL |",
@@ -622,15 +618,18 @@ def compare_studies(folders: Sequence[str | Path], out_dir: str | Path) -> list[
         )
     (out / "compare.md").write_text("\n".join(lines) + "\n")
     _write_json(out / "compare.json", {"rows": rows})
-    for task in sorted({key[0] for key in tails}):
-        keys = sorted((k for k in tails if k[0] == task), key=lambda k: (k[2], k[1]))
-        fig, ax = plt.subplots(figsize=(max(6.0, 0.55 * len(keys) + 2), 4.5))
+    for task in sorted({r["task"] for r in rows}):
+        groups = sorted(
+            (r for r in rows if r["task"] == task), key=lambda r: (r["group"], r["study"])
+        )
+        fig, ax = plt.subplots(figsize=(max(6.0, 0.55 * len(groups) + 2), 4.5))
         rng = np.random.default_rng(0)
-        for x, key in enumerate(keys):
-            values = np.array(tails[key])
+        for x, row in enumerate(groups):
+            values = np.array(row["last5_spl"])
             ax.scatter(x + rng.uniform(-0.15, 0.15, len(values)), values, s=12, alpha=0.6)
             ax.errorbar(x, values.mean(), yerr=values.std(), fmt="D", color="black", capsize=4)
-        ax.set_xticks(range(len(keys)), [f"{k[2]}\n{k[1]}" for k in keys], rotation=60, fontsize=7)
+        labels = [f"{r['group']}\n{r['study']}" for r in groups]
+        ax.set_xticks(range(len(groups)), labels, rotation=60, fontsize=7)
         ax.set_ylabel("SPL, mean of the last 5 evaluations")
         ax.set_ylim(-0.05, 1.05)
         ax.set_title(f"{task.upper()}: every run (dots), mean ± std per study and method")
