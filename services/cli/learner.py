@@ -19,7 +19,7 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
     """``["n_epochs=10", "reward_scale=1"]`` -> typed PPOConfig overrides (checked)."""
     from services.learner.ppo import PPOConfig
 
-    fields = {f.name: f for f in dataclasses.fields(PPOConfig)}
+    fields = {f.name for f in dataclasses.fields(PPOConfig)}
     fixed = {"env_id", "env_kwargs", "seed", "eval_seeds", "hf_treatment"}
     defaults = PPOConfig()
     overrides: dict[str, Any] = {}
@@ -31,9 +31,7 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
         if key in fixed:
             raise ValueError(f"--ppo {key} is set per run by the experiment and cannot be changed")
         if key not in fields:
-            raise ValueError(
-                f"--ppo: unknown PPO setting {key!r}; known: {sorted(set(fields) - fixed)}"
-            )
+            raise ValueError(f"--ppo: unknown PPO setting {key!r}; known: {sorted(fields - fixed)}")
         default = getattr(defaults, key)
         try:
             if isinstance(default, bool):

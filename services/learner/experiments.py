@@ -396,6 +396,8 @@ def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
 
 
 CLAIM_SPARSE_MAX = 0.3
+CLAIM_REPORTED_ONLY_ACCURACY = 0.55
+"""The paper reports HF+sparse at this C without a claim (it finds it helps least)."""
 CLAIM_LEARNED_MIN = 0.8
 
 
@@ -451,7 +453,7 @@ def paper_claims(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         )
         for row in hf_rows:
             label = row["group"].replace("hf_sparse", "HF+sparse")
-            if row["accuracy"] < 0.56:
+            if math.isclose(row["accuracy"], CLAIM_REPORTED_ONLY_ACCURACY):
                 add(task, f"{label}: reported as measured", None, final(row), row["n_seeds"])
                 continue
             add(
