@@ -3,11 +3,37 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal, TypeVar
 
-from pydantic import AliasChoices, Field
+from pydantic import AliasChoices, Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ENV_PREFIX = "BGRL_"
+
+SettingsT = TypeVar("SettingsT", bound=BaseSettings)
+
+
+class SettingsError(ValueError):
+    """A setting from the environment is invalid; the message is one line naming it."""
+
+
+def load_settings(cls: type[SettingsT], **overrides: object) -> SettingsT:
+    """``cls(**overrides)`` with a validation failure as one :class:`SettingsError` line.
+
+    The line names the environment variable (e.g. ``BGRL_SIM_PORT``), the value given and
+    what is wrong with it, so a bad setting stops a service before it claims to listen.
+    """
+    try:
+        return cls(**overrides)
+    except ValidationError as exc:
+        prefix = cls.model_config.get("env_prefix", ENV_PREFIX)
+        problems = []
+        for err in exc.errors():
+            field = ".".join(str(p) for p in err["loc"]) or "?"
+            given = err.get("input")
+            shown = f" (got {given!r})" if isinstance(given, str | int | float) else ""
+            problems.append(f"{prefix}{field.upper()}{shown}: {err['msg']}")
+        raise SettingsError("invalid setting: " + "; ".join(problems)) from None
 
 
 class BaseServiceSettings(BaseSettings):
@@ -29,6 +55,16 @@ class BaseServiceSettings(BaseSettings):
     )
     max_upload_bytes: int = Field(
         512 * 1024 * 1024, gt=0, description="Largest request body accepted, in bytes."
+    )
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        "INFO",
+        validation_alias=AliasChoices("BGRL_LOG_LEVEL", "log_level"),
+        description="Level of the service's log (platform-wide BGRL_LOG_LEVEL).",
+    )
+    log_json: bool = Field(
+        False,
+        validation_alias=AliasChoices("BGRL_LOG_JSON", "log_json"),
+        description="Log one JSON object per line instead of text (platform-wide BGRL_LOG_JSON).",
     )
 
     def ensure_data_dir(self) -> Path:

@@ -1,0 +1,213 @@
+"""The FastAPI skeleton every service is built on.
+
+:func:`create_service_app` gives each service the same body-size limit (answered with a
+JSON 413), the same JSON error bodies (:class:`~services.core.errors.ServiceError`,
+validation errors that name the field and never echo a value JSON cannot carry), a request
+id on every request and log line, and ``GET /health``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from contextlib import AbstractAsyncContextManager
+from typing import Any
+
+from fastapi import APIRouter, FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
+from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.middleware.body_limit import MAX_BODY_SIZE_SCOPE_KEY, RequestBodyLimitMiddleware
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from services.core.errors import ServiceError
+from services.core.logging import request_id
+
+log = logging.getLogger("bgrl.http")
+
+REQUEST_ID_HEADER = "x-request-id"
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by its name (``"nan"``, ``"inf"``)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if value is None or isinstance(value, str | int | float | bool):
+        return value
+    return str(value)
+
+
+def _field_name(loc: Sequence[Any]) -> str:
+    parts = [str(p) for p in loc if p not in ("body", "query", "path", "header", "cookie")]
+    return ".".join(parts) or "body"
+
+
+def validation_error_body(errors: Sequence[Any]) -> dict[str, Any]:
+    """FastAPI's 422 list, each entry with ``field``, and inputs safe to serialise.
+
+    ``detail`` stays a list (FastAPI clients read it); ``message`` sums it up in one line.
+    """
+    entries = []
+    for err in errors:
+        entry = {k: jsonable(v) for k, v in dict(err).items() if k in ("loc", "msg", "type")}
+        entry["field"] = _field_name(err.get("loc", ()))
+        if "input" in err:
+            text = json.dumps(jsonable(err["input"]))
+            entry["input"] = jsonable(err["input"]) if len(text) <= 200 else text[:200] + "..."
+        entries.append(entry)
+    message = "; ".join(f"{e['field']}: {e.get('msg', 'invalid')}" for e in entries)
+    return {"detail": entries, "message": message}
+
+
+def _too_large_body(limit: int | None) -> dict[str, Any]:
+    detail = "request body too large"
+    if limit:
+        detail += f" (this endpoint accepts at most {limit} bytes)"
+    return {"detail": detail, "field": "body"}
+
+
+class _JsonBodyLimit:
+    """Turns the body limiter's plain-text 413 into the platform's JSON error body."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        rewriting = False
+
+        async def send_json_413(message: Message) -> None:
+            nonlocal rewriting
+            if message["type"] == "http.response.start" and message["status"] == 413:
+                headers = dict(message.get("headers", []))
+                if headers.get(b"content-type", b"").startswith(b"text/plain"):
+                    rewriting = True
+                    body = json.dumps(_too_large_body(scope.get(MAX_BODY_SIZE_SCOPE_KEY))).encode()
+                    await send(
+                        {
+                            "type": "http.response.start",
+                            "status": 413,
+                            "headers": [
+                                (b"content-type", b"application/json"),
+                                (b"content-length", str(len(body)).encode()),
+                            ],
+                        }
+                    )
+                    await send({"type": "http.response.body", "body": body})
+                    return
+            if rewriting:
+                return  # the plain-text body is replaced by the JSON one already sent
+            await send(message)
+
+        await self.app(scope, receive, send_json_413)
+
+
+class _RequestId:
+    """Gives every request an id (the client's ``X-Request-ID`` or a new one) and logs it."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        headers = dict(scope.get("headers", []))
+        given = headers.get(REQUEST_ID_HEADER.encode(), b"").decode("latin-1")
+        rid = given if 0 < len(given) <= 64 and given.isprintable() else uuid.uuid4().hex[:16]
+        token = request_id.set(rid)
+        started = time.perf_counter()
+        status_code = 0
+
+        async def send_with_id(message: Message) -> None:
+            nonlocal status_code
+            if message["type"] == "http.response.start":
+                status_code = message["status"]
+                message.setdefault("headers", [])
+                message["headers"] = [
+                    *message["headers"],
+                    (REQUEST_ID_HEADER.encode(), rid.encode()),
+                ]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_with_id)
+        finally:
+            if scope["type"] == "http":
+                log.info(
+                    "%s %s -> %s (%.1f ms)",
+                    scope.get("method"),
+                    scope.get("path"),
+                    status_code or "aborted",
+                    1000 * (time.perf_counter() - started),
+                )
+            request_id.reset(token)
+
+
+def create_service_app(
+    *,
+    name: str,
+    title: str,
+    summary: str,
+    version: str,
+    max_body_size: int,
+    lifespan: Callable[[FastAPI], AbstractAsyncContextManager[None]] | None = None,
+    routers: Sequence[APIRouter] = (),
+    health: Callable[[Request], dict[str, Any]] | None = None,
+) -> FastAPI:
+    """A FastAPI app with the platform's limits, error bodies, request ids and health route.
+
+    ``health`` (optional) adds service-specific fields to ``GET /health``.
+    """
+    app = FastAPI(title=title, summary=summary, version=version, lifespan=lifespan)
+
+    @app.exception_handler(ServiceError)
+    async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        return JSONResponse(
+            status_code=exc.status_code, content={"detail": str(exc), "field": exc.field}
+        )
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        if exc.status_code == 413:
+            limit = request.scope.get(MAX_BODY_SIZE_SCOPE_KEY)
+            return JSONResponse(status_code=413, content=_too_large_body(limit))
+        return await http_exception_handler(request, exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        return JSONResponse(status_code=422, content=validation_error_body(exc.errors()))
+
+    @app.exception_handler(WebSocketRequestValidationError)
+    async def ws_validation_error(request: Any, exc: WebSocketRequestValidationError) -> None:
+        from services.core.websockets import CLOSE_BAD_REQUEST
+
+        body = validation_error_body(exc.errors())
+        await request.close(code=CLOSE_BAD_REQUEST, reason=body["message"][:120])
+
+    if not any(getattr(r, "path", None) == "/health" for r in routers):
+
+        @app.get("/health", tags=["service"])
+        def health_route(request: Request) -> dict[str, Any]:
+            """Liveness of the service."""
+            extra = health(request) if health is not None else {}
+            return {"status": "ok", "service": name, **extra}
+
+    for router in routers:
+        app.include_router(router)
+    # the last added is the outermost: request id, then JSON 413, then the limit itself
+    app.add_middleware(RequestBodyLimitMiddleware, max_body_size=max_body_size)
+    app.add_middleware(_JsonBodyLimit)
+    app.add_middleware(_RequestId)
+    return app

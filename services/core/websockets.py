@@ -1,0 +1,24 @@
+"""Websocket checks shared by every service (CORS does not protect websockets)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from urllib.parse import urlsplit
+
+from starlette.requests import HTTPConnection
+
+CLOSE_ORIGIN_REFUSED = 4403
+"""Close code sent before ``accept`` when the Origin is not allowed."""
+CLOSE_NOT_FOUND = 4404
+"""Close code for an unknown resource named in the websocket's path or query."""
+CLOSE_BAD_REQUEST = 4422
+"""Close code for a bad query parameter or a malformed first message."""
+
+
+def origin_allowed(connection: HTTPConnection, allowed_origins: Iterable[str]) -> bool:
+    """Same-host origins, configured origins, and clients that send no Origin (not browsers)."""
+    origin = connection.headers.get("origin")
+    if origin is None or origin in set(allowed_origins):
+        return True
+    host = connection.headers.get("host", "")
+    return bool(host) and urlsplit(origin).netloc.lower() == host.lower()

@@ -1,0 +1,110 @@
+"""The shared service skeleton: JSON errors for bad numbers, unknown fields and big bodies."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+from fastapi import APIRouter
+from fastapi.testclient import TestClient
+from pydantic_settings import SettingsConfigDict
+
+from services.core.errors import NotFoundError
+from services.core.files import write_json_atomic
+from services.core.schemas import StrictRequest
+from services.core.settings import BaseServiceSettings, SettingsError, load_settings
+from services.core.web import create_service_app
+
+router = APIRouter()
+
+
+class Body(StrictRequest):
+    x: float
+    n: int = 0
+
+
+@router.post("/echo")
+def echo(body: Body) -> dict[str, float]:
+    return {"x": body.x}
+
+
+@router.get("/missing")
+def missing() -> dict[str, str]:
+    raise NotFoundError("no such thing", field="id")
+
+
+@pytest.fixture
+def client() -> TestClient:
+    app = create_service_app(
+        name="test", title="t", summary="t", version="0", max_body_size=100, routers=[router]
+    )
+    return TestClient(app)
+
+
+@pytest.mark.parametrize(
+    ("text", "field"),
+    [('{"x": NaN}', "x"), ('{"x": 1e400}', "x"), ('{"x": 1, "n": Infinity}', "n")],
+)
+def test_non_finite_numbers_are_a_422_naming_the_field(client: TestClient, text, field) -> None:
+    resp = client.post("/echo", content=text, headers={"content-type": "application/json"})
+    assert resp.status_code == 422
+    body = resp.json()
+    assert body["detail"][0]["field"] == field
+    assert body["message"].startswith(f"{field}:")
+
+
+def test_unknown_field_is_refused(client: TestClient) -> None:
+    resp = client.post("/echo", json={"x": 1, "typo": 2})
+    assert resp.status_code == 422
+    assert resp.json()["detail"][0]["field"] == "typo"
+
+
+def test_over_limit_body_is_a_json_413(client: TestClient) -> None:
+    declared = client.post("/echo", content=b"x" * 1000, headers={"content-type": "text/plain"})
+    streamed = client.post(
+        "/echo", content=(b"x" * 50 for _ in range(20)), headers={"content-type": "text/plain"}
+    )
+    for resp in (declared, streamed):
+        assert resp.status_code == 413
+        assert resp.headers["content-type"] == "application/json"
+        assert "at most 100 bytes" in resp.json()["detail"]
+
+
+def test_service_errors_and_request_ids(client: TestClient) -> None:
+    resp = client.get("/missing", headers={"x-request-id": "abc123"})
+    assert resp.status_code == 404
+    assert resp.json() == {"detail": "no such thing", "field": "id"}
+    assert resp.headers["x-request-id"] == "abc123"
+    assert client.get("/health").json() == {"status": "ok", "service": "test"}
+    assert len(client.get("/health").headers["x-request-id"]) == 16
+
+
+def test_request_id_reaches_log_lines(client: TestClient, caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.INFO, logger="bgrl.http"):
+        client.get("/health", headers={"x-request-id": "rid-42"})
+    assert any("/health -> 200" in r.getMessage() for r in caplog.records)
+
+
+def test_settings_errors_are_one_line_naming_the_variable(monkeypatch) -> None:
+    class DemoSettings(BaseServiceSettings):
+        model_config = SettingsConfigDict(env_prefix="BGRL_DEMO_")
+
+    monkeypatch.setenv("BGRL_DEMO_PORT", "abc")
+    with pytest.raises(SettingsError) as info:
+        load_settings(DemoSettings)
+    message = str(info.value)
+    assert "\n" not in message
+    assert "BGRL_DEMO_PORT" in message and "'abc'" in message
+    monkeypatch.setenv("BGRL_DEMO_PORT", "70000")
+    with pytest.raises(SettingsError, match="BGRL_DEMO_PORT"):
+        load_settings(DemoSettings)
+
+
+def test_atomic_json_refuses_nan_and_keeps_the_old_file(tmp_path) -> None:
+    path = tmp_path / "a.json"
+    write_json_atomic(path, {"a": 1})
+    with pytest.raises(ValueError):
+        write_json_atomic(path, {"a": float("nan")})
+    assert json.loads(path.read_text()) == {"a": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["a.json"]
