@@ -56,6 +56,15 @@ class BaseServiceSettings(BaseSettings):
     max_upload_bytes: int = Field(
         512 * 1024 * 1024, gt=0, description="Largest request body accepted, in bytes."
     )
+    service_token: str | None = Field(
+        None,
+        min_length=16,
+        validation_alias=AliasChoices("BGRL_SERVICE_TOKEN", "service_token"),
+        description="Internal token the platform's services exchange (platform-wide "
+        "BGRL_SERVICE_TOKEN). When set, every route but /health requires it in the "
+        "X-Service-Token header; the sim, EEG and learner services have no user auth of "
+        "their own, so they listen on loopback and take calls only from the platform.",
+    )
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         "INFO",
         validation_alias=AliasChoices("BGRL_LOG_LEVEL", "log_level"),

@@ -8,6 +8,7 @@ id on every request and log line, and ``GET /health``.
 
 from __future__ import annotations
 
+import hmac
 import json
 import logging
 import math
@@ -31,6 +32,7 @@ from services.core.logging import request_id
 log = logging.getLogger("bgrl.http")
 
 REQUEST_ID_HEADER = "x-request-id"
+SERVICE_TOKEN_HEADER = "x-service-token"
 
 
 def jsonable(value: Any) -> Any:
@@ -155,6 +157,37 @@ class _RequestId:
             request_id.reset(token)
 
 
+class _ServiceToken:
+    """Refuses every request but ``/health`` that lacks the platform's internal token."""
+
+    def __init__(self, app: ASGIApp, token: str) -> None:
+        self.app = app
+        self.token = token.encode()
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket") or scope.get("path") == "/health":
+            await self.app(scope, receive, send)
+            return
+        given = dict(scope.get("headers", [])).get(SERVICE_TOKEN_HEADER.encode(), b"")
+        if hmac.compare_digest(given, self.token):
+            await self.app(scope, receive, send)
+            return
+        if scope["type"] == "websocket":
+            await send({"type": "websocket.close", "code": 4401, "reason": "service token"})
+            return
+        body = json.dumps(
+            {"detail": "missing or wrong X-Service-Token", "field": SERVICE_TOKEN_HEADER}
+        ).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 401,
+                "headers": [(b"content-type", b"application/json")],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+
 def create_service_app(
     *,
     name: str,
@@ -165,10 +198,12 @@ def create_service_app(
     lifespan: Callable[[FastAPI], AbstractAsyncContextManager[None]] | None = None,
     routers: Sequence[APIRouter] = (),
     health: Callable[[Request], dict[str, Any]] | None = None,
+    service_token: str | None = None,
 ) -> FastAPI:
     """A FastAPI app with the platform's limits, error bodies, request ids and health route.
 
-    ``health`` (optional) adds service-specific fields to ``GET /health``.
+    ``health`` (optional) adds service-specific fields to ``GET /health``; with
+    ``service_token`` every other route requires it in the ``X-Service-Token`` header.
     """
     app = FastAPI(title=title, summary=summary, version=version, lifespan=lifespan)
 
@@ -209,5 +244,7 @@ def create_service_app(
     # the last added is the outermost: request id, then JSON 413, then the limit itself
     app.add_middleware(RequestBodyLimitMiddleware, max_body_size=max_body_size)
     app.add_middleware(_JsonBodyLimit)
+    if service_token:
+        app.add_middleware(_ServiceToken, token=service_token)
     app.add_middleware(_RequestId)
     return app

@@ -108,3 +108,24 @@ def test_atomic_json_refuses_nan_and_keeps_the_old_file(tmp_path) -> None:
         write_json_atomic(path, {"a": float("nan")})
     assert json.loads(path.read_text()) == {"a": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["a.json"]
+
+
+def test_service_token_guards_every_route_but_health() -> None:
+    app = create_service_app(
+        name="test",
+        title="t",
+        summary="t",
+        version="0",
+        max_body_size=100,
+        routers=[router],
+        service_token="s3cret-token-0123456789",
+    )
+    client = TestClient(app)
+    assert client.get("/health").status_code == 200
+    refused = client.post("/echo", json={"x": 1})
+    assert refused.status_code == 401
+    assert refused.json()["field"] == "x-service-token"
+    wrong = client.post("/echo", json={"x": 1}, headers={"x-service-token": "nope"})
+    assert wrong.status_code == 401
+    ok = client.post("/echo", json={"x": 1}, headers={"x-service-token": "s3cret-token-0123456789"})
+    assert ok.json() == {"x": 1.0}
