@@ -4,6 +4,8 @@ SPL (Anderson et al. 2018) is the mean over episodes of ``S_i * l_i / max(p_i, l
 ``l_i`` the oracle's shortest path and ``p_i`` the path taken, both counted in actions.
 The evaluation starts are fixed by reset seeds: SSSG has one start (any seed), VSSG draws
 its jittered start from the reset seed, so a fixed tuple of seeds is a fixed set of starts.
+They come from their own fixed stream (:func:`services.learner.seeding.evaluation_reset_seeds`),
+which no run's training, label collection or label noise can produce.
 """
 
 from __future__ import annotations
@@ -13,18 +15,16 @@ from collections.abc import Callable, Sequence
 import gymnasium as gym
 import numpy as np
 
+from services.learner.seeding import evaluation_reset_seeds
 from services.sim.metrics import spl
-
-EVAL_SEED_BASE = 1_000_000
-"""Evaluation reset seeds start here, far from the training resets (seed * 10**6 + k)."""
 
 
 def eval_seeds(task: str, n_starts: int = 5) -> tuple[int, ...]:
     """The fixed evaluation starts of a task: one for SSSG, ``n_starts`` for VSSG."""
     if task == "sssg":
-        return (EVAL_SEED_BASE,)
+        return evaluation_reset_seeds(1)
     if task == "vssg":
-        return tuple(EVAL_SEED_BASE + i for i in range(n_starts))
+        return evaluation_reset_seeds(n_starts)
     raise ValueError(f"unknown task {task!r}; expected 'sssg' or 'vssg'")
 
 

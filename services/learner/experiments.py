@@ -31,6 +31,7 @@ import numpy as np
 from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
 from services.learner.feedback import FeedbackConfig, OracleFeedbackSource, collect_feedback
 from services.learner.ppo import PPOConfig, train
+from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
 
 TASK_ENV_IDS = {"sssg": "services.sim:BrainNav-SSSG-v0", "vssg": "services.sim:BrainNav-VSSG-v0"}
 METHODS = ("rl_sparse", "rl_rich", "hf_sparse")
@@ -147,8 +148,11 @@ def run_one(spec: dict[str, Any]) -> dict[str, Any]:
     hf_summary = None
     if spec["method"] == "hf_sparse":
         label_env = gym.make(config.env_id, **config.env_kwargs)
-        source = OracleFeedbackSource(spec["accuracy"], seed=spec["seed"] + 7919)
-        hf = collect_feedback(label_env, source, spec["n_labels"], seed=spec["seed"])
+        seeds = RunSeeds(spec["seed"])
+        source = OracleFeedbackSource(spec["accuracy"], seed=seeds.int_seed(Stream.LABEL_NOISE))
+        hf = collect_feedback(
+            label_env, source, spec["n_labels"], seed=seeds.int_seed(Stream.LABEL_COLLECTION)
+        )
         hf_policy = hf.policy
         hf_policy_spl = evaluate_spl(label_env, hf_policy.act, config.eval_seeds)
         hf_summary = hf.summary()
@@ -651,12 +655,15 @@ def hf_policy_run(task: str, accuracy: float, seed: int, n_labels: int = 1000) -
     """
     start = time.perf_counter()
     env = gym.make(TASK_ENV_IDS[task], reward_mode="sparse")
-    source = OracleFeedbackSource(accuracy, seed=seed + 7919)
-    hf = collect_feedback(env, source, n_labels, seed=seed)
+    seeds = RunSeeds(seed)
+    source = OracleFeedbackSource(accuracy, seed=seeds.int_seed(Stream.LABEL_NOISE))
+    hf = collect_feedback(env, source, n_labels, seed=seeds.int_seed(Stream.LABEL_COLLECTION))
     policy = hf.policy
     greedy_spl = evaluate_spl(env, policy.act, eval_seeds(task, N_VSSG_EVAL_STARTS))
-    rng = np.random.default_rng([seed, 2])
-    sampled = [run_episode(env, lambda o: policy.act(o, rng), 2_000_000 + k)[0] for k in range(20)]
+    rng = seeds.generator(Stream.HF_PROBE)
+    sampled = [
+        run_episode(env, lambda o: policy.act(o, rng), s)[0] for s in evaluation_reset_seeds(20)
+    ]
     env.close()
     return {
         "task": task,

@@ -30,8 +30,10 @@ method (0.01 by default: +-100 terminal rewards become +-1; DESIGN §2 reports t
 mock-up only learned with 1/100). Time-limit truncation is bootstrapped with
 ``gamma * V(s_T)``.
 
-Determinism and resume. All randomness comes from ``config.seed`` (torch init under a forked
-RNG, a numpy Generator for sampling, episode ``k`` reset with seed ``seed * 10**6 + k``).
+Determinism and resume. All randomness comes from ``config.seed`` through one
+``numpy.random.SeedSequence`` (:mod:`services.learner.seeding`): torch init (under a forked
+RNG), a numpy Generator for sampling and minibatches, and the training reset seeds are
+separate child streams, disjoint from the evaluation starts.
 Checkpoints are written at update boundaries; resuming re-seeds the env and replays the
 current episode's actions (the env is deterministic), so a resumed run ends identically.
 """
@@ -50,12 +52,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from services.learner.evaluation import EVAL_SEED_BASE, evaluate_spl
+from services.learner.evaluation import evaluate_spl
 from services.learner.feedback import HFPolicy
 from services.learner.networks import FlatAdam, ObsNormalizer, TwinMLP
+from services.learner.seeding import RunSeeds, Stream, TrainingResets, evaluation_reset_seeds
 
 HFTreatment = Literal["authors", "truncated_is"]
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 
 
 @dataclass
@@ -100,7 +103,7 @@ class PPOConfig:
     """Hidden layers of the (separate) actor and critic MLPs, tanh activations."""
     eval_every: int = 2000
     """Evaluate the greedy pi_RL every this many env steps (and at step 0)."""
-    eval_seeds: tuple[int, ...] = (EVAL_SEED_BASE,)
+    eval_seeds: tuple[int, ...] = evaluation_reset_seeds(1)
     """Reset seeds of the fixed evaluation starts (see ``evaluation.eval_seeds``)."""
     hf_eps_init: float = 0.8
     """eps_HF at the end of the warm-up: probability that an episode follows pi_HF."""
@@ -363,15 +366,12 @@ class _RunState:
     metrics: list[dict[str, float]] = field(default_factory=list)
 
 
-def _episode_seed(config: PPOConfig, episode: int) -> int:
-    return config.seed * 1_000_000 + episode
-
-
 def _save_checkpoint(
     path: Path,
     agent: ActorCritic,
     optimizer: FlatAdam,
     rng: np.random.Generator,
+    resets: TrainingResets,
     state: _RunState,
     config: PPOConfig,
     hf_policy: HFPolicy | None,
@@ -382,6 +382,7 @@ def _save_checkpoint(
         "agent": agent.state_dict(),
         "optimizer": optimizer.state_dict(),
         "rng": rng.bit_generator.state,
+        "resets": resets.state,
         "state": asdict(state),
         "hf_model": None if hf_policy is None else hf_policy.model.state_dict(),
     }
@@ -432,13 +433,15 @@ def train(
     env = gym.make(config.env_id, **config.env_kwargs)
     eval_env = gym.make(config.env_id, **config.env_kwargs)
     n_actions = int(env.action_space.n)
+    seeds = RunSeeds(config.seed)
     with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
+        torch.manual_seed(seeds.int_seed(Stream.TORCH_INIT))
         agent = ActorCritic(
             ObsNormalizer.from_space(env.observation_space), n_actions, config.hidden_sizes
         )
     optimizer = FlatAdam(agent.parameters(), lr=config.learning_rate, eps=config.adam_eps)
-    rng = np.random.default_rng(config.seed)
+    rng = seeds.generator(Stream.ACTIONS)
+    resets = seeds.training_resets()
     state = _RunState()
     checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
 
@@ -447,6 +450,7 @@ def train(
         agent.load_state_dict(payload["agent"])
         optimizer.load_state_dict(payload["optimizer"])
         rng.bit_generator.state = payload["rng"]
+        resets.state = payload["resets"]
         state = _RunState(**payload["state"])
         state.curve = [tuple(point) for point in state.curve]
         state.episodes = [tuple(e) for e in state.episodes]
@@ -456,7 +460,7 @@ def train(
         for action in state.episode_actions:  # replay the current episode
             obs, *_ = env.step(action)
     else:
-        state.episode_seed = _episode_seed(config, 0)
+        state.episode_seed = resets.next()
         obs, _ = env.reset(seed=state.episode_seed)
         state.episode_is_hf = hf_policy is not None and rng.random() < hf_epsilon(0, config)
 
@@ -536,7 +540,7 @@ def train(
                 )
                 state.n_episodes += 1
                 state.n_hf_episodes += int(state.episode_is_hf)
-                state.episode_seed = _episode_seed(config, state.n_episodes)
+                state.episode_seed = resets.next()
                 state.episode_actions = []
                 state.episode_return = 0.0
                 obs, _ = env.reset(seed=state.episode_seed)
@@ -630,10 +634,10 @@ def train(
         state.metrics.append(metrics)
         keep_going &= callback.on_update(state.global_step, metrics)
         if checkpoint is not None and (state.n_updates % checkpoint_every == 0 or not keep_going):
-            _save_checkpoint(checkpoint, agent, optimizer, rng, state, config, hf_policy)
+            _save_checkpoint(checkpoint, agent, optimizer, rng, resets, state, config, hf_policy)
 
     if checkpoint is not None:
-        _save_checkpoint(checkpoint, agent, optimizer, rng, state, config, hf_policy)
+        _save_checkpoint(checkpoint, agent, optimizer, rng, resets, state, config, hf_policy)
     env.close()
     eval_env.close()
     return TrainResult(
