@@ -30,7 +30,7 @@ import numpy as np
 
 from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
 from services.learner.feedback import FeedbackConfig, OracleFeedbackSource, collect_feedback
-from services.learner.ppo import PPOConfig, train
+from services.learner.ppo import Callback, PPOConfig, train
 from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
 
 TASK_ENV_IDS = {"sssg": "services.sim:BrainNav-SSSG-v0", "vssg": "services.sim:BrainNav-VSSG-v0"}
@@ -139,8 +139,20 @@ def episode_stats(
     return rows
 
 
-def run_one(spec: dict[str, Any]) -> dict[str, Any]:
-    """Execute one run (stage 2 for hf_sparse, then stage 3) and return its record."""
+def run_one(
+    spec: dict[str, Any],
+    *,
+    callback: Callback | None = None,
+    checkpoint_path: str | Path | None = None,
+    checkpoint_every: int = 10,
+    model_path: str | Path | None = None,
+) -> dict[str, Any]:
+    """Execute one run (stage 2 for hf_sparse, then stage 3) and return its record.
+
+    ``callback``, ``checkpoint_path`` and ``checkpoint_every`` go to :func:`train` (a job
+    worker reports progress, stops on cancel and resumes from the checkpoint); with
+    ``model_path`` the trained policy is exported there as TorchScript.
+    """
     start = time.perf_counter()
     config = ppo_config_for(spec)
     hf_policy = None
@@ -157,7 +169,15 @@ def run_one(spec: dict[str, Any]) -> dict[str, Any]:
         hf_policy_spl = evaluate_spl(label_env, hf_policy.act, config.eval_seeds)
         hf_summary = hf.summary()
         label_env.close()
-    result = train(config, hf_policy=hf_policy)
+    result = train(
+        config,
+        callback,
+        hf_policy=hf_policy,
+        checkpoint_path=checkpoint_path,
+        checkpoint_every=checkpoint_every,
+    )
+    if model_path is not None:
+        result.export_torchscript(model_path)
     curve = [[int(step), float(spl)] for step, spl in result.curve]
     return {
         **{k: spec[k] for k in ("task", "method", "accuracy", "seed", "hf_treatment")},
