@@ -1,0 +1,1 @@
+"""The platform database: SQLAlchemy 2 models, engine/session factories and Alembic migrations."""
