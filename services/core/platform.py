@@ -14,7 +14,8 @@ class PlatformSettings(BaseServiceSettings):
     """What the api and every worker must agree on (``BGRL_`` environment variables).
 
     A worker on another host needs only ``BGRL_DATABASE_URL``, ``BGRL_BROKER_URL`` and a
-    shared ``BGRL_ARTIFACT_DIR`` to take jobs.
+    shared ``BGRL_ARTIFACT_DIR`` to take jobs. ``service_token`` (``BGRL_SERVICE_TOKEN``,
+    from :class:`BaseServiceSettings`) is what the platform sends to the sim and EEG services.
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", populate_by_name=True)
@@ -33,11 +34,6 @@ class PlatformSettings(BaseServiceSettings):
         None,
         description="Root of the artifact store (recordings, checkpoints, models); a path "
         "shared by every host running a worker. Default: <data_dir>/artifacts.",
-    )
-    service_token: str | None = Field(
-        None,
-        description="Internal token the sim, EEG and learner services accept from the "
-        "platform (sent as a bearer token).",
     )
     workers: int = Field(1, ge=1, le=64, description="Worker processes `bgrl up` starts.")
     job_lease_s: float = Field(
