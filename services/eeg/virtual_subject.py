@@ -31,7 +31,7 @@ depend on ``quality``, so two subjects with the same seed differ only in their E
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import mne
@@ -234,6 +234,217 @@ def _blink_train(rng: np.random.Generator, n_times: int, sfreq: float) -> np.nda
     return train
 
 
+GENERATION_BLOCK = 1 << 18
+"""Samples mixed per block (the white-noise draws follow this blocking, so it is fixed)."""
+
+
+class SyntheticRecording:
+    """A virtual subject's recording, generated block by block in float32.
+
+    The slow-varying sources (evoked responses, background, alpha, blinks, drift) are drawn
+    once, in float32, when the object is made (~0.4 GB for 20 minutes at 2048 Hz); the
+    channels are mixed, and the channel-local noise drawn, block by block on every pass of
+    :meth:`iter_chunks`, which always yields the same samples. Nothing holds the whole
+    recording unless :meth:`to_raw` is called. Arguments as :func:`simulate_recording`.
+
+    Attributes
+    ----------
+    info : mne.Info
+        64 EEG channels (``biosemi64`` montage) and ``Status``; the description starts
+        with ``"SYNTHETIC"``.
+    n_times : int
+        Samples per channel.
+    """
+
+    def __init__(
+        self,
+        labels: Sequence[bool],
+        *,
+        quality: float,
+        seed: int,
+        action_period_s: float = ACTION_PERIOD_S,
+        sfreq: float = 2048.0,
+        lead_in_s: float = 2.0,
+        latency_shift_s: float | None = None,
+    ) -> None:
+        subject = VirtualSubject(quality=quality, seed=seed, latency_shift_s=latency_shift_s)
+        labels_arr = np.asarray([bool(v) for v in labels], dtype=bool)
+        if labels_arr.size == 0:
+            raise ValueError("labels is empty: at least one action is needed")
+        if not (sfreq >= MIN_SFREQ) or not math.isfinite(sfreq):
+            raise ValueError(f"sfreq must be a finite rate >= {MIN_SFREQ} Hz, got {sfreq}")
+        if not (action_period_s > 0) or not math.isfinite(action_period_s):
+            raise ValueError(f"action_period_s must be positive, got {action_period_s}")
+        if not (lead_in_s >= 0) or not math.isfinite(lead_in_s):
+            raise ValueError(f"lead_in_s must be >= 0, got {lead_in_s}")
+
+        rng = np.random.default_rng(seed)
+        shift_s = (
+            float(rng.uniform(-MAX_SUBJECT_SHIFT_S, MAX_SUBJECT_SHIFT_S))
+            if subject.latency_shift_s is None
+            else float(subject.latency_shift_s)
+        )
+        n_actions = labels_arr.size
+        n_times = round((2 * lead_in_s + n_actions * action_period_s) * sfreq)
+        onsets = np.round((lead_in_s + np.arange(n_actions) * action_period_s) * sfreq).astype(int)
+        names, positions = _electrode_positions()
+        index = {name: i for i, name in enumerate(names)}
+        n_chans = len(names)
+
+        # Every component is a source time course times a spatial pattern (volts per unit);
+        # all of them are mixed into the channels with a single matrix product per block.
+        # A source is a float32 row, or a function (start, stop) -> float32 for the cheap
+        # deterministic ones (line noise), made per block.
+        patterns: list[np.ndarray] = []
+        sources: list[np.ndarray | Callable[[int, int], np.ndarray]] = []
+
+        # Evoked responses, one source per component.
+        win = np.arange(round(ERP_WINDOW_S * sfreq)) / sfreq
+        groups = (
+            (ERROR_COMPONENTS, ~labels_arr, subject.quality * ERRP_GAIN),
+            (CORRECT_COMPONENTS, labels_arr, subject.quality * ERRP_GAIN),
+            (VISUAL_COMPONENTS, np.ones(n_actions, dtype=bool), 1.0),
+        )
+        topo_jitter = rng.normal(0.0, 0.008, size=(3, 3))
+        for g, (components, mask, gain) in enumerate(groups):
+            waves = _component_waveforms(components, n_actions, win, shift_s, rng)
+            for c, comp in enumerate(components):
+                course = np.zeros(n_times, dtype=np.float32)
+                trial_onsets = onsets[mask]
+                idx = trial_onsets[:, None] + np.arange(win.size)[None, :]
+                keep = idx < n_times
+                np.add.at(course, idx[keep], waves[c][mask][keep].astype(np.float32))
+                centre = positions[index[comp.centre]] + topo_jitter[g]
+                patterns.append(
+                    gain * comp.amplitude_uv * 1e-6 * _topography(positions, centre, comp.spread_m)
+                )
+                sources.append(course)
+
+        # Background brain activity: smooth random topographies, 1/f^1.5 spectrum.
+        brain = _colored_noise(
+            rng, N_BRAIN_SOURCES, n_times, sfreq, lambda f: (f**2 + 0.5**2) ** (-1.5 / 4)
+        )
+        brain_patterns = np.empty((N_BRAIN_SOURCES, n_chans))
+        for k in range(N_BRAIN_SOURCES):
+            centre = positions[rng.integers(n_chans)] * rng.uniform(0.6, 1.0)
+            brain_patterns[k] = rng.choice([-1.0, 1.0]) * _topography(
+                positions, centre, rng.uniform(0.03, 0.07)
+            )
+        channel_rms = np.sqrt(np.sum(brain_patterns**2, axis=0))
+        brain_patterns *= BRAIN_RMS_UV * 1e-6 / np.sqrt(np.mean(channel_rms**2))
+        patterns.extend(brain_patterns)
+        sources.extend(brain)
+
+        # Occipital alpha with a subject-specific peak frequency.
+        alpha_peak = rng.uniform(9.0, 11.0)
+        alpha = _colored_noise(
+            rng, 1, n_times, sfreq, lambda f: np.exp(-0.5 * ((f - alpha_peak) / 1.0) ** 2)
+        )
+        patterns.append(ALPHA_RMS_UV * 1e-6 * _topography(positions, positions[index["Oz"]], 0.05))
+        sources.append(alpha[0])
+
+        # Eye blinks: frontal, decaying towards the back of the head.
+        eye = np.array([0.0, 0.11, -0.02])
+        patterns.append(BLINK_PEAK_UV * 1e-6 * _topography(positions, eye, 0.045))
+        sources.append(_blink_train(rng, n_times, sfreq))
+
+        # Line noise: two quadrature components with independent per-channel gains (phase
+        # varies), computed per block.
+        for freq, rel in ((LINE_FREQ_HZ, 1.0), (2 * LINE_FREQ_HZ, 0.25)):
+            for trig in (np.sin, np.cos):
+                patterns.append(rel * LINE_RMS_UV * 1e-6 * rng.uniform(0.2, 1.0, n_chans))
+                sources.append(_line_source(trig, freq, sfreq))
+
+        # Slow electrode drift, different on every channel.
+        drift = _colored_noise(
+            rng, N_DRIFT_SOURCES, n_times, sfreq, lambda f: 1.0 / (f + 0.01) * (f < 0.5)
+        )
+        patterns.extend(DRIFT_RMS_UV * 1e-6 * rng.normal(0, 1, (N_DRIFT_SOURCES, n_chans)) / 2.0)
+        sources.extend(drift)
+
+        # Channel-local noise (electrode, skin, nearby muscle) plus white amplifier noise,
+        # both independent per channel, so no spatial filter can cancel them: one white
+        # sequence through (g / (1 - pole z^-1)) * (1 - pole) + sensor, i.e. a one-pole
+        # low-pass (1/f^2 above LOCAL_NOISE_CORNER_HZ) plus a flat floor; filter state
+        # carried across blocks.
+        pole = math.exp(-2.0 * math.pi * LOCAL_NOISE_CORNER_HZ / sfreq)
+        local_gain = LOCAL_NOISE_UV * 1e-6 * math.sqrt(1.0 - pole**2) / (1.0 - pole)
+        sensor = SENSOR_NOISE_UV * 1e-6
+        self._noise_b = np.array(
+            [(1.0 - pole) * local_gain + sensor, -pole * sensor], dtype=np.float32
+        )
+        self._noise_a = np.array([1.0, -pole], dtype=np.float32)
+        self._noise_state = rng.standard_normal((n_chans, 1), dtype=np.float32) * np.float32(
+            LOCAL_NOISE_UV * 1e-6
+        )
+        self._noise_rng_state = rng.bit_generator.state
+        self._mixing = np.asarray(patterns, dtype=np.float32).T  # (n_chans, n_sources)
+        self._sources = sources
+
+        status = np.zeros(n_times, dtype=np.float32)
+        pulse = max(1, round(TRIGGER_PULSE_S * sfreq))
+        codes = np.where(labels_arr, TRIGGER_CORRECT, TRIGGER_ERROR)
+        for onset, code in zip(onsets, codes, strict=True):
+            status[onset : onset + pulse] = code
+        self._status = status
+
+        self.n_times = n_times
+        self.info = mne.create_info([*names, STIM_CHANNEL], sfreq, ["eeg"] * n_chans + ["stim"])
+        self.info["description"] = (
+            f"{SYNTHETIC_TAG} virtual subject quality={subject.quality:g} seed={seed} "
+            f"shift={shift_s:+.3f}s"
+        )
+        self.info.set_montage(montage(), verbose="error")
+
+    @property
+    def ch_names(self) -> list[str]:
+        return list(self.info["ch_names"])
+
+    def iter_chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(first_sample, block)``: all channels, float32 (n_channels, <= 2**18).
+
+        EEG in volts, ``Status`` codes in the last row. Every pass yields the same samples.
+        """
+        rng = np.random.default_rng()
+        rng.bit_generator.state = self._noise_rng_state
+        noise_state = self._noise_state
+        n_chans = self._mixing.shape[0]
+        for start in range(0, self.n_times, GENERATION_BLOCK):
+            stop = min(start + GENERATION_BLOCK, self.n_times)
+            stacked = np.stack(
+                [s(start, stop) if callable(s) else s[start:stop] for s in self._sources]
+            )
+            block = np.empty((n_chans + 1, stop - start), dtype=np.float32)
+            mixed = self._mixing @ stacked
+            del stacked
+            white = rng.standard_normal(mixed.shape, dtype=np.float32)
+            noise, noise_state = signal.lfilter(
+                self._noise_b, self._noise_a, white, axis=1, zi=noise_state
+            )
+            del white
+            np.add(mixed, noise, out=block[:n_chans])
+            block[n_chans] = self._status[start:stop]
+            yield start, block
+
+    def to_raw(self) -> mne.io.RawArray:
+        """The whole recording as an MNE ``RawArray`` (float64: 8 bytes per sample)."""
+        data = np.empty((len(self.info["ch_names"]), self.n_times), dtype=np.float64)
+        for start, block in self.iter_chunks():
+            data[:, start : start + block.shape[1]] = block
+        raw = mne.io.RawArray(data, self.info, verbose="error")
+        return raw
+
+
+def _line_source(trig, freq: float, sfreq: float) -> Callable[[int, int], np.ndarray]:
+    """Samples ``start:stop`` of sqrt(2) * trig(2 pi freq t), float32 (unit RMS)."""
+
+    def samples(start: int, stop: int) -> np.ndarray:
+        t = np.arange(start, stop) / sfreq
+        return (math.sqrt(2.0) * trig(2 * np.pi * freq * t)).astype(np.float32)
+
+    return samples
+
+
 def simulate_recording(
     labels: Sequence[bool],
     *,
@@ -269,140 +480,18 @@ def simulate_recording(
     raw : mne.io.RawArray
         64 EEG channels in volts (BioSemi names, ``biosemi64`` montage set) and a stim
         channel ``"Status"`` with a 10 ms pulse of 1 (correct) or 2 (error) at each onset.
-        ``raw.info["description"]`` starts with ``"SYNTHETIC"``.
+        ``raw.info["description"]`` starts with ``"SYNTHETIC"``. It holds the whole
+        recording in float64; :class:`SyntheticRecording` generates it block by block.
     """
-    subject = VirtualSubject(quality=quality, seed=seed, latency_shift_s=latency_shift_s)
-    labels_arr = np.asarray([bool(v) for v in labels], dtype=bool)
-    if labels_arr.size == 0:
-        raise ValueError("labels is empty: at least one action is needed")
-    if not (sfreq >= MIN_SFREQ) or not math.isfinite(sfreq):
-        raise ValueError(f"sfreq must be a finite rate >= {MIN_SFREQ} Hz, got {sfreq}")
-    if not (action_period_s > 0) or not math.isfinite(action_period_s):
-        raise ValueError(f"action_period_s must be positive, got {action_period_s}")
-    if not (lead_in_s >= 0) or not math.isfinite(lead_in_s):
-        raise ValueError(f"lead_in_s must be >= 0, got {lead_in_s}")
-
-    rng = np.random.default_rng(seed)
-    shift_s = (
-        float(rng.uniform(-MAX_SUBJECT_SHIFT_S, MAX_SUBJECT_SHIFT_S))
-        if subject.latency_shift_s is None
-        else float(subject.latency_shift_s)
-    )
-    n_actions = labels_arr.size
-    n_times = round((2 * lead_in_s + n_actions * action_period_s) * sfreq)
-    onsets = np.round((lead_in_s + np.arange(n_actions) * action_period_s) * sfreq).astype(int)
-    names, positions = _electrode_positions()
-    index = {name: i for i, name in enumerate(names)}
-    n_chans = len(names)
-
-    # Every component is a source time course times a spatial pattern (volts per unit);
-    # all of them are mixed into the channels with a single matrix product.
-    patterns: list[np.ndarray] = []
-    sources: list[np.ndarray] = []
-
-    # Evoked responses, one source per component.
-    win = np.arange(round(ERP_WINDOW_S * sfreq)) / sfreq
-    groups = (
-        (ERROR_COMPONENTS, ~labels_arr, subject.quality * ERRP_GAIN),
-        (CORRECT_COMPONENTS, labels_arr, subject.quality * ERRP_GAIN),
-        (VISUAL_COMPONENTS, np.ones(n_actions, dtype=bool), 1.0),
-    )
-    topo_jitter = rng.normal(0.0, 0.008, size=(3, 3))
-    for g, (components, mask, gain) in enumerate(groups):
-        waves = _component_waveforms(components, n_actions, win, shift_s, rng)
-        for c, comp in enumerate(components):
-            course = np.zeros(n_times, dtype=np.float32)
-            trial_onsets = onsets[mask]
-            idx = trial_onsets[:, None] + np.arange(win.size)[None, :]
-            keep = idx < n_times
-            np.add.at(course, idx[keep], waves[c][mask][keep].astype(np.float32))
-            centre = positions[index[comp.centre]] + topo_jitter[g]
-            patterns.append(
-                gain * comp.amplitude_uv * 1e-6 * _topography(positions, centre, comp.spread_m)
-            )
-            sources.append(course)
-
-    # Background brain activity: smooth random topographies, 1/f^1.5 spectrum.
-    brain = _colored_noise(
-        rng, N_BRAIN_SOURCES, n_times, sfreq, lambda f: (f**2 + 0.5**2) ** (-1.5 / 4)
-    )
-    brain_patterns = np.empty((N_BRAIN_SOURCES, n_chans))
-    for k in range(N_BRAIN_SOURCES):
-        centre = positions[rng.integers(n_chans)] * rng.uniform(0.6, 1.0)
-        brain_patterns[k] = rng.choice([-1.0, 1.0]) * _topography(
-            positions, centre, rng.uniform(0.03, 0.07)
-        )
-    channel_rms = np.sqrt(np.sum(brain_patterns**2, axis=0))
-    brain_patterns *= BRAIN_RMS_UV * 1e-6 / np.sqrt(np.mean(channel_rms**2))
-    patterns.extend(brain_patterns)
-    sources.extend(brain)
-
-    # Occipital alpha with a subject-specific peak frequency.
-    alpha_peak = rng.uniform(9.0, 11.0)
-    alpha = _colored_noise(
-        rng, 1, n_times, sfreq, lambda f: np.exp(-0.5 * ((f - alpha_peak) / 1.0) ** 2)
-    )
-    patterns.append(ALPHA_RMS_UV * 1e-6 * _topography(positions, positions[index["Oz"]], 0.05))
-    sources.append(alpha[0])
-
-    # Eye blinks: frontal, decaying towards the back of the head.
-    eye = np.array([0.0, 0.11, -0.02])
-    patterns.append(BLINK_PEAK_UV * 1e-6 * _topography(positions, eye, 0.045))
-    sources.append(_blink_train(rng, n_times, sfreq))
-
-    # Line noise: two quadrature components with independent per-channel gains (phase varies).
-    t = np.arange(n_times) / sfreq
-    for freq, rel in ((LINE_FREQ_HZ, 1.0), (2 * LINE_FREQ_HZ, 0.25)):
-        for trig in (np.sin, np.cos):
-            patterns.append(rel * LINE_RMS_UV * 1e-6 * rng.uniform(0.2, 1.0, n_chans))
-            sources.append((math.sqrt(2.0) * trig(2 * np.pi * freq * t)).astype(np.float32))
-
-    # Slow electrode drift, different on every channel.
-    drift = _colored_noise(
-        rng, N_DRIFT_SOURCES, n_times, sfreq, lambda f: 1.0 / (f + 0.01) * (f < 0.5)
-    )
-    patterns.extend(DRIFT_RMS_UV * 1e-6 * rng.normal(0, 1, (N_DRIFT_SOURCES, n_chans)) / 2.0)
-    sources.extend(drift)
-
-    # Channel-local noise (electrode, skin, nearby muscle) plus white amplifier noise, both
-    # independent per channel, so no spatial filter can cancel them: one white sequence
-    # through (g / (1 - pole z^-1)) * (1 - pole) + sensor, i.e. a one-pole low-pass (1/f^2
-    # above LOCAL_NOISE_CORNER_HZ) plus a flat floor; filter state carried across blocks.
-    pole = math.exp(-2.0 * math.pi * LOCAL_NOISE_CORNER_HZ / sfreq)
-    local_gain = LOCAL_NOISE_UV * 1e-6 * math.sqrt(1.0 - pole**2) / (1.0 - pole)
-    sensor = SENSOR_NOISE_UV * 1e-6
-    noise_b = np.array([(1.0 - pole) * local_gain + sensor, -pole * sensor], dtype=np.float32)
-    noise_a = np.array([1.0, -pole], dtype=np.float32)
-    noise_state = rng.standard_normal((n_chans, 1), dtype=np.float32) * np.float32(
-        LOCAL_NOISE_UV * 1e-6
-    )
-
-    mixing = np.asarray(patterns, dtype=np.float32).T  # (n_chans, n_sources)
-    data = np.empty((n_chans + 1, n_times), dtype=np.float64)
-    chunk = 1 << 18
-    for start in range(0, n_times, chunk):
-        stop = min(start + chunk, n_times)
-        block = mixing @ np.stack([s[start:stop] for s in sources])
-        white = rng.standard_normal(block.shape, dtype=np.float32)
-        noise, noise_state = signal.lfilter(noise_b, noise_a, white, axis=1, zi=noise_state)
-        block += noise
-        data[:n_chans, start:stop] = block
-
-    status = np.zeros(n_times)
-    pulse = max(1, round(TRIGGER_PULSE_S * sfreq))
-    codes = np.where(labels_arr, TRIGGER_CORRECT, TRIGGER_ERROR)
-    for onset, code in zip(onsets, codes, strict=True):
-        status[onset : onset + pulse] = code
-    data[n_chans] = status
-
-    info = mne.create_info([*names, STIM_CHANNEL], sfreq, ["eeg"] * n_chans + ["stim"])
-    info["description"] = (
-        f"{SYNTHETIC_TAG} virtual subject quality={subject.quality:g} seed={seed} "
-        f"shift={shift_s:+.3f}s"
-    )
-    raw = mne.io.RawArray(data, info, verbose="error")
-    raw.set_montage(montage(), verbose="error")
-    return raw
+    return SyntheticRecording(
+        labels,
+        quality=quality,
+        seed=seed,
+        action_period_s=action_period_s,
+        sfreq=sfreq,
+        lead_in_s=lead_in_s,
+        latency_shift_s=latency_shift_s,
+    ).to_raw()
 
 
 def stream_samples(
