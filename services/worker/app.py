@@ -1,0 +1,120 @@
+"""The worker's Celery app: one task per job kind, and the reaper of dead workers' jobs.
+
+Start a worker with ``bgrl worker`` (or ``celery -A services.worker.app worker``). Each task
+takes a job id and runs :func:`services.worker.runtime.run_job` with the handler of its
+kind. Every worker process also runs the reaper every ``reaper_interval_s``: it re-sends
+jobs whose lease expired (their worker died) and parents whose child jobs are all final.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+import torch
+from celery import Celery
+from celery.signals import worker_ready, worker_shutdown
+
+from services.core.db import jobs as job_rows
+from services.core.queue import TASK_NAMES, enqueue_job, make_celery
+from services.core.settings import load_settings
+from services.worker.calibration import eeg_calibration
+from services.worker.reproduce import reproduce
+from services.worker.runtime import Handler, Runtime, run_job
+from services.worker.settings import WorkerSettings
+from services.worker.training import guided_ppo, reproduce_run
+
+logger = logging.getLogger(__name__)
+
+HANDLERS: dict[str, Handler] = {
+    "guided_ppo": guided_ppo,
+    "reproduce": reproduce,
+    "reproduce_run": reproduce_run,
+    "eeg_calibration": eeg_calibration,
+}
+
+
+def create_runtime(settings: WorkerSettings | None = None) -> Runtime:
+    """The worker runtime (settings from the environment unless given) with its tasks."""
+    settings = settings or load_settings(WorkerSettings)
+    celery = make_celery(settings)
+    runtime = Runtime(settings=settings, celery=celery)
+    for kind, handler in HANDLERS.items():
+        _register(celery, runtime, kind, handler)
+    return runtime
+
+
+def _register(celery: Celery, runtime: Runtime, kind: str, handler: Handler) -> None:
+    def task(job_id: str) -> str:
+        return run_job(runtime, job_id, handler)
+
+    task.__name__ = task.__qualname__ = kind
+    task.__doc__ = f"Run the {kind} job with this id (idempotent by job id)."
+    celery.task(name=TASK_NAMES[kind])(task)
+
+
+class Reaper(threading.Thread):
+    """Re-sends jobs that dead workers left behind (see :func:`job_rows.reap`)."""
+
+    def __init__(self, runtime: Runtime) -> None:
+        super().__init__(name="reaper", daemon=True)
+        self.runtime = runtime
+        self._done = threading.Event()
+
+    def run(self) -> None:
+        interval = self.runtime.settings.reaper_interval_s
+        while not self._done.wait(interval):
+            try:
+                self.reap_once()
+            except Exception:
+                logger.exception("reaper pass failed")
+
+    def reap_once(self) -> list[tuple[str, str]]:
+        with self.runtime.sessions() as session:
+            to_send = job_rows.reap(session, stale_queued_s=self.runtime.settings.stale_queued_s)
+        for job_id, kind in to_send:
+            logger.info("reaper: sending job %s (%s) again", job_id, kind)
+            enqueue_job(self.runtime.celery, job_id, kind)
+        return to_send
+
+    def stop(self) -> None:
+        self._done.set()
+
+
+runtime: Runtime | None = None
+"""This process's runtime, created by :func:`main_app` (a worker builds one at start)."""
+
+
+def main_app(settings: WorkerSettings | None = None) -> Celery:
+    """The Celery app of this worker process, created once (settings from the environment
+    unless given); sets the process's torch thread count."""
+    global runtime
+    if runtime is None:
+        runtime = create_runtime(settings)
+        torch.set_num_threads(runtime.settings.worker_torch_threads)
+    return runtime.celery
+
+
+_reaper: Reaper | None = None
+
+
+@worker_ready.connect
+def _start_reaper(**_: Any) -> None:
+    global _reaper
+    if runtime is not None and _reaper is None:
+        _reaper = Reaper(runtime)
+        _reaper.start()
+
+
+@worker_shutdown.connect
+def _stop_reaper(**_: Any) -> None:
+    if _reaper is not None:
+        _reaper.stop()
+
+
+def __getattr__(name: str) -> Any:
+    """``celery -A services.worker.app`` finds the app as ``app`` (built on first use)."""
+    if name in ("app", "celery"):
+        return main_app()
+    raise AttributeError(name)

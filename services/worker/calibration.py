@@ -1,0 +1,96 @@
+"""``eeg_calibration`` jobs: train the ErrP classifier on a stored calibration recording.
+
+The recording is read from the artifact store, calibrated by the EEG pipeline
+(:func:`services.eeg.calibration.calibrate`), and every file it writes (weights, TorchScript,
+ONNX, metrics, history, report) becomes an artifact of the job; a ``classifiers`` row links
+them to the recording and its subject.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+
+from services.core.db.models import Artifact, Classifier, LabSession, Recording
+from services.eeg.calibration import TrainingConfig, calibrate
+from services.eeg.classifier import ONNX_FILE, TORCHSCRIPT_FILE
+from services.eeg.io import RecordingError, read_recording
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome
+
+CALIBRATION_FIELDS = frozenset({"recording_id", "seed", "max_passes", "onnx", "report"})
+ARTIFACT_KINDS = {".png": "plot", ".json": "results", ".html": "results"}
+
+
+def _int(config: dict[str, Any], name: str, default: int | None, minimum: int) -> int:
+    value = config.get(name, default)
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        raise JobConfigError(f"{name} must be an integer >= {minimum}")
+    return value
+
+
+def eeg_calibration(context: JobContext) -> JobOutcome:
+    """Handler of ``eeg_calibration`` jobs."""
+    config = context.config
+    unknown = set(config) - CALIBRATION_FIELDS
+    if unknown:
+        raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
+    recording_id = _int(config, "recording_id", None, 1)
+    seed = _int(config, "seed", 0, 0)
+    max_passes = _int(config, "max_passes", TrainingConfig().max_epochs, 1)
+    with context.runtime.sessions() as session:
+        row = session.execute(
+            select(Recording, Artifact.relpath, LabSession.subject_id)
+            .join(Artifact, Artifact.id == Recording.artifact_id)
+            .join(LabSession, LabSession.id == Recording.session_id)
+            .where(Recording.id == recording_id)
+        ).first()
+    if row is None:
+        raise JobConfigError(f"recording_id: no recording {recording_id}")
+    recording, relpath, subject_id = row
+    try:
+        raw = read_recording(context.runtime.store.path(relpath))
+    except (RecordingError, FileNotFoundError) as exc:
+        raise JobConfigError(f"recording {recording_id}: {exc}") from None
+    context.check_stop()
+    with tempfile.TemporaryDirectory(prefix="bgrl-calibration-") as tmp:
+        out = Path(tmp)
+        try:
+            result = calibrate(
+                raw,
+                seed=seed,
+                out_dir=out,
+                config=TrainingConfig(max_epochs=max_passes),
+                report=bool(config.get("report", True)),
+                onnx=bool(config.get("onnx", True)),
+            )
+        except ValueError as exc:  # e.g. too few labelled epochs: retrying will not help
+            raise JobConfigError(f"recording {recording_id}: {exc}") from None
+        context.check_stop()
+        artifacts = {
+            path.name: context.store_file(
+                path, kind=ARTIFACT_KINDS.get(path.suffix, "classifier"), name=path.name
+            )
+            for path in sorted(out.iterdir())
+            if path.is_file()
+        }
+    metrics = dict(result.metrics)
+    with context.runtime.sessions() as session:
+        classifier = Classifier(
+            name=f"{recording.filename} (seed {seed})",
+            subject_id=subject_id,
+            recording_id=recording_id,
+            job_id=context.job_id,
+            onnx_artifact_id=artifacts.get(ONNX_FILE),
+            torchscript_artifact_id=artifacts.get(TORCHSCRIPT_FILE),
+            metrics=metrics,
+        )
+        session.add(classifier)
+        session.commit()
+        classifier_id = classifier.id
+    return JobOutcome(
+        result={"classifier_id": classifier_id, "metrics": metrics, "artifacts": artifacts},
+        values={"model_artifact_id": artifacts.get(TORCHSCRIPT_FILE)},
+    )

@@ -1,0 +1,174 @@
+"""``reproduce`` jobs: the paper's simulated-feedback experiment (Fig. 3) fanned out over the
+workers. The parent job creates one ``reproduce_run`` child job per run and waits, holding no
+lease; when every child is final it is sent again and writes what ``bgrl reproduce`` writes
+(``results.json``, ``results.csv``, ``summary.md``/``summary.json``, the Fig. 3 plots) as
+artifacts of the job. A failed run is kept as failed with its error; the others are
+aggregated and the job ends ``failed`` naming the failed runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import func, select, update
+
+from services.core.db.models import JOB_FINAL_STATUSES, Job
+from services.core.queue import enqueue_job
+from services.learner.outputs import Results, load_results, save_results
+from services.learner.pool import reproduce as write_reproduction
+from services.learner.runs import RunFailure, RunRecord
+from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, RunSpec, build_specs
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome, JobStoppedError
+
+REPRODUCE_FIELDS = frozenset(
+    {
+        "quick", "seeds", "first_seed", "tasks", "methods", "accuracies", "treatments", "ppo",
+        "checkpoint_every",
+    }
+)  # fmt: skip
+PLOT_SUFFIXES = (".png",)
+RECORD_FIELDS = frozenset(f.name for f in dataclasses.fields(RunRecord))
+
+
+def _items(value: Any, name: str) -> list[str]:
+    if isinstance(value, str):
+        return [v.strip() for v in value.split(",") if v.strip()]
+    if isinstance(value, list) and all(isinstance(v, str | int | float) for v in value):
+        return [str(v) for v in value]
+    raise JobConfigError(f"{name} must be a list or a comma-separated string")
+
+
+def specs_from_config(config: dict[str, Any]) -> list[RunSpec]:
+    """The run specs of a ``reproduce`` job config (the options of ``bgrl reproduce``)."""
+    unknown = set(config) - REPRODUCE_FIELDS
+    if unknown:
+        raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
+    quick = bool(config.get("quick", False))
+    seeds = config.get("seeds", QUICK_SEEDS if quick else FULL_SEEDS)
+    first_seed = config.get("first_seed", 0)
+    for name, value in (("seeds", seeds), ("first_seed", first_seed)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < (name == "seeds"):
+            raise JobConfigError(f"{name} must be an integer >= {int(name == 'seeds')}")
+    overrides = config.get("ppo") or {}
+    if not isinstance(overrides, dict):
+        raise JobConfigError("ppo must be an object of PPO settings")
+    try:
+        return build_specs(
+            seeds=seeds,
+            first_seed=first_seed,
+            tasks=[t.lower() for t in _items(config.get("tasks", "sssg,vssg"), "tasks")],
+            methods=_items(config.get("methods", "rl_sparse,rl_rich,hf_sparse"), "methods"),
+            accuracies=[
+                float(c) for c in _items(config.get("accuracies", "0.55,0.6,0.7"), "accuracies")
+            ],
+            treatments=_items(config.get("treatments", "authors"), "treatments"),
+            ppo_overrides=overrides,
+        )
+    except (TypeError, ValueError) as exc:
+        raise JobConfigError(str(exc)) from None
+
+
+def reproduce(context: JobContext) -> JobOutcome:
+    """Handler of ``reproduce`` jobs: fan out the runs, or aggregate them once all are final."""
+    with context.runtime.sessions() as session:
+        children = session.scalars(
+            select(Job).where(Job.parent_id == context.job_id).order_by(Job.created_at)
+        ).all()
+    if not children:
+        return _fan_out(context)
+    if any(child.status not in JOB_FINAL_STATUSES for child in children):
+        return JobOutcome(wait_for_children=True)  # sent early (a duplicate): keep waiting
+    return _aggregate(context, children)
+
+
+def _fan_out(context: JobContext) -> JobOutcome:
+    specs = specs_from_config(context.config)
+    every = context.config.get("checkpoint_every")
+    runtime = context.runtime
+    with runtime.sessions() as session:
+        # Lock our row first: if another worker took the lease meanwhile, create nothing.
+        held = session.execute(
+            update(Job)
+            .where(Job.id == context.job_id, Job.lease_owner == runtime.owner)
+            .values(progress=0.0)
+            .execution_options(synchronize_session=False)
+        ).rowcount
+        existing = session.scalar(select(func.count()).where(Job.parent_id == context.job_id))
+        if held != 1 or existing:
+            session.rollback()
+            raise JobStoppedError("lease lost")
+        children = [
+            Job(
+                kind="reproduce_run",
+                config={**spec.to_dict(), **({"checkpoint_every": every} if every else {})},
+                parent_id=context.job_id,
+                submitter_id=context.submitter_id,
+                max_attempts=context.max_attempts,
+            )
+            for spec in specs
+        ]
+        session.add_all(children)
+        session.commit()
+        ids = [child.id for child in children]
+    for child_id in ids:
+        enqueue_job(runtime.celery, child_id, "reproduce_run")
+    return JobOutcome(wait_for_children=True, values={"result": {"runs": len(ids)}})
+
+
+def _record(result: dict[str, Any]) -> RunRecord:
+    """The learner's run record inside a ``reproduce_run`` job's result."""
+    return RunRecord.from_dict({k: v for k, v in result.items() if k in RECORD_FIELDS})
+
+
+def _failure(child: Job) -> RunFailure:
+    spec = {k: v for k, v in child.config.items() if k != "checkpoint_every"}
+    return RunFailure(
+        spec=spec,
+        label=RunSpec.from_dict(spec).label,
+        error_type=f"job {child.status}",
+        message=child.error or child.status,
+        traceback=child.traceback or "",
+    )
+
+
+def _aggregate(context: JobContext, children: list[Job]) -> JobOutcome:
+    succeeded = [child for child in children if child.status == "succeeded" and child.result]
+    failures = [_failure(child) for child in children if child not in succeeded]
+    runs = [_record(child.result) for child in succeeded]
+    artifacts: dict[str, str] = {}
+    claims: list[dict[str, Any]] = []
+    if runs:
+        with tempfile.TemporaryDirectory(prefix="bgrl-reproduce-") as tmp:
+            out = Path(tmp)
+            save_results(out / "results.json", Results(config={}, runs=runs))
+            write_reproduction(  # every run is in results.json: this only writes the outputs
+                out,
+                [run.run_spec for run in runs],
+                workers=1,
+                config_note={"job": {"id": context.job_id, "options": context.config}},
+            )
+            results = load_results(out / "results.json")
+            results.failed = failures
+            save_results(out / "results.json", results)
+            claims = json.loads((out / "summary.json").read_text()).get("claims", [])
+            for path in sorted(out.iterdir()):
+                kind = "plot" if path.suffix in PLOT_SUFFIXES else "results"
+                artifacts[path.name] = context.store_file(path, kind=kind, name=path.name)
+    result = {
+        "runs": len(children),
+        "succeeded": len(succeeded),
+        "failed": [
+            {"label": f.label, "status": f.error_type, "error": f.message} for f in failures
+        ],
+        "artifacts": artifacts,
+        "claims": claims,
+    }
+    error = None
+    if failures:
+        names = "; ".join(str(f) for f in failures)
+        error = f"{len(failures)} of {len(children)} runs did not succeed: {names}"
+    return JobOutcome(result=result, error=error)

@@ -1,0 +1,168 @@
+"""Training jobs: ``guided_ppo`` (one run submitted on its own) and ``reproduce_run`` (one
+run of a reproduction). Both execute the learner's run (stage 2 for HF+sparse, then guided
+PPO, Akinola et al. 2020, Algorithm 1) with progress, the SPL curve and checkpoints written
+to the job, and store the trained policy (TorchScript, with its observation normalisation)
+as the job's model.
+
+Resume: the checkpoint lives in the artifact store at ``checkpoint/job-<id>/checkpoint.pt``.
+A job claimed again (after its worker died, or a failed attempt) finds it there and the
+learner resumes from it; the learner's resume is exact, so the job ends with the same result
+as an uninterrupted run of that seed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from services.learner.ppo import Callback
+from services.learner.runs import RunRecord, run_one
+from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome
+
+PROGRESS_EVERY_S = 1.0
+"""Progress (steps done) is written at most this often; every evaluation is written."""
+GUIDED_PPO_FIELDS = frozenset(
+    {
+        "task", "method", "accuracy", "seed", "total_steps", "ppo", "hf_treatment", "n_labels",
+        "hf_model_id", "checkpoint_every",
+    }
+)  # fmt: skip
+
+
+class JobProgress(Callback):
+    """Writes steps done, progress and the SPL curve to the job row; stops on request."""
+
+    def __init__(self, context: JobContext, total_steps: int, curve: list[list[float]]) -> None:
+        self.context = context
+        self.total_steps = total_steps
+        self.curve = curve
+        self.last_write = 0.0
+
+    def on_step(self, global_step: int, info: dict[str, Any]) -> bool:
+        return not self.context.stopped
+
+    def on_update(self, global_step: int, metrics: dict[str, float]) -> bool:
+        now = time.monotonic()
+        if now - self.last_write >= PROGRESS_EVERY_S:
+            self.last_write = now
+            self.context.update(
+                steps_done=global_step, progress=min(global_step / self.total_steps, 0.99)
+            )
+        return not self.context.stopped
+
+    def on_eval(self, global_step: int, spl: float) -> bool:
+        self.curve.append([int(global_step), float(spl)])
+        self.context.update(
+            steps_done=global_step,
+            progress=min(global_step / self.total_steps, 0.99),
+            curve=list(self.curve),
+        )
+        return not self.context.stopped
+
+
+def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
+    """The learner's run spec of a ``guided_ppo`` job config (refusing what is wrong)."""
+    unknown = set(config) - GUIDED_PPO_FIELDS
+    if unknown:
+        raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
+    if config.get("hf_model_id") is not None:
+        raise JobConfigError("hf_model_id: guiding with a stored HF model is not available yet")
+    task = str(config.get("task", "")).lower()
+    if task not in TASK_ENV_IDS:
+        raise JobConfigError(f"task must be one of {sorted(t.upper() for t in TASK_ENV_IDS)}")
+    method = config.get("method")
+    if method not in METHODS:
+        raise JobConfigError(f"method must be one of {list(METHODS)}")
+    overrides = config.get("ppo") or {}
+    if not isinstance(overrides, dict):
+        raise JobConfigError("ppo must be an object of PPO settings")
+    if "total_steps" in config:
+        overrides = {**overrides, "total_steps": config["total_steps"]}
+    seed = config.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise JobConfigError("seed must be an integer >= 0")
+    try:
+        return RunSpec(
+            task=task,
+            method=method,
+            seed=seed,
+            accuracy=config.get("accuracy"),
+            hf_treatment=config.get("hf_treatment"),
+            n_labels=config.get("n_labels", 1000),
+            ppo_overrides=overrides,
+        )
+    except (TypeError, ValueError) as exc:
+        raise JobConfigError(str(exc)) from None
+
+
+def checkpoint_progress(path: Path) -> tuple[int, list[list[float]]]:
+    """Env steps and SPL curve stored in a learner checkpoint."""
+    state = torch.load(path, weights_only=False, map_location="cpu")["state"]
+    return int(state["global_step"]), [[int(s), float(v)] for s, v in state["curve"]]
+
+
+def weights_sha256(model_path: Path) -> str:
+    """SHA-256 over the exported policy's tensors (name and bytes, in name order)."""
+    module = torch.jit.load(str(model_path), map_location="cpu")
+    digest = hashlib.sha256()
+    for name, tensor in sorted(module.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().contiguous().cpu().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def train_spec(context: JobContext, spec: RunSpec, checkpoint_every: int) -> JobOutcome:
+    """Run ``spec`` for the job, resuming from its checkpoint if one exists."""
+    total_steps = spec.ppo_config().total_steps
+    checkpoint = context.job_dir("checkpoint") / "checkpoint.pt"
+    curve: list[list[float]] = []
+    if checkpoint.exists():
+        step, curve = checkpoint_progress(checkpoint)
+        context.update(resumed_from_step=step, steps_done=step, curve=curve)
+    context.watch_checkpoint(checkpoint)
+    with tempfile.TemporaryDirectory(prefix="bgrl-job-") as work_dir:
+        model_path = Path(work_dir) / "policy.pt"
+        record: RunRecord = run_one(
+            spec,
+            callback=JobProgress(context, total_steps, curve),
+            checkpoint_path=checkpoint,
+            checkpoint_every=checkpoint_every,
+            model_path=model_path,
+        )
+        context.check_stop()
+        weights = weights_sha256(model_path)
+        model_id = context.store_file(model_path, kind="model", name="policy.pt")
+    return JobOutcome(
+        result={**record.to_dict(), "weights_sha256": weights},
+        values={
+            "model_artifact_id": model_id,
+            "curve": record.curve,
+            "steps_done": total_steps,
+        },
+    )
+
+
+def guided_ppo(context: JobContext) -> JobOutcome:
+    """Handler of ``guided_ppo`` jobs."""
+    spec = spec_from_guided_config(context.config)
+    every = context.config.get("checkpoint_every", context.runtime.settings.checkpoint_every)
+    if not isinstance(every, int) or every < 1:
+        raise JobConfigError("checkpoint_every must be a positive integer")
+    return train_spec(context, spec, every)
+
+
+def reproduce_run(context: JobContext) -> JobOutcome:
+    """Handler of ``reproduce_run`` jobs (the config is the learner's run spec)."""
+    config = dict(context.config)
+    every = config.pop("checkpoint_every", context.runtime.settings.checkpoint_every)
+    try:
+        spec = RunSpec.from_dict(config)
+    except (TypeError, ValueError) as exc:
+        raise JobConfigError(f"not a run spec: {exc}") from None
+    return train_spec(context, spec, int(every))
