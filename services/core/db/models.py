@@ -220,7 +220,8 @@ class Recording(Base):
     filename: Mapped[str] = mapped_column(String(255))
     sha256: Mapped[str] = mapped_column(String(64))
     size_bytes: Mapped[int] = mapped_column(BigInteger)
-    synthetic: Mapped[bool] = mapped_column(Boolean, default=False)
+    synthetic: Mapped[bool | None] = mapped_column(Boolean)
+    """True for a simulated recording, as the EEG pipeline reports it (None until validated)."""
     n_channels: Mapped[int | None] = mapped_column(Integer)
     channels: Mapped[list[str] | None] = mapped_column(JSON)
     sfreq: Mapped[float | None] = mapped_column(Float)

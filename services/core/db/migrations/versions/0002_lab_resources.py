@@ -96,7 +96,7 @@ def upgrade() -> None:
         sa.Column("filename", sa.String(length=255), nullable=False),
         sa.Column("sha256", sa.String(length=64), nullable=False),
         sa.Column("size_bytes", sa.BigInteger(), nullable=False),
-        sa.Column("synthetic", sa.Boolean(), nullable=False),
+        sa.Column("synthetic", sa.Boolean(), nullable=True),
         sa.Column("n_channels", sa.Integer(), nullable=True),
         sa.Column("channels", sa.JSON(), nullable=True),
         sa.Column("sfreq", sa.Float(), nullable=True),

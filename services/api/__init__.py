@@ -1,0 +1,1 @@
+"""The platform's REST API: users, lab resources, recordings, jobs and their results."""

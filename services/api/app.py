@@ -1,0 +1,126 @@
+"""The platform api: users, lab resources, recordings and jobs under ``/api/v1``.
+
+Run with ``uvicorn services.api.app:app --port 8000`` (``bgrl up`` starts it with the rest);
+configuration comes from ``BGRL_*`` environment variables (:class:`ApiSettings`). Endpoints
+are documented in ``docs/api.md`` and at ``/docs``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import httpx
+from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
+
+from services.api.accounts import ensure_first_admin
+from services.api.errors import TooManyRequestsError, UnauthorizedError
+from services.api.ratelimit import LoginLimiter
+from services.api.routes import (
+    artifacts,
+    audit,
+    auth,
+    classifiers,
+    health,
+    hf_models,
+    job_events,
+    jobs,
+    recordings,
+    rigs,
+    sessions,
+    subjects,
+    tokens,
+    users,
+)
+from services.api.security import load_jwt_key
+from services.api.settings import ApiSettings
+from services.core.artifacts import ArtifactStore
+from services.core.db.migrate import upgrade_database
+from services.core.db.session import make_engine, make_session_factory
+from services.core.queue import make_celery
+from services.core.settings import load_settings
+from services.core.web import create_service_app
+
+log = logging.getLogger(__name__)
+
+ROUTERS = (
+    health.router,
+    auth.router,
+    users.router,
+    tokens.router,
+    rigs.router,
+    subjects.router,
+    sessions.router,
+    recordings.router,
+    classifiers.router,
+    hf_models.router,
+    jobs.router,
+    job_events.router,
+    artifacts.router,
+    audit.router,
+)
+
+
+def create_app(
+    settings: ApiSettings | None = None, *, eeg_transport: httpx.BaseTransport | None = None
+) -> FastAPI:
+    """Build the api; ``settings`` default to the environment's ``BGRL_*`` variables.
+
+    ``eeg_transport`` (tests) carries validation requests to an in-process EEG service.
+    """
+    settings = settings if settings is not None else load_settings(ApiSettings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        settings.ensure_data_dir()
+        url = settings.resolved_database_url
+        if settings.migrate_on_start:
+            await run_in_threadpool(upgrade_database, url)
+        engine = make_engine(url)
+        app.state.engine = engine
+        app.state.sessions = make_session_factory(engine)
+        app.state.store = ArtifactStore(settings.resolved_artifact_dir)
+        app.state.celery = make_celery(settings)
+        app.state.jwt_key = load_jwt_key(settings)
+        await run_in_threadpool(ensure_first_admin, app.state.sessions, settings)
+        try:
+            yield
+        finally:
+            engine.dispose()
+
+    app = create_service_app(
+        name="api",
+        title="Brain-guided RL platform API",
+        summary="Subjects, sessions, recordings, guided-PPO jobs and their models.",
+        version="0.1.0",
+        max_body_size=settings.max_request_bytes,
+        lifespan=lifespan,
+        routers=ROUTERS,
+    )
+    app.state.settings = settings
+    app.state.limiter = LoginLimiter(settings.login_max_failures, settings.login_window_s)
+    app.state.eeg_transport = eeg_transport
+
+    @app.exception_handler(UnauthorizedError)
+    async def unauthorized(request: Request, exc: UnauthorizedError) -> JSONResponse:
+        return JSONResponse(
+            status_code=401,
+            content={"detail": str(exc), "field": exc.field},
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+
+    @app.exception_handler(TooManyRequestsError)
+    async def too_many(request: Request, exc: TooManyRequestsError) -> JSONResponse:
+        return JSONResponse(
+            status_code=429,
+            content={"detail": str(exc), "field": exc.field},
+            headers={"Retry-After": str(exc.retry_after_s)},
+        )
+
+    return app
+
+
+app = create_app()

@@ -1,0 +1,81 @@
+"""Job progress pushed over a websocket (token and Origin checked before ``accept``)."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Annotated
+
+from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
+from fastapi.concurrency import run_in_threadpool
+
+from services.api.deps import authenticate
+from services.api.errors import UnauthorizedError
+from services.api.schemas.jobs import JobPublic
+from services.core.db.models import JOB_FINAL_STATUSES, Job
+from services.core.websockets import CLOSE_NOT_FOUND, CLOSE_ORIGIN_REFUSED, origin_allowed
+
+router = APIRouter(tags=["jobs"])
+
+CLOSE_UNAUTHORIZED = 4401
+POLL_S = 0.5
+
+
+def _check(websocket: WebSocket, token: str | None, job_id: str) -> tuple[int, str] | None:
+    """``(close code, reason)`` if the connection is refused, else None."""
+    if not token:
+        return CLOSE_UNAUTHORIZED, "not signed in: pass ?token= or an Authorization header"
+    with websocket.app.state.sessions() as db:
+        try:
+            authenticate(db, token, websocket.app.state.jwt_key)
+        except UnauthorizedError as exc:
+            return CLOSE_UNAUTHORIZED, str(exc)
+        if db.get(Job, job_id) is None:
+            return CLOSE_NOT_FOUND, f"no job with id {job_id}"
+    return None
+
+
+def _snapshot(websocket: WebSocket, job_id: str) -> dict | None:
+    with websocket.app.state.sessions() as db:
+        job = db.get(Job, job_id)
+        return None if job is None else JobPublic.model_validate(job).model_dump(mode="json")
+
+
+@router.websocket("/api/v1/jobs/{job_id}/events")
+async def job_events(
+    websocket: WebSocket,
+    job_id: str,
+    token: Annotated[str | None, Query(max_length=4096)] = None,
+) -> None:
+    """Sends the job (as ``GET /api/v1/jobs/{id}``) whenever it changes; closes when it ends.
+
+    Authenticate with ``?token=`` (browsers cannot set headers on websockets) or an
+    ``Authorization: Bearer`` header. Close codes: 4401 unauthenticated, 4403 Origin
+    refused, 4404 unknown job.
+    """
+    if not origin_allowed(websocket, websocket.app.state.settings.allowed_origins):
+        await websocket.close(code=CLOSE_ORIGIN_REFUSED, reason="origin not allowed")
+        return
+    header = websocket.headers.get("authorization", "")
+    if token is None and header.lower().startswith("bearer "):
+        token = header[7:].strip()
+    refused = await run_in_threadpool(_check, websocket, token, job_id)
+    if refused is not None:
+        await websocket.close(code=refused[0], reason=refused[1][:120])
+        return
+    await websocket.accept()
+    last_update = None
+    try:
+        while True:
+            job = await run_in_threadpool(_snapshot, websocket, job_id)
+            if job is None:
+                await websocket.close(code=CLOSE_NOT_FOUND, reason="job deleted")
+                return
+            if job["updated_at"] != last_update:
+                last_update = job["updated_at"]
+                await websocket.send_json(job)
+            if job["status"] in JOB_FINAL_STATUSES:
+                await websocket.close(code=1000)
+                return
+            await asyncio.sleep(POLL_S)
+    except WebSocketDisconnect:
+        return

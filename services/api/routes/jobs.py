@@ -1,0 +1,225 @@
+"""Jobs: submit (committed, then enqueued on Celery), follow, cancel, retry, fetch results."""
+
+from __future__ import annotations
+
+import csv
+import io
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, Query, Response, status
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse
+from pydantic import ValidationError
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from services.api import audit
+from services.api.crud import get_or_404, paginate
+from services.api.deps import (
+    CeleryDep,
+    DbDep,
+    PageDep,
+    SettingsDep,
+    StaffUser,
+    StoreDep,
+    get_current_user,
+)
+from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
+from services.api.plots import curve_png
+from services.api.schemas.common import Page
+from services.api.schemas.jobs import (
+    CONFIG_MODELS,
+    CurvePublic,
+    JobCreate,
+    JobKind,
+    JobPublic,
+    JobStatus,
+)
+from services.core.db.base import utcnow
+from services.core.db.models import JOB_FINAL_STATUSES, Artifact, HFModel, Job, Recording
+from services.core.errors import BadRequestError, ConflictError, NotFoundError
+from services.core.queue import enqueue_job
+
+router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"], dependencies=[Depends(get_current_user)])
+
+
+def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[str, Any]:
+    """The config checked against its kind's schema, defaults filled in; 422 naming the field."""
+    try:
+        parsed = CONFIG_MODELS[kind].model_validate(config)
+    except ValidationError as exc:
+        errors = []
+        for err in exc.errors():
+            err = dict(err)
+            err["loc"] = ("body", "config", *err.get("loc", ()))
+            err.pop("ctx", None)
+            errors.append(err)
+        raise RequestValidationError(errors) from None
+    values = parsed.model_dump(mode="json")
+    if "ppo" in values:
+        values["ppo"] = parsed.ppo.given()  # type: ignore[attr-defined]
+    hf_model_id = values.get("hf_model_id") if kind == "guided_ppo" else None
+    if hf_model_id is not None and db.get(HFModel, hf_model_id) is None:
+        raise BadRequestError(
+            f"no HF model with id {values['hf_model_id']}", field="config.hf_model_id"
+        )
+    if kind == "eeg_calibration":
+        recording = db.get(Recording, values["recording_id"])
+        if recording is None:
+            raise BadRequestError(
+                f"no recording with id {values['recording_id']}", field="config.recording_id"
+            )
+        if recording.validation_status != "valid":
+            raise BadRequestError(
+                f"recording {recording.id} is {recording.validation_status}, not valid",
+                field="config.recording_id",
+            )
+    return values
+
+
+@router.post("", status_code=status.HTTP_201_CREATED)
+def submit(
+    body: JobCreate, user: StaffUser, db: DbDep, celery: CeleryDep, settings: SettingsDep
+) -> JobPublic:
+    """Submit a job (staff): the row is committed as ``queued``, then sent to the workers."""
+    config = _validated_config(db, body.kind, body.config)
+    job = Job(
+        kind=body.kind,
+        config=config,
+        status="queued",
+        submitter_id=user.id,
+        max_attempts=settings.job_max_attempts,
+    )
+    db.add(job)
+    db.flush()
+    audit.record(db, user, "job.submit", "job", job.id, kind=job.kind)
+    db.commit()
+    enqueue_job(celery, job.id, job.kind)
+    return JobPublic.model_validate(job)
+
+
+@router.get("")
+def list_jobs(
+    db: DbDep,
+    page: PageDep,
+    status_: Annotated[JobStatus | None, Query(alias="status")] = None,
+    kind: Annotated[JobKind | Literal["reproduce_run"] | None, Query()] = None,
+    submitter_id: Annotated[int | None, Query(ge=1)] = None,
+    parent_id: Annotated[str | None, Query(max_length=32)] = None,
+) -> Page[JobPublic]:
+    """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs)."""
+    query = select(Job).order_by(Job.created_at.desc(), Job.id)
+    if status_ is not None:
+        query = query.where(Job.status == status_)
+    if kind is not None:
+        query = query.where(Job.kind == kind)
+    if submitter_id is not None:
+        query = query.where(Job.submitter_id == submitter_id)
+    if parent_id is not None:
+        query = query.where(Job.parent_id == parent_id)
+    return Page[JobPublic].model_validate(paginate(db, query, page))
+
+
+@router.get("/{job_id}")
+def read(job_id: str, db: DbDep) -> JobPublic:
+    """One job: status, progress, attempts, resumed_from_step, error."""
+    return JobPublic.model_validate(get_or_404(db, Job, job_id, "job_id"))
+
+
+@router.post("/{job_id}/cancel")
+def cancel(job_id: str, user: StaffUser, db: DbDep) -> JobPublic:
+    """Cancel a job (staff): a queued one at once, a running one within seconds (its worker
+    checks on every heartbeat). A reproduce job's runs are cancelled with it."""
+    job = get_or_404(db, Job, job_id, "job_id")
+    if job.status in JOB_FINAL_STATUSES:
+        raise ConflictError(f"job {job_id} is already {job.status}", field="job_id")
+    now = utcnow()
+    for query in (Job.id == job_id, Job.parent_id == job_id):
+        db.execute(
+            update(Job)
+            .where(query, Job.status == "queued")
+            .values(status="cancelled", cancel_requested=True, finished_at=now, updated_at=now)
+        )
+        db.execute(
+            update(Job)
+            .where(query, Job.status == "running")
+            .values(cancel_requested=True, updated_at=now)
+        )
+    audit.record(db, user, "job.cancel", "job", job_id)
+    db.commit()
+    db.refresh(job)
+    return JobPublic.model_validate(job)
+
+
+@router.post("/{job_id}/retry")
+def retry(job_id: str, user: StaffUser, db: DbDep, celery: CeleryDep) -> JobPublic:
+    """Run a failed or cancelled job again (staff); it resumes from its last checkpoint."""
+    job = get_or_404(db, Job, job_id, "job_id")
+    if job.status not in ("failed", "cancelled"):
+        raise ConflictError(
+            f"job {job_id} is {job.status}; only failed or cancelled jobs can be retried",
+            field="job_id",
+        )
+    if job.parent_id is not None:
+        raise ConflictError(
+            f"job {job_id} is a run of job {job.parent_id}; retry that", field="job_id"
+        )
+    job.status = "queued"
+    job.error = None
+    job.traceback = None
+    job.cancel_requested = False
+    job.finished_at = None
+    job.attempts = 0
+    job.lease_owner = None
+    job.lease_expires_at = None
+    audit.record(db, user, "job.retry", "job", job.id)
+    db.commit()
+    enqueue_job(celery, job.id, job.kind)
+    return JobPublic.model_validate(job)
+
+
+@router.get(
+    "/{job_id}/curve",
+    responses={200: {"content": {"application/json": {}, "text/csv": {}}}},
+)
+def curve(
+    job_id: str,
+    db: DbDep,
+    curve_format: Annotated[Literal["json", "csv"], Query(alias="format")] = "json",
+) -> Any:
+    """The learning curve so far: ``[step, SPL]`` pairs (JSON, or CSV with ``format=csv``)."""
+    job = get_or_404(db, Job, job_id, "job_id")
+    points = [(int(step), float(spl)) for step, spl in job.curve]
+    if curve_format == "csv":
+        buffer = io.StringIO()
+        writer = csv.writer(buffer, lineterminator="\n")
+        writer.writerow(["step", "spl"])
+        writer.writerows(points)
+        return Response(
+            buffer.getvalue(),
+            media_type="text/csv",
+            headers={"Content-Disposition": f'attachment; filename="job-{job_id}-curve.csv"'},
+        )
+    return CurvePublic(job_id=job.id, curve=points)
+
+
+@router.get(
+    "/{job_id}/plot.png", response_class=Response, responses={200: {"content": {"image/png": {}}}}
+)
+def plot(job_id: str, db: DbDep) -> Response:
+    """The learning curve as a PNG."""
+    job = get_or_404(db, Job, job_id, "job_id")
+    if not job.curve:
+        raise NotFoundError(f"job {job_id} has no learning-curve points yet", field="job_id")
+    title = f"{job.kind} {job.config.get('task', '')} {job.config.get('method', '')}".strip()
+    return Response(curve_png(job.curve, title), media_type="image/png")
+
+
+@router.get("/{job_id}/model", response_class=FileResponse, responses=CHECKSUM_RESPONSE)
+def model(job_id: str, db: DbDep, store: StoreDep) -> FileResponse:
+    """The trained policy (TorchScript, with its observation normalisation) and its checksum."""
+    job = get_or_404(db, Job, job_id, "job_id")
+    if job.model_artifact_id is None:
+        raise NotFoundError(f"job {job_id} ({job.status}) has no model yet", field="job_id")
+    artifact = get_or_404(db, Artifact, job.model_artifact_id, "job_id")
+    return artifact_response(store, artifact, f"policy-{job_id}.pt")

@@ -1,0 +1,77 @@
+"""Accounts: admins manage users; everyone reads and changes their own."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, status
+from sqlalchemy import select
+
+from services.api import audit
+from services.api.accounts import active_admin_count, create_user
+from services.api.crud import get_or_404, paginate
+from services.api.deps import AdminUser, CurrentUser, DbDep, PageDep, get_current_user
+from services.api.errors import UnauthorizedError
+from services.api.schemas.common import Page
+from services.api.schemas.users import PasswordChange, UserCreate, UserPublic, UserUpdate
+from services.api.security import hash_password, verify_password
+from services.core.db.models import User
+from services.core.errors import ConflictError
+
+router = APIRouter(prefix="/api/v1/users", tags=["users"], dependencies=[Depends(get_current_user)])
+
+
+@router.get("/me")
+def read_me(user: CurrentUser) -> UserPublic:
+    """The signed-in account."""
+    return UserPublic.model_validate(user)
+
+
+@router.post("/me/password", status_code=status.HTTP_204_NO_CONTENT)
+def change_my_password(body: PasswordChange, user: CurrentUser, db: DbDep) -> None:
+    """Change your own password (the current one is required)."""
+    if not verify_password(user.password_hash, body.current_password):
+        raise UnauthorizedError("current password is wrong", field="current_password")
+    user.password_hash = hash_password(body.new_password)
+    audit.record(db, user, "user.password", "user", user.id)
+    db.commit()
+
+
+@router.post("", status_code=status.HTTP_201_CREATED)
+def create(body: UserCreate, admin: AdminUser, db: DbDep) -> UserPublic:
+    """Create an account (admin)."""
+    user = create_user(db, body.email, body.password, body.role)
+    audit.record(db, admin, "user.create", "user", user.id, email=user.email, role=user.role)
+    db.commit()
+    return UserPublic.model_validate(user)
+
+
+@router.get("")
+def list_users(_: AdminUser, db: DbDep, page: PageDep) -> Page[UserPublic]:
+    """Every account (admin)."""
+    return Page[UserPublic].model_validate(paginate(db, select(User).order_by(User.id), page))
+
+
+@router.get("/{user_id}")
+def read(user_id: int, _: AdminUser, db: DbDep) -> UserPublic:
+    """One account (admin)."""
+    return UserPublic.model_validate(get_or_404(db, User, user_id, "user_id"))
+
+
+@router.patch("/{user_id}")
+def update(user_id: int, body: UserUpdate, admin: AdminUser, db: DbDep) -> UserPublic:
+    """Change an account's role, active flag or password (admin); the last admin stays."""
+    user = get_or_404(db, User, user_id, "user_id")
+    demoted = body.role is not None and body.role != "admin"
+    deactivated = body.active is False
+    last_admin = user.role == "admin" and user.active and active_admin_count(db) <= 1
+    if last_admin and (demoted or deactivated):
+        raise ConflictError("this is the last active admin", field="role" if demoted else "active")
+    changes = body.model_dump(exclude_unset=True, exclude={"password"})
+    for key, value in changes.items():
+        if value is not None:
+            setattr(user, key, value)
+    if body.password is not None:
+        user.password_hash = hash_password(body.password)
+        changes["password"] = "changed"
+    audit.record(db, admin, "user.update", "user", user.id, **changes)
+    db.commit()
+    return UserPublic.model_validate(user)

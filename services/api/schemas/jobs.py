@@ -1,0 +1,217 @@
+"""Schemas of jobs and of each kind's ``config`` (checked before a job is queued).
+
+The learner cannot be imported here (the api stays free of torch), so the PPO settings a
+job may override are listed below with their types and bounds; they are the fields of
+``services.learner.ppo.PPOConfig`` that ``bgrl reproduce --ppo`` accepts.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from services.api.schemas.common import PublicModel
+from services.core.db.models import JOB_STATUSES
+from services.core.schemas import StrictRequest
+
+JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration"]
+"""Kinds a user may submit (``reproduce_run`` jobs are created by a reproduce job)."""
+JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
+
+Task = Literal["sssg", "vssg"]
+Method = Literal["rl_sparse", "rl_rich", "hf_sparse"]
+Treatment = Literal["authors", "truncated_is"]
+MAX_TOTAL_STEPS = 2_000_000
+MAX_REPRODUCE_RUNS = 2000
+PPO_DEFAULT_N_STEPS = 128
+PPO_DEFAULT_MINIBATCH_SIZE = 64
+MAP_NAME_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+
+
+def _task(value: object) -> object:
+    return value.lower() if isinstance(value, str) else value
+
+
+class PPOOverrides(StrictRequest):
+    """PPO settings to change (``bgrl reproduce --ppo KEY=VALUE``); omitted ones keep defaults.
+
+    ``env_id``, ``env_kwargs``, ``seed``, ``eval_seeds`` and ``hf_treatment`` are set per run
+    and cannot be overridden.
+    """
+
+    total_steps: int | None = Field(None, ge=1, le=MAX_TOTAL_STEPS)
+    n_steps: int | None = Field(None, ge=1, le=100_000)
+    n_epochs: int | None = Field(None, ge=1, le=1000)
+    minibatch_size: int | None = Field(None, ge=1, le=100_000)
+    learning_rate: float | None = Field(None, gt=0, le=1)
+    adam_eps: float | None = Field(None, gt=0, le=1)
+    gamma: float | None = Field(None, ge=0, le=1)
+    gae_lambda: float | None = Field(None, ge=0, le=1)
+    clip_coef: float | None = Field(None, gt=0, le=10)
+    ent_coef: float | None = Field(None, ge=0, le=10)
+    vf_coef: float | None = Field(None, ge=0, le=100)
+    max_grad_norm: float | None = Field(None, gt=0, le=1e6)
+    norm_adv: bool | None = None
+    reward_scale: float | None = Field(None, gt=0, le=1e6)
+    hidden_sizes: list[int] | None = Field(None, min_length=1, max_length=8)
+    eval_every: int | None = Field(None, ge=1, le=MAX_TOTAL_STEPS)
+    hf_eps_init: float | None = Field(None, ge=0, le=1)
+    hf_t_trans_fraction: float | None = Field(None, gt=0, le=1)
+    hf_warmup_steps: int | None = Field(None, ge=0, le=MAX_TOTAL_STEPS)
+    is_clip: float | None = Field(None, gt=0, le=100)
+    hf_guide_sampling: bool | None = None
+
+    @field_validator("hidden_sizes")
+    @classmethod
+    def _layer_sizes(cls, value: list[int] | None) -> list[int] | None:
+        if value is not None and not all(1 <= size <= 4096 for size in value):
+            raise ValueError("every hidden layer needs 1 to 4096 units")
+        return value
+
+    def given(self) -> dict[str, Any]:
+        """Only the settings given."""
+        return self.model_dump(exclude_none=True)
+
+    def check_steps(self, total_steps: int) -> None:
+        """PPOConfig's own rules: n_steps a multiple of minibatch_size, <= total_steps."""
+        n_steps = self.n_steps or PPO_DEFAULT_N_STEPS
+        minibatch = self.minibatch_size or PPO_DEFAULT_MINIBATCH_SIZE
+        if n_steps % minibatch:
+            raise ValueError(
+                f"n_steps ({n_steps}) must be a multiple of minibatch_size ({minibatch})"
+            )
+        if total_steps < n_steps:
+            raise ValueError(f"total_steps ({total_steps}) must be at least n_steps ({n_steps})")
+
+
+class GuidedPPOConfig(StrictRequest):
+    """One training run of (guided) PPO: ``bgrl`` learner's run of one task, method and seed."""
+
+    task: Task = Field(description="SSSG or VSSG (case-insensitive).")
+    method: Method
+    accuracy: float | None = Field(
+        None, ge=0, le=1, description="Simulated feedback accuracy C (hf_sparse only)."
+    )
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    total_steps: int = Field(40_000, ge=1, le=MAX_TOTAL_STEPS)
+    hf_treatment: Treatment = "authors"
+    ppo: PPOOverrides = Field(default_factory=PPOOverrides)
+    hf_model_id: int | None = Field(
+        None, ge=1, description="A stored pi_HF to guide with (hf_sparse) instead of training one."
+    )
+
+    _lower_task = field_validator("task", mode="before")(_task)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> GuidedPPOConfig:
+        if self.method == "hf_sparse":
+            if self.accuracy is None and self.hf_model_id is None:
+                raise ValueError("hf_sparse needs accuracy (or hf_model_id)")
+        elif self.accuracy is not None or self.hf_model_id is not None:
+            raise ValueError(f"accuracy and hf_model_id apply to hf_sparse only, not {self.method}")
+        if self.ppo.total_steps is not None:
+            raise ValueError("give total_steps in config.total_steps, not in config.ppo")
+        self.ppo.check_steps(self.total_steps)
+        return self
+
+
+class ReproduceConfig(StrictRequest):
+    """A reproduction of Fig. 3 (``bgrl reproduce`` options): one run per worker task."""
+
+    quick: bool = Field(False, description="2 seeds (unless seeds is given).")
+    seeds: int | None = Field(None, ge=1, le=100, description="Seeds per configuration.")
+    first_seed: int = Field(0, ge=0, le=2**31 - 1)
+    tasks: list[Task] = Field(default_factory=lambda: ["sssg", "vssg"], min_length=1)
+    methods: list[Method] = Field(
+        default_factory=lambda: ["rl_sparse", "rl_rich", "hf_sparse"], min_length=1
+    )
+    accuracies: list[float] = Field(default_factory=lambda: [0.55, 0.6, 0.7], min_length=1)
+    treatments: list[Treatment] = Field(default_factory=lambda: ["authors"], min_length=1)
+    map: str | None = Field(
+        None, pattern=MAP_NAME_PATTERN, description="Name of a shipped sim map (default map)."
+    )
+    ppo: PPOOverrides = Field(default_factory=PPOOverrides)
+
+    @field_validator("tasks", mode="before")
+    @classmethod
+    def _lower_tasks(cls, value: object) -> object:
+        return [_task(v) for v in value] if isinstance(value, list) else value
+
+    @field_validator("accuracies")
+    @classmethod
+    def _accuracies(cls, value: list[float]) -> list[float]:
+        if not all(0.0 <= c <= 1.0 for c in value):
+            raise ValueError("every accuracy must be in [0, 1]")
+        return value
+
+    @model_validator(mode="after")
+    def _resolved(self) -> ReproduceConfig:
+        if self.seeds is None:
+            self.seeds = 2 if self.quick else 10
+        per_seed = sum(
+            len(self.accuracies) * len(self.treatments) if m == "hf_sparse" else 1
+            for m in self.methods
+        ) * len(self.tasks)
+        if per_seed * self.seeds > MAX_REPRODUCE_RUNS:
+            raise ValueError(
+                f"{per_seed * self.seeds} runs; a reproduce job may have {MAX_REPRODUCE_RUNS}"
+            )
+        self.ppo.check_steps(self.ppo.total_steps or 40_000)
+        return self
+
+
+class EEGCalibrationConfig(StrictRequest):
+    """Train an ErrP classifier on a stored, valid recording."""
+
+    recording_id: int = Field(ge=1)
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    max_epochs: int = Field(300, ge=1, le=10_000)
+
+
+CONFIG_MODELS: dict[str, type[StrictRequest]] = {
+    "guided_ppo": GuidedPPOConfig,
+    "reproduce": ReproduceConfig,
+    "eeg_calibration": EEGCalibrationConfig,
+}
+
+
+class JobCreate(StrictRequest):
+    """A job to run: its kind and that kind's config."""
+
+    kind: JobKind
+    config: dict[str, Any] = Field(default_factory=dict)
+
+
+class JobPublic(PublicModel):
+    """A job: status, progress and where its results are (the curve has its own route)."""
+
+    id: str
+    kind: str
+    config: dict[str, Any]
+    status: JobStatus
+    progress: float
+    attempts: int
+    max_attempts: int
+    resumed_from_step: int | None
+    steps_done: int
+    error: str | None
+    result: dict[str, Any] | None
+    submitter_id: int | None
+    parent_id: str | None
+    cancel_requested: bool
+    checkpoint_artifact_id: str | None
+    model_artifact_id: str | None
+    created_at: datetime
+    updated_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class CurvePublic(PublicModel):
+    """The job's learning curve: ``[step, SPL]`` pairs of the greedy evaluations so far."""
+
+    job_id: str
+    curve: list[tuple[int, float]]

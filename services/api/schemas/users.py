@@ -1,0 +1,49 @@
+"""Schemas of users."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from services.api.accounts import EMAIL_PATTERN, MIN_PASSWORD_CHARS
+from services.api.schemas.common import PublicModel
+from services.core.schemas import StrictRequest
+
+Role = Literal["admin", "staff", "viewer"]
+Password = Annotated[str, Field(min_length=MIN_PASSWORD_CHARS, max_length=256)]
+
+
+class UserCreate(StrictRequest):
+    """A new account (admin only)."""
+
+    email: str = Field(pattern=EMAIL_PATTERN, max_length=320)
+    password: Password
+    role: Role = "viewer"
+
+
+class UserUpdate(StrictRequest):
+    """Changes to an account (admin only); omitted fields stay."""
+
+    role: Role | None = None
+    active: bool | None = None
+    password: Password | None = None
+
+
+class PasswordChange(StrictRequest):
+    """A user changing their own password."""
+
+    current_password: str = Field(min_length=1, max_length=256)
+    new_password: Password
+
+
+class UserPublic(PublicModel):
+    """An account as others see it (never the password hash)."""
+
+    id: int
+    email: str
+    role: Role
+    active: bool
+    created_at: datetime
+    last_login_at: datetime | None

@@ -1,0 +1,97 @@
+"""Passwords (argon2), access tokens (JWT, HS256) and API tokens (random, stored hashed)."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import secrets
+from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import jwt
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError
+
+from services.api.errors import UnauthorizedError
+from services.api.settings import ApiSettings
+from services.core.db.base import utcnow
+
+JWT_ALGORITHM = "HS256"
+API_TOKEN_PREFIX = "bgrl_"
+"""API tokens start with this, which tells them apart from access tokens (JWTs)."""
+SHOWN_PREFIX_CHARS = 12
+
+_hasher = PasswordHasher()
+
+
+def hash_password(password: str) -> str:
+    """An argon2id hash of ``password``."""
+    return _hasher.hash(password)
+
+
+def verify_password(password_hash: str, password: str) -> bool:
+    """True if ``password`` matches ``password_hash``."""
+    try:
+        return _hasher.verify(password_hash, password)
+    except (VerificationError, InvalidHashError):
+        return False
+
+
+def generate_password() -> str:
+    """A random password for a generated account (20 URL-safe characters)."""
+    return secrets.token_urlsafe(15)
+
+
+def load_jwt_key(settings: ApiSettings) -> str:
+    """The configured key, or the one generated at first start and kept with mode 600."""
+    if settings.jwt_secret is not None:
+        return settings.jwt_secret.get_secret_value()
+    path = settings.api_dir / "jwt.key"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            pass  # another process created it just now
+        else:
+            with os.fdopen(fd, "w") as handle:
+                handle.write(secrets.token_hex(32))
+    key = Path(path).read_text().strip()
+    if len(key) < 32:
+        raise RuntimeError(f"{path} holds a key shorter than 32 characters; delete it")
+    return key
+
+
+def create_access_token(user_id: int, key: str, lifetime: timedelta) -> tuple[str, datetime]:
+    """A signed JWT naming the user, and when it expires."""
+    now = utcnow()
+    expires = now + lifetime
+    claims = {"sub": str(user_id), "iat": now, "exp": expires, "typ": "access"}
+    return jwt.encode(claims, key, algorithm=JWT_ALGORITHM), expires
+
+
+def decode_access_token(token: str, key: str) -> int:
+    """The user id of a valid access token; :class:`UnauthorizedError` otherwise."""
+    try:
+        claims: dict[str, Any] = jwt.decode(
+            token, key, algorithms=[JWT_ALGORITHM], options={"require": ["exp", "sub"]}
+        )
+    except jwt.ExpiredSignatureError:
+        raise UnauthorizedError("access token expired; log in again", field="token") from None
+    except jwt.PyJWTError:
+        raise UnauthorizedError("malformed or invalid access token", field="token") from None
+    subject = claims.get("sub")
+    if claims.get("typ") != "access" or not isinstance(subject, str) or not subject.isdigit():
+        raise UnauthorizedError("malformed or invalid access token", field="token")
+    return int(subject)
+
+
+def new_api_token() -> str:
+    """A new API token (shown to its owner once; only its hash is stored)."""
+    return API_TOKEN_PREFIX + secrets.token_urlsafe(32)
+
+
+def hash_api_token(token: str) -> str:
+    """SHA-256 of an API token (tokens are random, so a fast hash is enough)."""
+    return hashlib.sha256(token.encode()).hexdigest()

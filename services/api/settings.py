@@ -1,0 +1,72 @@
+"""Settings of the api service (``BGRL_`` environment variables, on top of the platform's).
+
+Example: ``BGRL_DATABASE_URL=postgresql+psycopg://bgrl@db/bgrl BGRL_ADMIN_EMAIL=a@lab.org
+BGRL_ADMIN_PASSWORD=... uvicorn services.api.app:app --port 8000``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr
+
+from services.core.platform import PlatformSettings
+
+
+class ApiSettings(PlatformSettings):
+    """Configuration of the api (everything the platform shares, plus auth and limits)."""
+
+    port: int = Field(8000, ge=1, le=65535, description="TCP port of the HTTP server.")
+    max_upload_bytes: int = Field(
+        1024 * 1024 * 1024,
+        gt=0,
+        description="Largest recording upload accepted, in bytes (other requests: "
+        "max_request_bytes).",
+    )
+    max_request_bytes: int = Field(
+        1024 * 1024, gt=0, description="Largest request body of every route but uploads."
+    )
+    jwt_secret: SecretStr | None = Field(
+        None,
+        min_length=32,
+        description="Key signing access tokens (HS256). Default: a random key generated once "
+        "and kept in <data_dir>/api/jwt.key (mode 600).",
+    )
+    access_token_minutes: int = Field(
+        30, ge=1, le=24 * 60, description="Lifetime of an access token from the login route."
+    )
+    admin_email: str | None = Field(
+        None, description="E-mail of the admin created at first start if there is no user."
+    )
+    admin_password: SecretStr | None = Field(
+        None,
+        min_length=12,
+        description="Password of that admin; without it, first start generates one and "
+        "prints it once.",
+    )
+    login_max_failures: int = Field(
+        5, ge=1, le=1000, description="Failed logins allowed per account and client address..."
+    )
+    login_window_s: float = Field(
+        300.0, gt=0, description="...within this many seconds; more are refused with 429."
+    )
+    eeg_url: str | None = Field(
+        "http://127.0.0.1:8002",
+        description="Base URL of the EEG service that validates uploaded recordings (empty: "
+        "recordings stay pending).",
+    )
+    eeg_timeout_s: float = Field(
+        120.0, gt=0, le=3600, description="How long a recording's validation may take."
+    )
+    allowed_origins: list[str] = Field(
+        default_factory=list,
+        description="Extra websocket Origins accepted besides the api's own host (JSON list).",
+    )
+    migrate_on_start: bool = Field(
+        True, description="Run the database migrations when the api starts."
+    )
+
+    @property
+    def api_dir(self) -> Path:
+        """Folder of the api's own files (the generated JWT key)."""
+        return self.data_dir / "api"
