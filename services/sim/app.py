@@ -2,7 +2,9 @@
 
 Run with ``uvicorn services.sim.app:app --port 8001`` (or ``bgrl serve``); configuration
 comes from ``BGRL_SIM_*`` environment variables (:class:`SimSettings`). Endpoints are
-documented in ``docs/sim-service.md`` and at ``/docs``.
+documented in ``docs/sim-service.md`` and at ``/docs``. The app is built on the platform's
+skeleton (:func:`services.core.web.create_service_app`): JSON 413 and 422 bodies naming the
+field, request ids, ``GET /health``.
 """
 
 from __future__ import annotations
@@ -11,10 +13,11 @@ import socket
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 
-from services.sim.errors import SimServiceError
+from services.core.logging import configure_logging
+from services.core.settings import load_settings
+from services.core.web import create_service_app
 from services.sim.lsl_markers import MarkerPublisher
 from services.sim.routes import images, oracle, paced, service, sessions, stream
 from services.sim.sessions import SessionRegistry
@@ -23,7 +26,8 @@ from services.sim.settings import SimSettings
 
 def create_app(settings: SimSettings | None = None) -> FastAPI:
     """Build the sim service; ``settings`` default to the environment's ``BGRL_SIM_*``."""
-    settings = settings if settings is not None else SimSettings()
+    settings = settings if settings is not None else load_settings(SimSettings)
+    configure_logging(settings.log_level, json_lines=settings.log_json)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -47,6 +51,7 @@ def create_app(settings: SimSettings | None = None) -> FastAPI:
             extra_map_dirs=tuple(settings.extra_map_dirs),
             frame_size=(settings.frame_width, settings.frame_height),
             max_queued_actions=settings.max_queued_actions,
+            oracle_cache_dir=settings.oracle_cache_dir,
         )
         try:
             yield
@@ -55,21 +60,17 @@ def create_app(settings: SimSettings | None = None) -> FastAPI:
             if publisher is not None:
                 publisher.close()
 
-    app = FastAPI(
+    app = create_service_app(
+        name="sim",
         title="BrainNav sim service",
         summary="Navigation sim sessions, oracle, frame stream and LSL action markers.",
         version="0.1.0",
-        lifespan=lifespan,
         max_body_size=settings.max_upload_bytes,
+        lifespan=lifespan,
+        routers=[m.router for m in (service, sessions, oracle, images, paced, stream)],
+        health=service.health_fields,
     )
     app.state.settings = settings
-
-    @app.exception_handler(SimServiceError)
-    async def sim_error(request: Request, exc: SimServiceError) -> JSONResponse:
-        return JSONResponse(status_code=exc.status_code, content={"detail": str(exc)})
-
-    for module in (service, sessions, oracle, images, paced, stream):
-        app.include_router(module.router)
     return app
 
 

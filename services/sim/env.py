@@ -2,21 +2,18 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import gymnasium as gym
 import numpy as np
-import pybullet
-import pybullet_data
 from gymnasium import spaces
 
 from services.core.actions import FORWARD_STEP_M, N_ACTIONS, TURN_STEP_RAD, Action
-from services.sim import rendering
+from services.sim import bullet, rendering
+from services.sim.bullet import pybullet
 from services.sim.maps import (
     DEFAULT_MAP_PATH,
     FOOTPRINT_RADIUS_M,
@@ -44,22 +41,6 @@ RewardMode = Literal["sparse", "rich"]
 
 _TWO_PI = 2.0 * math.pi
 _N_HEADINGS = round(_TWO_PI / TURN_STEP_RAD)
-
-
-@contextlib.contextmanager
-def _silenced_c_stdout() -> Iterator[None]:
-    """Silence the C-level stdout/stderr (pybullet's URDF importer warnings)."""
-    saved = [os.dup(1), os.dup(2)]
-    with open(os.devnull, "w") as devnull:
-        os.dup2(devnull.fileno(), 1)
-        os.dup2(devnull.fileno(), 2)
-        try:
-            yield
-        finally:
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            for fd in saved:
-                os.close(fd)
 
 
 class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
@@ -115,6 +96,13 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
 
     Every step: ``is_success``, ``collision``, ``pose`` ``(x, y, yaw)``. ``reset`` adds
     ``shortest_path_steps``: the number of actions the oracle policy needs from the start.
+
+    ## Oracle cache
+
+    ``oracle_cache_dir``: folder where the map's oracle lattice is cached on disk (read if
+    present, written after a build). None (default) keeps it in memory only, so a plain
+    ``gymnasium.make`` writes no file. The services and ``bgrl`` pass
+    ``$BGRL_DATA_DIR/sim/oracle``.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 8}
@@ -128,6 +116,7 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         *,
         render_width: int = rendering.FRAME_WIDTH,
         render_height: int = rendering.FRAME_HEIGHT,
+        oracle_cache_dir: str | Path | None = None,
     ) -> None:
         if task not in ("sssg", "vssg"):
             raise ValueError(f"task must be 'sssg' or 'vssg', got {task!r}")
@@ -141,7 +130,8 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self.render_size = (int(render_width), int(render_height))
         self.map_path = Path(map_path) if map_path is not None else DEFAULT_MAP_PATH
         self.nav_map: NavMap = load_map(self.map_path)
-        self.oracle = Oracle.for_map(self.nav_map)
+        self.oracle = Oracle.for_map(self.nav_map, oracle_cache_dir)
+        self.oracle.check_reachable(f"map file {self.map_path}")
         self._geometry = self.nav_map.geometry
 
         self.action_space = spaces.Discrete(N_ACTIONS)
@@ -151,8 +141,14 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         low = np.array([0.0] * N_RAYS + [0.0, -math.pi, -math.pi], dtype=np.float32)
         self.observation_space = spaces.Box(low=low, high=high, dtype=np.float32)
 
-        self._client = pybullet.connect(pybullet.DIRECT)
-        self._robot_id, self._ray_z = self._build_world()
+        self._closed = False
+        self._client = bullet.connect()
+        try:
+            self._robot_id, self._ray_z = self._build_world()
+        except BaseException:
+            self._closed = True
+            bullet.disconnect(self._client)
+            raise
         self._start_yaw = self.nav_map.start.yaw
         # Ray end offsets per heading index: yaw = start yaw + k * 30 deg exactly.
         self._ray_offsets = [
@@ -176,7 +172,6 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self._rays = [RAY_LENGTH_M] * N_RAYS
         self._body_synced = False
         self._sssg_shortest_steps: int | None = None
-        self._closed = False
 
     # ------------------------------------------------------------------ world
     def _build_world(self) -> tuple[int, float]:
@@ -187,12 +182,7 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         """
         cid = self._client
         m = self.nav_map
-        pybullet.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
-        with _silenced_c_stdout():
-            robot = pybullet.loadURDF("husky/husky.urdf", useFixedBase=True, physicsClientId=cid)
-        # Rays must not hit the robot: an empty collision group/mask excludes it.
-        for link in range(-1, pybullet.getNumJoints(robot, physicsClientId=cid)):
-            pybullet.setCollisionFilterGroupMask(robot, link, 0, 0, physicsClientId=cid)
+        robot = bullet.add_husky(cid)  # visual only: rays never hit the robot
 
         def add_box(cx: float, cy: float, sx: float, sy: float, h: float, yaw: float, rgba):
             half = [sx / 2.0, sy / 2.0, h / 2.0]
@@ -397,6 +387,5 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         """Disconnect this env's pybullet client."""
         if not self._closed:
             self._closed = True
-            with contextlib.suppress(pybullet.error):
-                pybullet.disconnect(physicsClientId=self._client)
+            bullet.disconnect(self._client)
         super().close()

@@ -1,9 +1,15 @@
-"""Errors of the sim service; each carries the HTTP status the app answers with."""
+"""Errors of the sim service; each carries the HTTP status the app answers with.
+
+They subclass :class:`services.core.errors.ServiceError`, so the platform's one handler
+turns them into ``{"detail": message, "field": name-or-null}`` with their status.
+"""
 
 from __future__ import annotations
 
+from services.core.errors import ServiceError
 
-class SimServiceError(Exception):
+
+class SimServiceError(ServiceError):
     """A request the sim service refuses; ``str(exc)`` is the message sent to the client."""
 
     status_code = 400
@@ -40,6 +46,15 @@ class PacedModeError(SimServiceError):
 
 
 class MapRequestError(SimServiceError):
-    """The requested map is unknown, not allowed, or invalid."""
+    """The requested map is unknown, not allowed, or invalid (field ``map``)."""
+
+    status_code = 422
+
+    def __init__(self, message: str, *, field: str | None = "map") -> None:
+        super().__init__(message, field=field)
+
+
+class BadQueryError(SimServiceError):
+    """A query parameter is out of range (the field names it)."""
 
     status_code = 422

@@ -254,22 +254,17 @@ def parse_map(data: object, *, source: str = "map") -> NavMap:
         raise MapError(f"{source} is not a valid map: {problems}") from None
 
 
-def load_map(path: str | Path, *, check_reachable: bool = True) -> NavMap:
-    """Load and validate a JSON map file.
+def load_map(path: str | Path) -> NavMap:
+    """Load and validate a JSON map file (schema in ``docs/sim.md``).
 
-    Parameters
-    ----------
-    path
-        The JSON file (schema in ``docs/sim.md``).
-    check_reachable
-        Also build (or load from the cache) the map's oracle and reject the map when the
-        goal cannot be reached from the start.
+    Only the file is checked here; whether the goal can be reached from the start is the
+    oracle's job (:meth:`services.sim.oracle.Oracle.check_reachable`, run by the env).
 
     Raises
     ------
     MapError
-        The file is missing, is not JSON, does not follow the schema, puts the start in an
-        obstacle or off the floor, or (with ``check_reachable``) the goal is unreachable.
+        The file is missing, is not JSON, does not follow the schema, or puts the start in
+        an obstacle or off the floor.
     """
     path = Path(path)
     try:
@@ -280,12 +275,4 @@ def load_map(path: str | Path, *, check_reachable: bool = True) -> NavMap:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise MapError(f"map file {path} is not valid JSON: {exc}") from None
-    nav_map = parse_map(data, source=f"map file {path}")
-    if check_reachable:
-        from services.sim.oracle import Oracle
-
-        oracle = Oracle.for_map(nav_map)
-        start = nav_map.start
-        if not math.isfinite(oracle.cost_to_go(start.x, start.y, start.yaw)):
-            raise MapError(f"map file {path}: the goal cannot be reached from the start pose")
-    return nav_map
+    return parse_map(data, source=f"map file {path}")

@@ -21,22 +21,27 @@ lowest score; the oracle *policy* breaks ties in favour of forward, then left, t
 :meth:`Oracle.cost_to_go` is the number of actions the oracle policy takes from a pose to
 the goal (at most ``V``), so the policy reaches the goal in exactly that many steps.
 
-Built lattices are cached on disk under ``$BGRL_DATA_DIR/sim/oracle`` (default ``var``),
-keyed by the map's content hash and the lattice parameters, and in memory per process.
+Built lattices are cached in memory per process (one build per map: concurrent callers
+wait for the first) and, when a ``cache_dir`` is given, on disk, keyed by the map's content
+hash and the lattice parameters. The services and the CLI pass
+``$BGRL_DATA_DIR/sim/oracle`` (:attr:`services.sim.settings.SimSettings.oracle_cache_dir`);
+a plain ``gymnasium.make`` writes nothing.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import tempfile
+import threading
 from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 
 from services.core.actions import FORWARD_STEP_M, N_ACTIONS, TURN_STEP_RAD, Action
-from services.sim.maps import FOOTPRINT_RADIUS_M, SWEEP_SAMPLE_M, NavMap, wrap_angle
+from services.sim.maps import FOOTPRINT_RADIUS_M, SWEEP_SAMPLE_M, MapError, NavMap, wrap_angle
 
 CELL_M = 0.01
 N_HEADINGS = round(2.0 * math.pi / TURN_STEP_RAD)
@@ -45,9 +50,38 @@ LATTICE_VERSION = 2
 MAX_ROLLOUT_STEPS = 2000
 _TIE_ORDER = (Action.FORWARD, Action.TURN_LEFT, Action.TURN_RIGHT)
 
+logger = logging.getLogger(__name__)
 
-def _data_dir() -> Path:
-    return Path(os.environ.get("BGRL_DATA_DIR", "var"))
+
+def lattice_margins() -> tuple[int, int]:
+    """``(border margin, move span)`` in cells: how far every free cell is from the grid's
+    border at least, and how far a forward move's landing cells reach at most.
+
+    Free cells keep the footprint disc off the walls, so they lie at least
+    ``FOOTPRINT_RADIUS_M / CELL_M`` cells (40) from the border; a move reaches
+    ``floor(FORWARD_STEP_M / CELL_M) + 1`` cells (31). The search indexes the grid flat,
+    which is only right while the margin exceeds the span: then no move from a free cell
+    leaves the grid or wraps into another row. :func:`check_lattice_invariants` enforces it.
+    """
+    margin = math.floor(FOOTPRINT_RADIUS_M / CELL_M)
+    span = math.floor(FORWARD_STEP_M / CELL_M + 1e-9) + 1
+    return margin, span
+
+
+def check_lattice_invariants() -> None:
+    """Raise :class:`RuntimeError` if the lattice parameters break the search's assumptions."""
+    margin, span = lattice_margins()
+    if margin <= span:
+        raise RuntimeError(
+            f"oracle lattice: free cells are only {margin} cells from the border but a move "
+            f"spans {span} cells (FOOTPRINT_RADIUS_M={FOOTPRINT_RADIUS_M}, CELL_M={CELL_M}, "
+            f"FORWARD_STEP_M={FORWARD_STEP_M}): flat indexing would wrap"
+        )
+    if abs(N_HEADINGS * TURN_STEP_RAD - 2.0 * math.pi) > 1e-9:
+        raise RuntimeError(f"TURN_STEP_RAD={TURN_STEP_RAD} does not divide a full turn")
+
+
+check_lattice_invariants()
 
 
 def _heading_steps(start_yaw: float) -> np.ndarray:
@@ -78,6 +112,7 @@ def build_cost_to_go(nav_map: NavMap) -> np.ndarray:
     the worst of the four, so ``V`` is achievable from every pose in the cell: the greedy
     policy on ``V`` lowers it by at least one per action and cannot loop.
     """
+    check_lattice_invariants()
     b = nav_map.bounds
     nx = math.ceil((b.x_max - b.x_min) / CELL_M)
     ny = math.ceil((b.y_max - b.y_min) / CELL_M)
@@ -101,13 +136,22 @@ def build_cost_to_go(nav_map: NavMap) -> np.ndarray:
             for ei, ej in _CORNERS:
                 ok &= _shifted(free, int(base[0]) + ei, int(base[1]) + ej)
         forward_ok[k] = ok
+    margin, span = lattice_margins()
+    border = np.ones_like(free)
+    border[margin:-margin, margin:-margin] = False
+    reach = np.floor(steps)
+    if (free & border).any() or np.maximum(np.abs(reach), np.abs(reach + 1)).max() > span:
+        raise RuntimeError(
+            f"oracle lattice: a free cell within {margin} cells of the border, or a move "
+            f"reaching more than {span} cells: flat indexing would wrap"
+        )
     forward_ok_flat = forward_ok.reshape(-1)
     # Cells a forward move may land in, as flat offsets: floor(step) + corner.
     landing_base = np.floor(steps).astype(np.int64)
     base_flat = landing_base[:, 0] * ny + landing_base[:, 1]
     corners_flat = np.array([ei * ny + ej for ei, ej in _CORNERS], dtype=np.int64)
-    # Free cells are >= 40 cells from the border and moves span <= 31, so flat index
-    # arithmetic around free cells never wraps into another row.
+    # Free cells are >= margin cells from the border and moves span <= span < margin
+    # (checked above), so flat index arithmetic around free cells never wraps a row.
 
     cost = np.full(N_HEADINGS * n_cells, -1, dtype=np.int16)
     goal_cells = np.flatnonzero(goal.reshape(-1))
@@ -140,13 +184,45 @@ def build_cost_to_go(nav_map: NavMap) -> np.ndarray:
     return cost.reshape(N_HEADINGS, nx, ny)
 
 
+def _load_cached(path: Path) -> np.ndarray | None:
+    """The cost array stored at ``path``, or None if absent or unreadable (then rebuilt)."""
+    try:
+        with np.load(path) as data:
+            return data["cost"]
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError) as exc:
+        logger.warning("ignoring the unreadable oracle cache %s (%s); rebuilding", path, exc)
+        return None
+
+
+def _save_cached(path: Path, cost: np.ndarray) -> None:
+    """Write ``cost`` to ``path`` atomically (a temp file in the same folder, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
+    os.close(fd)
+    try:
+        np.savez_compressed(tmp, cost=cost)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; other workers read the cache
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
 class Oracle:
     """Optimal actions and cost-to-go on one map (see the module docstring).
 
-    Build with :meth:`for_map`, which caches on disk and in memory.
+    Build with :meth:`for_map`, which caches in memory and, given a folder, on disk.
     """
 
     _memory: ClassVar[dict[str, Oracle]] = {}
+    _memory_lock: ClassVar[threading.Lock] = threading.Lock()
+    _build_locks: ClassVar[dict[str, threading.Lock]] = {}
 
     def __init__(self, nav_map: NavMap, cost: np.ndarray) -> None:
         expected = (
@@ -173,35 +249,48 @@ class Oracle:
         )
 
     @classmethod
-    def for_map(cls, nav_map: NavMap) -> Oracle:
-        """The map's oracle, from memory, the disk cache, or built (then cached)."""
+    def for_map(cls, nav_map: NavMap, cache_dir: str | Path | None = None) -> Oracle:
+        """The map's oracle, from memory, ``cache_dir`` (if given), or built.
+
+        A build is cached in memory and, with ``cache_dir``, written there as
+        ``<cache_key>.npz`` (atomically); without ``cache_dir`` nothing is written. Threads
+        asking for the same map at once share one build (the others wait for it).
+        """
         key = cls.cache_key(nav_map)
-        oracle = cls._memory.get(key)
-        if oracle is not None:
-            return oracle
-        path = _data_dir() / "sim" / "oracle" / f"{key}.npz"
-        cost = None
-        if path.exists():
-            try:
-                with np.load(path) as data:
-                    cost = data["cost"]
-            except (OSError, ValueError, KeyError):
-                cost = None  # a corrupt cache file is rebuilt below
-        if cost is None:
-            cost = build_cost_to_go(nav_map)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
-            os.close(fd)
-            try:
-                np.savez_compressed(tmp, cost=cost)
-                os.chmod(tmp, 0o644)  # mkstemp creates 0600; other workers read the cache
-                os.replace(tmp, path)
-            finally:
-                if os.path.exists(tmp):
-                    os.unlink(tmp)
-        oracle = cls(nav_map, cost)
-        cls._memory[key] = oracle
+        with cls._memory_lock:
+            oracle = cls._memory.get(key)
+            if oracle is not None:
+                return oracle
+            build_lock = cls._build_locks.setdefault(key, threading.Lock())
+        with build_lock:
+            with cls._memory_lock:
+                oracle = cls._memory.get(key)
+            if oracle is not None:
+                return oracle  # built by the thread we waited for
+            path = Path(cache_dir) / f"{key}.npz" if cache_dir is not None else None
+            cost = _load_cached(path) if path is not None else None
+            if cost is None:
+                logger.info("building the oracle lattice of map %r", nav_map.name)
+                cost = build_cost_to_go(nav_map)
+                if path is not None:
+                    _save_cached(path, cost)
+            oracle = cls(nav_map, cost)
+            with cls._memory_lock:
+                cls._memory[key] = oracle
+                cls._build_locks.pop(key, None)
         return oracle
+
+    @classmethod
+    def clear_memory(cls) -> None:
+        """Forget every oracle cached in memory (the disk caches stay)."""
+        with cls._memory_lock:
+            cls._memory.clear()
+
+    def check_reachable(self, source: str = "map") -> None:
+        """Raise :class:`MapError` when the goal cannot be reached from the start pose."""
+        start = self.nav_map.start
+        if not math.isfinite(self.cost_to_go(start.x, start.y, start.yaw)):
+            raise MapError(f"{source}: the goal cannot be reached from the start pose")
 
     # ------------------------------------------------------------- queries
     def heading_index(self, yaw: float) -> int:
@@ -215,11 +304,11 @@ class Oracle:
         return math.hypot(x - self._goal[0], y - self._goal[1]) < self._goal_radius
 
     def _lattice_cost(self, x: float, y: float, k: int) -> float:
-        i = math.floor((x - self._x_min) / CELL_M)
-        j = math.floor((y - self._y_min) / CELL_M)
-        if not (0 <= i < self._nx and 0 <= j < self._ny):
+        fi = (x - self._x_min) / CELL_M
+        fj = (y - self._y_min) / CELL_M
+        if not (0.0 <= fi < self._nx and 0.0 <= fj < self._ny):  # also NaN and huge values
             return math.inf
-        v = int(self.cost[k, i, j])
+        v = int(self.cost[k, math.floor(fi), math.floor(fj)])
         return math.inf if v < 0 else float(v)
 
     def _action_scores(self, x: float, y: float, k: int) -> list[float]:
@@ -242,6 +331,8 @@ class Oracle:
 
     def optimal_actions(self, x: float, y: float, yaw: float) -> frozenset[int]:
         """Every action with the lowest cost-to-go from this pose (empty if none reaches)."""
+        if not _finite(x, y, yaw):
+            return frozenset()
         scores = self._action_scores(x, y, self.heading_index(yaw))
         best = min(scores)
         if not math.isfinite(best):
@@ -250,6 +341,8 @@ class Oracle:
 
     def policy_action(self, x: float, y: float, yaw: float) -> int | None:
         """The oracle policy's action: optimal, ties favour forward, then left, then right."""
+        if not _finite(x, y, yaw):
+            return None
         scores = self._action_scores(x, y, self.heading_index(yaw))
         best = min(scores)
         if not math.isfinite(best):
@@ -258,7 +351,7 @@ class Oracle:
 
     def rollout(self, x: float, y: float, yaw: float) -> list[int] | None:
         """The oracle policy's actions from a pose to the goal (None if it cannot get there)."""
-        if self._geometry.collides(x, y):
+        if not _finite(x, y, yaw) or self._geometry.collides(x, y):
             return None
         k = self.heading_index(yaw)
         actions: list[int] = []

@@ -6,9 +6,9 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-import pybullet
 from PIL import Image, ImageDraw
 
+from services.sim.bullet import pybullet
 from services.sim.maps import FOOTPRINT_RADIUS_M, NavMap
 
 FRAME_WIDTH = 320

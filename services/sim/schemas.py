@@ -8,7 +8,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.core.actions import Action
 from services.core.markers import ActionMarker
-from services.sim.sessions import PacedPolicy
+from services.core.schemas import FiniteModel, StrictRequest
+from services.sim.sessions import FrameView, PacedPolicy
 
 Observation = list[float | None]
 ActionValue = Annotated[
@@ -21,12 +22,12 @@ ActionValue = Annotated[
     ),
 ]
 
+Seed = Annotated[
+    int, Field(strict=True, ge=0, le=2**63 - 1, description="A JSON integer in [0, 2^63).")
+]
 
-class _Request(BaseModel):
-    model_config = ConfigDict(extra="forbid")
 
-
-class SessionCreate(_Request):
+class SessionCreate(StrictRequest):
     """Open a sim session: one env, reset once with ``seed``."""
 
     task: Literal["sssg", "vssg"] = Field(
@@ -38,7 +39,7 @@ class SessionCreate(_Request):
         description="Name (e.g. 'default') or path of a map the service ships or is "
         "configured with; default map when omitted. GET /maps lists them.",
     )
-    seed: int | None = Field(None, ge=0, description="Seed of the first reset (random if None).")
+    seed: Seed | None = Field(None, description="Seed of the first reset (random if None).")
     reward_mode: Literal["sparse", "rich"] = "sparse"
 
 
@@ -81,10 +82,10 @@ class SessionPublic(BaseModel):
     paced: PacedPublic
 
 
-class ResetRequest(_Request):
+class ResetRequest(StrictRequest):
     """Start a new episode."""
 
-    seed: int | None = Field(None, ge=0, description="Reseed the env (None: continue its RNG).")
+    seed: Seed | None = Field(None, description="Reseed the env (None: continue its RNG).")
 
 
 class ResetPublic(BaseModel):
@@ -95,7 +96,7 @@ class ResetPublic(BaseModel):
     info: dict[str, Any] = Field(description="Includes shortest_path_steps and pose.")
 
 
-class StepRequest(_Request):
+class StepRequest(StrictRequest):
     """Execute one action."""
 
     action: ActionValue
@@ -122,7 +123,7 @@ class OraclePublic(BaseModel):
     reachable: bool
 
 
-class PacedCreate(_Request):
+class PacedCreate(StrictRequest):
     """Start the paced mode: one action every ``period_s`` for human observers."""
 
     policy: PacedPolicy = PacedPolicy.RANDOM
@@ -132,10 +133,12 @@ class PacedCreate(_Request):
     auto_reset: bool = Field(
         True, description="Reset one period after an episode ends (else stop there)."
     )
-    max_actions: int | None = Field(None, ge=1, description="Stop after this many actions.")
+    max_actions: int | None = Field(
+        None, strict=True, ge=1, le=10**9, description="Stop after this many actions."
+    )
 
 
-class QueueRequest(_Request):
+class QueueRequest(StrictRequest):
     """Actions for the paced ``queue`` policy, executed in order, one per period."""
 
     actions: list[ActionValue] = Field(min_length=1, max_length=1000)
@@ -150,20 +153,25 @@ class QueuePublic(BaseModel):
 class MapPublic(BaseModel):
     """A map sessions can use."""
 
-    name: str
-    default: bool
-
-
-class HealthPublic(BaseModel):
-    """Liveness and a summary of the service's load."""
-
-    status: Literal["ok"]
-    sessions: int
-    max_sessions: int
-    lsl_markers: bool
-    marker_stream: str | None = Field(description="Name of the LSL marker stream, if published.")
-    lsl_time: float = Field(description="The service's LSL clock (s), to check clock offsets.")
+    name: str = Field(description="Pass it as ``map`` to POST /sessions.")
+    default: bool = Field(description="Used when a session names no map.")
+    description: str = Field(description="What the map is for (from its file).")
 
 
 FrameFormat = Literal["jpeg", "png"]
 FrameEncoding = Literal["base64", "binary"]
+MAX_FPS = 30.0
+"""Upper bound of the frame rate, also when frames follow actions."""
+
+
+class StreamParams(FiniteModel):
+    """Query parameters of ``WS /sessions/{id}/stream`` (validated after the handshake, so a
+    bad one gets close code 4422 naming it rather than a bare handshake refusal)."""
+
+    model_config = ConfigDict(extra="ignore", populate_by_name=True)
+
+    fps: float | None = Field(None, ge=1.0, le=MAX_FPS, description="Periodic frames per second.")
+    on_action: bool = Field(True, description="Also send a frame right after each step/reset.")
+    view: FrameView = "camera"
+    image_format: FrameFormat = Field("jpeg", alias="format")
+    encoding: FrameEncoding = "base64"

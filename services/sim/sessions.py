@@ -69,12 +69,15 @@ def available_maps(extra_dirs: tuple[Path, ...] = ()) -> dict[str, Path]:
     return maps
 
 
-def resolve_map(spec: str | None, extra_dirs: tuple[Path, ...] = ()) -> tuple[str, Path, NavMap]:
+def resolve_map(
+    spec: str | None, extra_dirs: tuple[Path, ...] = (), oracle_cache_dir: Path | None = None
+) -> tuple[str, Path, NavMap]:
     """Turn a client's map name or path into ``(name, path, validated map)``.
 
     ``spec`` is a map name (file stem, e.g. ``"default"``) or a path to a map file inside the
-    shipped maps folder or one of ``extra_dirs``; ``None`` means the default map. Raises
-    :class:`MapRequestError` naming the problem for anything else.
+    shipped maps folder or one of ``extra_dirs``; ``None`` means the default map. The map's
+    oracle is built (or loaded from ``oracle_cache_dir``) to check that the goal can be
+    reached. Raises :class:`MapRequestError` naming the problem for anything else.
     """
     allowed = available_maps(extra_dirs)
     if spec is None:
@@ -91,6 +94,7 @@ def resolve_map(spec: str | None, extra_dirs: tuple[Path, ...] = ()) -> tuple[st
         path = candidate
     try:
         nav_map = load_map(path)
+        Oracle.for_map(nav_map, oracle_cache_dir).check_reachable(f"map file {path}")
     except MapError as exc:
         raise MapRequestError(f"map {spec or path.stem!r} is invalid: {exc}") from exc
     return path.stem, path, nav_map
@@ -186,6 +190,8 @@ class SimSession:
         ``(width, height)`` of the camera frames the env renders.
     max_queued_actions
         Bound on the paced-mode action queue.
+    oracle_cache_dir
+        Disk cache of the oracle lattices (None: memory only).
     """
 
     def __init__(
@@ -201,6 +207,7 @@ class SimSession:
         publisher: MarkerPublisher | None,
         frame_size: tuple[int, int] = (320, 240),
         max_queued_actions: int = 1000,
+        oracle_cache_dir: Path | None = None,
     ) -> None:
         self.id = session_id
         self.task = task
@@ -220,9 +227,9 @@ class SimSession:
             render_mode="rgb_array",
             render_width=frame_size[0],
             render_height=frame_size[1],
+            oracle_cache_dir=oracle_cache_dir,
             disable_env_checker=True,
         )
-        self._oracle: Oracle | None = None
         self._policy_rng = np.random.default_rng(seed)
         self.closed = False
         self.episode = -1
@@ -272,64 +279,71 @@ class SimSession:
     def reset(self, seed: int | None = None) -> tuple[list[float], dict[str, Any]]:
         """Start a new episode; returns the observation and the reset info."""
         with self._lock:
-            self._check_open()
-            self.touch()
-            obs, info = self._env.reset(seed=seed)
-            self._state_version += 1
-            self.episode += 1
-            self.episode_step = 0
-            self.observation = to_jsonable(obs)
-            self.info = to_jsonable(info)
-            self.reward = None
-            self.terminated = self.truncated = False
-            observation, info = self.observation, self.info
+            observation, info = self._reset_locked(seed)
         self._notify()
         return observation, info
 
     def step(self, action: int | Action) -> StepOutcome:
         """Execute one action, judge it with the oracle and publish its marker."""
-        action = Action(action)
         with self._lock:
-            self._check_open()
-            if self.episode_over:
-                how = "terminated" if self.terminated else "was truncated"
-                raise EpisodeOverError(
-                    f"episode {self.episode} of session {self.id} {how}; "
-                    "reset the session to start a new episode"
-                )
-            self.touch()
-            correct = int(action) in self._core.optimal_actions()
-            obs, reward, terminated, truncated, info = self._env.step(int(action))
-            timestamp = lsl_clock()
-            self._state_version += 1
-            marker = ActionMarker(
-                session_id=self.id,
-                step=self.step_count,
-                episode=self.episode,
-                action=action,
-                correct=correct,
-                timestamp=timestamp,
-            )
-            self.step_count += 1
-            self.episode_step += 1
-            self.observation = to_jsonable(obs)
-            self.info = to_jsonable(info)
-            self.reward = float(reward)
-            self.terminated, self.truncated = bool(terminated), bool(truncated)
-            self.last_marker = marker
-            self._markers.append(marker)
-            outcome = StepOutcome(
-                observation=self.observation,
-                reward=self.reward,
-                terminated=self.terminated,
-                truncated=self.truncated,
-                info=self.info,
-                marker=marker,
-            )
-            if self._publisher is not None:  # under the lock: markers leave in step order
-                self._publisher.publish(marker)
+            outcome = self._step_locked(Action(action))
         self._notify()
         return outcome
+
+    def _reset_locked(self, seed: int | None) -> tuple[list[float], dict[str, Any]]:
+        """:meth:`reset` without the listeners; the caller holds the lock and notifies."""
+        self._check_open()
+        self.touch()
+        obs, info = self._env.reset(seed=seed)
+        self._state_version += 1
+        self.episode += 1
+        self.episode_step = 0
+        self.observation = to_jsonable(obs)
+        self.info = to_jsonable(info)
+        self.reward = None
+        self.terminated = self.truncated = False
+        return self.observation, self.info
+
+    def _step_locked(self, action: Action) -> StepOutcome:
+        """:meth:`step` without the listeners; the caller holds the lock and notifies."""
+        self._check_open()
+        if self.episode_over:
+            how = "terminated" if self.terminated else "was truncated"
+            raise EpisodeOverError(
+                f"episode {self.episode} of session {self.id} {how}; "
+                "reset the session to start a new episode"
+            )
+        self.touch()
+        correct = int(action) in self._core.optimal_actions()
+        obs, reward, terminated, truncated, info = self._env.step(int(action))
+        timestamp = lsl_clock()
+        self._state_version += 1
+        marker = ActionMarker(
+            session_id=self.id,
+            step=self.step_count,
+            episode=self.episode,
+            action=action,
+            correct=correct,
+            timestamp=timestamp,
+        )
+        self.step_count += 1
+        self.episode_step += 1
+        self.observation = to_jsonable(obs)
+        self.info = to_jsonable(info)
+        self.reward = float(reward)
+        self.terminated, self.truncated = bool(terminated), bool(truncated)
+        self.last_marker = marker
+        self._markers.append(marker)
+        if self._publisher is not None:  # under the lock: markers leave in step order
+            self._publisher.publish(marker)
+        return StepOutcome(
+            observation=self.observation,
+            reward=self.reward,
+            terminated=self.terminated,
+            truncated=self.truncated,
+            info=self.info,
+            marker=marker,
+        )
 
     def markers(self, since_step: int = 0, limit: int = 1000) -> list[ActionMarker]:
         """Markers of this session with ``step >= since_step``, oldest first (the last
@@ -341,8 +355,10 @@ class SimSession:
     def add_listener(self, callback: Callable[[], None]) -> None:
         """Call ``callback()`` (from the stepping thread) after every step and reset.
 
-        The frame stream uses this to send a frame as soon as an action is executed;
-        callbacks must be quick and must not call back into the session.
+        The frame stream uses this to send a frame as soon as an action is executed.
+        Callbacks run after the session's lock is released (``_notify`` checks it), so a
+        slow callback never blocks other threads' steps, renders or reads; they must still
+        be quick because they delay the caller of ``step``.
         """
         with self._lock:
             self._listeners.add(callback)
@@ -353,6 +369,8 @@ class SimSession:
             self._listeners.discard(callback)
 
     def _notify(self) -> None:
+        if self._lock._is_owned():  # type: ignore[attr-defined]  # RLock: held by this thread
+            raise RuntimeError("session listeners must be called outside the session's lock")
         with self._lock:
             listeners = list(self._listeners)
         for callback in listeners:
@@ -448,7 +466,8 @@ class SimSession:
             if len(self._queue) + len(actions) > self._max_queued_actions:
                 raise PacedModeError(
                     f"queue would hold {len(self._queue) + len(actions)} actions; "
-                    f"the limit is {self._max_queued_actions}"
+                    f"the limit is {self._max_queued_actions}",
+                    field="actions",
                 )
             self._queue.extend(actions)
             return len(self._queue)
@@ -542,23 +561,29 @@ class SimSession:
                 next_tick += period
                 if next_tick < time.monotonic():  # fell behind: skip missed ticks, keep phase
                     next_tick += period * math.ceil((time.monotonic() - next_tick) / period)
+                # Decide and act in one lock hold (a stop or close cannot slip in between);
+                # listeners are told after the lock is released.
                 with self._lock:
                     if stop.is_set() or self.closed:
                         break
                     if self.episode_over:
                         if not self._paced.auto_reset:
                             break
-                        self.reset()
-                        continue
-                    action = choose()
-                    if action is None:
-                        continue
-                    self.step(action)
-                    self._paced.actions_executed += 1
-                    limit = self._paced.max_actions
-                    if limit is not None and self._paced.actions_executed >= limit:
-                        break
+                        self._reset_locked(None)
+                        finished = False
+                    else:
+                        action = choose()
+                        if action is None:
+                            continue
+                        self._step_locked(action)
+                        self._paced.actions_executed += 1
+                        limit = self._paced.max_actions
+                        finished = limit is not None and self._paced.actions_executed >= limit
+                self._notify()
+                if finished:
+                    break
         except Exception as exc:  # surfaced through the paced status, never swallowed silently
+            logger.exception("paced mode of session %s failed", self.id)
             with self._lock:
                 self._paced.error = f"{type(exc).__name__}: {exc}"
         finally:
@@ -568,9 +593,7 @@ class SimSession:
     # ---------------------------------------------------------------- internals
 
     def _get_oracle(self) -> Oracle:
-        if self._oracle is None:
-            self._oracle = Oracle.for_map(self.nav_map)
-        return self._oracle
+        return self._core.oracle
 
     @property
     def _core(self) -> Any:
@@ -596,6 +619,7 @@ class SessionRegistry:
     extra_map_dirs: tuple[Path, ...] = ()
     frame_size: tuple[int, int] = (320, 240)
     max_queued_actions: int = 1000
+    oracle_cache_dir: Path | None = None
     _sessions: dict[str, SimSession] = field(default_factory=dict)
     _opening: int = 0
     _closed: OrderedDict[str, str] = field(default_factory=OrderedDict)
@@ -610,7 +634,9 @@ class SessionRegistry:
         seed: int | None = None,
     ) -> SimSession:
         """Open a session (the env is built and reset with ``seed``)."""
-        map_name, map_path, nav_map = resolve_map(map_spec, self.extra_map_dirs)
+        map_name, map_path, nav_map = resolve_map(
+            map_spec, self.extra_map_dirs, self.oracle_cache_dir
+        )
         session_id = uuid.uuid4().hex
         self.close_idle()
         with self._lock:
@@ -632,6 +658,7 @@ class SessionRegistry:
                 publisher=self.publisher,
                 frame_size=self.frame_size,
                 max_queued_actions=self.max_queued_actions,
+                oracle_cache_dir=self.oracle_cache_dir,
             )
         except BaseException:
             with self._lock:

@@ -73,3 +73,8 @@ class SimSettings(BaseServiceSettings):
             "(JSON list of paths). Clients can name no other file."
         ),
     )
+
+    @property
+    def oracle_cache_dir(self) -> Path:
+        """Where oracle lattices are cached on disk: ``<data_dir>/sim/oracle``."""
+        return self.data_dir / "sim" / "oracle"

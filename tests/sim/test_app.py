@@ -16,6 +16,7 @@ from starlette.websockets import WebSocketDisconnect
 from services.core.actions import Action
 from services.sim.app import create_app
 from services.sim.env import BrainNavEnv
+from services.sim.maps import DEFAULT_MAP_PATH, MAPS_DIR, load_map
 from services.sim.settings import SimSettings
 
 with warnings.catch_warnings():
@@ -67,8 +68,12 @@ def test_health_and_maps(client: TestClient) -> None:
     assert health["status"] == "ok"
     assert health["sessions"] == 0
     assert health["lsl_markers"] is False
-    maps = client.get("/maps").json()
-    assert {"name": "default", "default": True} in maps
+    maps = {m["name"]: m for m in client.get("/maps").json()}
+    shipped = sorted(p.stem for p in MAPS_DIR.glob("*.json"))
+    assert sorted(maps) == shipped  # default, open and the six map-study candidates
+    assert [name for name, m in maps.items() if m["default"]] == ["default"]
+    assert maps["default"]["description"] == load_map(DEFAULT_MAP_PATH).description
+    assert maps["candidate_pocket"]["description"].startswith("Map study")
     paths = client.get("/openapi.json").json()["paths"]
     assert "/sessions/{session_id}/step" in paths and "/sessions/{session_id}/paced" in paths
 
@@ -160,11 +165,40 @@ def test_oracle_at_explicit_pose(client: TestClient) -> None:
     x, y, yaw = here["pose"]
     there = client.get(f"/sessions/{sid}/oracle", params={"x": x, "y": y, "yaw": yaw}).json()
     assert there == here
-    outside = client.get(f"/sessions/{sid}/oracle", params={"x": -50, "y": -50, "yaw": 0}).json()
-    assert outside["reachable"] is False and outside["cost_to_go"] is None
+    in_wall = client.get(f"/sessions/{sid}/oracle", params={"x": 0.1, "y": 6, "yaw": 0}).json()
+    assert in_wall["reachable"] is False and in_wall["cost_to_go"] is None
+    assert in_wall["optimal_actions"] == []
     partial = client.get(f"/sessions/{sid}/oracle", params={"x": 1.0})
     assert partial.status_code == 422
-    assert "x, y and yaw" in partial.json()["detail"]
+    assert partial.json() == {
+        "detail": "give all of x, y and yaw, or none for the robot's pose",
+        "field": "y",
+    }
+
+
+@pytest.mark.parametrize(
+    ("params", "field"),
+    [
+        ({"x": 1e308, "y": 6, "yaw": 0}, "x"),  # a 500 (overflow) before
+        ({"x": 2, "y": -1e308, "yaw": 0}, "y"),
+        ({"x": -50, "y": 6, "yaw": 0}, "x"),  # off the floor
+        ({"x": 2, "y": 12.01, "yaw": 0}, "y"),
+        ({"x": 2, "y": 6, "yaw": 1e308}, "yaw"),
+        ({"x": "nan", "y": 6, "yaw": 0}, "x"),
+        ({"x": 2, "y": "inf", "yaw": 0}, "y"),
+        ({"x": 2, "y": 6, "yaw": "-Infinity"}, "yaw"),
+        ({"x": 2, "y": 6, "yaw": "NaN"}, "yaw"),
+    ],
+)
+def test_oracle_query_numbers_must_be_finite_and_on_the_map(
+    client: TestClient, params: dict, field: str
+) -> None:
+    sid = open_session(client)["id"]
+    response = client.get(f"/sessions/{sid}/oracle", params=params)
+    assert response.status_code == 422, response.text
+    body = response.json()
+    fields = [e["field"] for e in body["detail"]] if isinstance(body["detail"], list) else []
+    assert body.get("field") == field or fields == [field], body
 
 
 def test_bad_requests_get_clear_4xx(client: TestClient) -> None:
@@ -303,7 +337,7 @@ def test_websocket_origin_is_checked_before_accept(client: TestClient) -> None:
         ),
     ):
         pass
-    assert refused.value.code == 1008
+    assert refused.value.code == 4403  # before accept: a plain HTTP 403 to real clients
     for origin in ("http://testserver", "http://dashboard.example"):
         with client.websocket_connect(
             f"/sessions/{sid}/stream?fps=30", headers={"origin": origin}

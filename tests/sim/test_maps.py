@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from services.sim.env import BrainNavEnv
 from services.sim.maps import (
     DEFAULT_MAP_PATH,
     MAPS_DIR,
@@ -96,12 +99,19 @@ def test_invalid_maps_are_rejected(tmp_path: Path, mutate, message: str) -> None
         load_map(write(tmp_path, data))
 
 
-def test_unreachable_goal_is_rejected(tmp_path: Path) -> None:
+def test_unreachable_goal_is_rejected_by_the_oracle_not_the_loader(tmp_path: Path) -> None:
     data = base_map()
     data["boxes"] = [{"center": [2.0, 1.5], "size": [0.4, 3.0]}]  # wall across the room
+    path = write(tmp_path, data)
+    load_map(path)  # the schema itself is fine; only reachability fails
     with pytest.raises(MapError, match="cannot be reached"):
-        load_map(write(tmp_path, data))
-    parse_map(data)  # the schema itself is fine; only reachability fails
+        BrainNavEnv(map_path=path)
+
+
+def test_map_module_does_not_import_the_oracle() -> None:
+    code = "import sys, services.sim.maps; print('services.sim.oracle' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout == "False\n"
 
 
 def test_malformed_and_missing_files(tmp_path: Path) -> None:

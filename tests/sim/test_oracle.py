@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
+import services.sim.oracle as oracle_module
 from services.core.actions import Action
 from services.sim.env import BrainNavEnv
 from services.sim.maps import DEFAULT_MAP_PATH, NavMap, load_map, parse_map
@@ -122,18 +127,104 @@ def test_default_map_detour_never_leads_away_from_goal() -> None:
         env.close()
 
 
-def test_disk_cache_round_trip(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path))
+def test_disk_cache_round_trip(tmp_path: Path) -> None:
     nav_map = corridor_map(goal_x=3.1)
-    built = Oracle.for_map(nav_map)
-    files = list((tmp_path / "sim" / "oracle").glob("*.npz"))
-    assert len(files) == 1 and files[0].name.startswith(Oracle.cache_key(nav_map))
-    Oracle._memory.clear()
-    loaded = Oracle.for_map(nav_map)
+    built = Oracle.for_map(nav_map, tmp_path / "oracle")
+    files = list((tmp_path / "oracle").iterdir())
+    assert [f.name for f in files] == [f"{Oracle.cache_key(nav_map)}.npz"]  # no temp file left
+    Oracle.clear_memory()
+    loaded = Oracle.for_map(nav_map, tmp_path / "oracle")
     assert loaded is not built
     np.testing.assert_array_equal(loaded.cost, built.cost)
     # A different map gets a different key.
     assert Oracle.cache_key(corridor_map(goal_x=3.2)) != Oracle.cache_key(nav_map)
+
+
+def test_corrupt_cache_file_is_rebuilt(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    nav_map = corridor_map(goal_x=3.15)
+    path = tmp_path / f"{Oracle.cache_key(nav_map)}.npz"
+    path.write_bytes(b"not an npz")
+    oracle = Oracle.for_map(nav_map, tmp_path)
+    assert oracle.cost_to_go(1.0, 1.0, 0.0) == 6
+    assert "unreadable oracle cache" in caplog.text
+    with np.load(path) as data:  # replaced by the rebuilt lattice
+        np.testing.assert_array_equal(data["cost"], oracle.cost)
+
+
+def test_without_a_cache_dir_nothing_is_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path / "data"))  # ignored: no env reads
+    Oracle.clear_memory()
+    env = gym.make("services.sim:BrainNav-SSSG-v0")
+    try:
+        env.reset(seed=0)
+        env.step(0)
+    finally:
+        env.close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_gym_make_uses_the_cache_dir_it_is_given(tmp_path: Path) -> None:
+    Oracle.clear_memory()
+    env = gym.make("services.sim:BrainNav-VSSG-v0", oracle_cache_dir=tmp_path / "cache")
+    env.close()
+    key = Oracle.cache_key(load_map(DEFAULT_MAP_PATH))
+    assert [p.name for p in (tmp_path / "cache").iterdir()] == [f"{key}.npz"]
+
+
+def test_concurrent_cold_starts_share_one_build(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    builds: list[str] = []
+    real_build = oracle_module.build_cost_to_go
+
+    def counting_build(nav_map: NavMap) -> np.ndarray:
+        builds.append(nav_map.name)
+        time.sleep(0.2)  # keep the build open while the other threads arrive
+        return real_build(nav_map)
+
+    monkeypatch.setattr(oracle_module, "build_cost_to_go", counting_build)
+    maps = [corridor_map(goal_x=3.05), corridor_map(goal_x=3.25)]
+    for m in maps:
+        Oracle._memory.pop(Oracle.cache_key(m), None)
+    barrier = threading.Barrier(8)
+
+    def cold_start(i: int) -> Oracle:
+        barrier.wait()
+        return Oracle.for_map(maps[i % 2], tmp_path if i % 4 == 0 else None)
+
+    with ThreadPoolExecutor(8) as pool:
+        oracles = list(pool.map(cold_start, range(8)))
+    assert sorted(builds) == ["corridor", "corridor"]  # one build per map
+    assert {id(o) for o in oracles[0::2]} == {id(oracles[0])}
+    assert {id(o) for o in oracles[1::2]} == {id(oracles[1])}
+    assert oracles[0] is not oracles[1]
+
+
+def test_lattice_invariants_are_checked(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert oracle_module.lattice_margins() == (40, 31)  # 0.4 m radius, 0.3 m moves, 1 cm cells
+    oracle_module.check_lattice_invariants()
+    monkeypatch.setattr(oracle_module, "FOOTPRINT_RADIUS_M", 0.3)  # margin 30 < span 31
+    with pytest.raises(RuntimeError, match="flat indexing would wrap"):
+        oracle_module.check_lattice_invariants()
+    with pytest.raises(RuntimeError, match="flat indexing would wrap"):
+        oracle_module.build_cost_to_go(corridor_map())  # free cells now reach the border
+    monkeypatch.setattr(oracle_module, "FOOTPRINT_RADIUS_M", 0.4)
+    monkeypatch.setattr(oracle_module, "CELL_M", 0.0075)  # margin 53, span 41: still fine
+    oracle_module.check_lattice_invariants()
+
+
+@pytest.mark.parametrize(
+    ("x", "y", "yaw"),
+    [(1e308, 1.0, 0.0), (-1e308, 1.0, 0.0), (1.0, 1e308, 0.0), (math.nan, 1.0, 0.0)],
+)
+def test_queries_far_off_the_map_are_unreachable_not_errors(x: float, y: float, yaw: float) -> None:
+    oracle = Oracle.for_map(corridor_map())
+    assert oracle.cost_to_go(x, y, yaw) == math.inf
+    assert oracle.optimal_actions(x, y, yaw) == frozenset()
+    assert oracle.policy_action(x, y, yaw) is None
 
 
 def test_noisy_feedback_accuracy_and_seeding() -> None:

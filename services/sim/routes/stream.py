@@ -29,39 +29,38 @@ import contextlib
 import logging
 import math
 import time
-from typing import Annotated, Any
-from urllib.parse import urlsplit
+from typing import Any
 
-from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect, status
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect, status
+from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
+from services.core.web import validation_error_body
+from services.core.websockets import (
+    CLOSE_BAD_REQUEST,
+    CLOSE_NOT_FOUND,
+    CLOSE_ORIGIN_REFUSED,
+    origin_allowed,
+)
 from services.sim.deps import get_registry, get_settings
 from services.sim.errors import SessionClosedError, SessionNotFoundError
 from services.sim.imaging import encode_image
 from services.sim.lsl_markers import lsl_clock
-from services.sim.schemas import FrameEncoding, FrameFormat, SessionPublic
+from services.sim.schemas import (
+    MAX_FPS,
+    FrameEncoding,
+    FrameFormat,
+    SessionPublic,
+    StreamParams,
+)
 from services.sim.sessions import FrameView, SimSession
 from services.sim.settings import SimSettings
-
-MAX_FPS = 30.0
-"""Upper bound of the frame rate, also when frames follow actions."""
 
 router = APIRouter(tags=["stream"])
 logger = logging.getLogger(__name__)
 
-CLOSE_UNKNOWN_SESSION = 4404
 CLOSE_SESSION_CLOSED = 4410
-
-
-def origin_allowed(websocket: WebSocket, settings: SimSettings) -> bool:
-    """Same-host origins, configured origins, and clients that send no Origin (not browsers)."""
-    origin = websocket.headers.get("origin")
-    if origin is None:
-        return True
-    if origin in settings.allowed_origins:
-        return True
-    host = websocket.headers.get("host", "")
-    return bool(host) and urlsplit(origin).netloc.lower() == host.lower()
+"""Close code when the streamed session is (or gets) closed."""
 
 
 def _frame_message(
@@ -158,27 +157,29 @@ async def _wait_for_disconnect(websocket: WebSocket) -> None:
 
 
 @router.websocket("/sessions/{session_id}/stream")
-async def stream_frames(
-    websocket: WebSocket,
-    session_id: str,
-    fps: Annotated[float | None, Query(ge=1.0, le=MAX_FPS)] = None,
-    on_action: Annotated[bool, Query()] = True,
-    view: Annotated[FrameView, Query()] = "camera",
-    image_format: Annotated[FrameFormat, Query(alias="format")] = "jpeg",
-    encoding: Annotated[FrameEncoding, Query()] = "base64",
-) -> None:
-    """Stream frames plus state at ``fps`` until the client leaves or the session closes."""
+async def stream_frames(websocket: WebSocket, session_id: str) -> None:
+    """Stream frames plus state at ``fps`` until the client leaves or the session closes.
+
+    Query parameters: :class:`services.sim.schemas.StreamParams` (``fps``, ``on_action``,
+    ``view``, ``format``, ``encoding``).
+    """
     settings = get_settings(websocket)
-    if not origin_allowed(websocket, settings):
-        await websocket.close(code=status.WS_1008_POLICY_VIOLATION)
+    if not origin_allowed(websocket, settings.allowed_origins):
+        await websocket.close(code=CLOSE_ORIGIN_REFUSED, reason="origin not allowed")
         return
     await websocket.accept()
     try:
+        params = StreamParams.model_validate(dict(websocket.query_params))
+    except ValidationError as exc:
+        body = validation_error_body(exc.errors())
+        fields = ", ".join(dict.fromkeys(e["field"] for e in body["detail"]))
+        await websocket.send_json({"type": "error", "detail": body["message"], "field": fields})
+        await websocket.close(code=CLOSE_BAD_REQUEST, reason=body["message"][:120])
+        return
+    try:
         session = get_registry(websocket).get(session_id)
     except (SessionClosedError, SessionNotFoundError) as exc:
-        code = (
-            CLOSE_SESSION_CLOSED if isinstance(exc, SessionClosedError) else CLOSE_UNKNOWN_SESSION
-        )
+        code = CLOSE_SESSION_CLOSED if isinstance(exc, SessionClosedError) else CLOSE_NOT_FOUND
         await websocket.send_json({"type": "error", "detail": str(exc)})
         await websocket.close(code=code, reason=str(exc)[:120])
         return
@@ -187,11 +188,11 @@ async def stream_frames(
             websocket,
             session,
             settings,
-            fps=fps or settings.frame_rate_fps,
-            on_action=on_action,
-            view=view,
-            image_format=image_format,
-            encoding=encoding,
+            fps=params.fps or settings.frame_rate_fps,
+            on_action=params.on_action,
+            view=params.view,
+            image_format=params.image_format,
+            encoding=params.encoding,
         )
     )
     watcher = asyncio.create_task(_wait_for_disconnect(websocket))

@@ -1,0 +1,106 @@
+"""pybullet without noise: the quiet import, the Husky built from shapes, clients released."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pybullet_data
+import pytest
+
+from services.sim import bullet
+from services.sim.bullet import pybullet
+from services.sim.env import BrainNavEnv
+from services.sim.maps import MapError
+
+
+def _frames(client: int, robot: int) -> np.ndarray:
+    pybullet.resetBasePositionAndOrientation(
+        robot,
+        [0.3, 0.2, 0.0],
+        pybullet.getQuaternionFromEuler([0.0, 0.0, 0.5]),
+        physicsClientId=client,
+    )
+    frames = []
+    for eye in ([-3.0, 0.0, 2.6], [2.0, 2.0, 1.0], [0.0, -3.0, 1.5]):
+        view = pybullet.computeViewMatrix(eye, [0.3, 0.2, 0.2], [0.0, 0.0, 1.0])
+        proj = pybullet.computeProjectionMatrixFOV(60.0, 4.0 / 3.0, 0.1, 40.0)
+        _, _, rgba, _, _ = pybullet.getCameraImage(
+            320, 240, view, proj, renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client
+        )
+        frames.append(np.asarray(rgba, dtype=np.uint8).reshape(240, 320, 4))
+    return np.stack(frames)
+
+
+def test_husky_from_shapes_renders_exactly_like_the_urdf(capfd: pytest.CaptureFixture) -> None:
+    urdf_client = bullet.connect()
+    try:
+        pybullet.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=urdf_client)
+        robot = pybullet.loadURDF(
+            "husky/husky.urdf", useFixedBase=True, physicsClientId=urdf_client
+        )
+        from_urdf = _frames(urdf_client, robot)
+    finally:
+        bullet.disconnect(urdf_client)
+    assert "No inertial data" in capfd.readouterr().out  # the noise the URDF importer makes
+    client = bullet.connect()
+    try:
+        from_shapes = _frames(client, bullet.add_husky(client))
+    finally:
+        bullet.disconnect(client)
+    assert capfd.readouterr() == ("", "")  # building it from shapes says nothing
+    assert (from_shapes[..., :3] != 255).any()  # the robot is in view
+    np.testing.assert_array_equal(from_shapes, from_urdf)
+
+
+def test_importing_and_using_the_env_prints_nothing(tmp_path) -> None:
+    code = (
+        "import gymnasium as gym, services.sim\n"
+        "env = gym.make('services.sim:BrainNav-SSSG-v0', render_mode='rgb_array')\n"
+        "env.reset(seed=0); env.step(0); env.render(); env.close()\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, check=True
+    )
+    assert (out.stdout, out.stderr) == ("", "")
+    assert list(tmp_path.iterdir()) == []  # and writes nothing to the working directory
+
+
+def test_env_construction_leaves_stdout_alone(capfd: pytest.CaptureFixture) -> None:
+    before = os.fstat(1).st_ino
+    env = BrainNavEnv()
+    env.close()
+    os.write(1, b"still here\n")
+    assert os.fstat(1).st_ino == before
+    assert capfd.readouterr().out == "still here\n"
+
+
+def test_clients_are_released_on_every_path(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def live_clients() -> int:
+        return sum(pybullet.isConnected(physicsClientId=c) for c in range(64))
+
+    before = live_clients()
+    env = BrainNavEnv()
+    assert live_clients() == before + 1
+    env.close()
+    env.close()  # idempotent
+    assert live_clients() == before
+
+    def broken_husky(client: int) -> int:
+        raise RuntimeError("mesh missing")
+
+    monkeypatch.setattr(bullet, "add_husky", broken_husky)
+    with pytest.raises(RuntimeError, match="mesh missing"):
+        BrainNavEnv()
+    assert live_clients() == before  # the half-built env's client is gone too
+    unreachable = tmp_path / "walled.json"
+    unreachable.write_text(
+        '{"name": "walled", "bounds": {"x_max": 4, "y_max": 3}, '
+        '"boxes": [{"center": [2, 1.5], "size": [0.4, 3]}], '
+        '"start": {"x": 1, "y": 1.5}, "goal": {"x": 3.2, "y": 1.5}}'
+    )
+    with pytest.raises(MapError, match="cannot be reached"):
+        BrainNavEnv(map_path=unreachable)
+    assert live_clients() == before
