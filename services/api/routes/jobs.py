@@ -55,7 +55,7 @@ def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[st
             err.pop("ctx", None)
             errors.append(err)
         raise RequestValidationError(errors) from None
-    values = parsed.model_dump(mode="json")
+    values = parsed.model_dump(mode="json", exclude_none=True)
     if "ppo" in values:
         values["ppo"] = parsed.ppo.given()  # type: ignore[attr-defined]
     hf_model_id = values.get("hf_model_id") if kind == "guided_ppo" else None

@@ -28,7 +28,6 @@ MAX_TOTAL_STEPS = 2_000_000
 MAX_REPRODUCE_RUNS = 2000
 PPO_DEFAULT_N_STEPS = 128
 PPO_DEFAULT_MINIBATCH_SIZE = 64
-MAP_NAME_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 
 
 def _task(value: object) -> object:
@@ -102,6 +101,12 @@ class GuidedPPOConfig(StrictRequest):
     hf_model_id: int | None = Field(
         None, ge=1, description="A stored pi_HF to guide with (hf_sparse) instead of training one."
     )
+    n_labels: int = Field(
+        1000, ge=1, le=1_000_000, description="Feedback labels pi_HF is trained on (hf_sparse)."
+    )
+    checkpoint_every: int | None = Field(
+        None, ge=1, le=100_000, description="PPO updates between checkpoints (worker default)."
+    )
 
     _lower_task = field_validator("task", mode="before")(_task)
 
@@ -119,7 +124,10 @@ class GuidedPPOConfig(StrictRequest):
 
 
 class ReproduceConfig(StrictRequest):
-    """A reproduction of Fig. 3 (``bgrl reproduce`` options): one run per worker task."""
+    """A reproduction of Fig. 3 (``bgrl reproduce`` options): one run per worker task.
+
+    ``--map`` is not offered: workers run every job on the sim's default map.
+    """
 
     quick: bool = Field(False, description="2 seeds (unless seeds is given).")
     seeds: int | None = Field(None, ge=1, le=100, description="Seeds per configuration.")
@@ -130,10 +138,10 @@ class ReproduceConfig(StrictRequest):
     )
     accuracies: list[float] = Field(default_factory=lambda: [0.55, 0.6, 0.7], min_length=1)
     treatments: list[Treatment] = Field(default_factory=lambda: ["authors"], min_length=1)
-    map: str | None = Field(
-        None, pattern=MAP_NAME_PATTERN, description="Name of a shipped sim map (default map)."
-    )
     ppo: PPOOverrides = Field(default_factory=PPOOverrides)
+    checkpoint_every: int | None = Field(
+        None, ge=1, le=100_000, description="PPO updates between checkpoints of each run."
+    )
 
     @field_validator("tasks", mode="before")
     @classmethod
@@ -168,7 +176,11 @@ class EEGCalibrationConfig(StrictRequest):
 
     recording_id: int = Field(ge=1)
     seed: int = Field(0, ge=0, le=2**31 - 1)
-    max_epochs: int = Field(300, ge=1, le=10_000)
+    max_passes: int | None = Field(
+        None, ge=1, le=10_000, description="Training passes (default: the pipeline's)."
+    )
+    onnx: bool = Field(True, description="Also export the classifier as ONNX.")
+    report: bool = Field(True, description="Also write the calibration report.")
 
 
 CONFIG_MODELS: dict[str, type[StrictRequest]] = {

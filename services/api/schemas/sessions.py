@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from datetime import datetime
-from typing import Literal
+from datetime import UTC, datetime
+from typing import Annotated, Literal
 
-from pydantic import AwareDatetime, Field
+from pydantic import AfterValidator, AwareDatetime, Field
 
 from services.api.schemas.common import PublicModel
 from services.core.schemas import StrictRequest
@@ -13,6 +13,8 @@ from services.core.schemas import StrictRequest
 SessionKind = Literal["calibration", "test", "online", "rl"]
 SessionStatus = Literal["scheduled", "running", "completed", "cancelled", "failed"]
 MAX_DURATION_MINUTES = 24 * 60
+UtcDatetime = Annotated[AwareDatetime, AfterValidator(lambda value: value.astimezone(UTC))]
+"""A timestamp that must carry a timezone; kept in UTC."""
 
 
 class SessionCreate(StrictRequest):
@@ -20,7 +22,7 @@ class SessionCreate(StrictRequest):
 
     subject_id: int = Field(ge=1)
     kind: SessionKind
-    scheduled_at: AwareDatetime = Field(description="Start, with a timezone (ISO 8601).")
+    scheduled_at: UtcDatetime = Field(description="Start, with a timezone (ISO 8601).")
     rig_id: int | None = Field(None, ge=1)
     duration_minutes: int = Field(60, ge=1, le=MAX_DURATION_MINUTES)
     operator_id: int | None = Field(None, ge=1, description="User running it (default: you).")
@@ -34,7 +36,7 @@ class SessionUpdate(StrictRequest):
     """
 
     kind: SessionKind | None = None
-    scheduled_at: AwareDatetime | None = None
+    scheduled_at: UtcDatetime | None = None
     rig_id: int | None = Field(None, ge=1)
     duration_minutes: int | None = Field(None, ge=1, le=MAX_DURATION_MINUTES)
     operator_id: int | None = Field(None, ge=1)

@@ -1,0 +1,195 @@
+"""Login, rate limit, API tokens, the JWT key, the first admin and account management."""
+
+from __future__ import annotations
+
+import logging
+import stat
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from services.api.app import create_app
+from tests.api.conftest import ADMIN_EMAIL, ADMIN_PASSWORD, PASSWORD, Api, login, make_settings
+
+
+def _token_form(email: str, password: str) -> dict[str, str]:
+    return {"username": email, "password": password}
+
+
+def test_login_issues_a_bearer_token(api: Api) -> None:
+    response = api.client.post("/api/v1/auth/token", data=_token_form(ADMIN_EMAIL, ADMIN_PASSWORD))
+    assert response.status_code == 200
+    body = response.json()
+    assert body["token_type"] == "bearer"
+    me = api.client.get(
+        "/api/v1/users/me", headers={"Authorization": f"Bearer {body['access_token']}"}
+    )
+    assert me.json()["email"] == ADMIN_EMAIL
+    assert me.json()["role"] == "admin"
+
+
+def test_wrong_password_is_401_naming_the_field(api: Api) -> None:
+    response = api.client.post(
+        "/api/v1/auth/token", data=_token_form(ADMIN_EMAIL, "wrong-password")
+    )
+    assert response.status_code == 401
+    assert response.json() == {
+        "detail": "wrong e-mail or password, or account deactivated",
+        "field": "password",
+    }
+    missing = api.client.post("/api/v1/auth/token", data={"username": ADMIN_EMAIL})
+    assert missing.status_code == 422
+    assert missing.json()["detail"][0]["field"] == "password"
+
+
+def test_failed_logins_are_rate_limited(tmp_path: Path) -> None:
+    settings = make_settings(
+        tmp_path / "data", f"sqlite:///{tmp_path / 'db.sqlite'}", login_max_failures=3
+    )
+    with TestClient(create_app(settings)) as client:
+        for _ in range(3):
+            response = client.post("/api/v1/auth/token", data=_token_form(ADMIN_EMAIL, "nope"))
+            assert response.status_code == 401
+        # even the right password waits until the window has passed
+        blocked = client.post("/api/v1/auth/token", data=_token_form(ADMIN_EMAIL, ADMIN_PASSWORD))
+        assert blocked.status_code == 429
+        assert blocked.json()["field"] == "username"
+        assert 1 <= int(blocked.headers["retry-after"]) <= 300
+        # another account from the same address is not affected
+        other = client.post("/api/v1/auth/token", data=_token_form("x@lab.test", "nope"))
+        assert other.status_code == 401
+
+
+def test_api_token_create_use_revoke(api: Api) -> None:
+    created = api.client.post(
+        "/api/v1/tokens", json={"name": "analysis script"}, headers=api.as_("staff")
+    )
+    assert created.status_code == 201
+    body = created.json()
+    token = body["token"]
+    assert token.startswith("bgrl_")
+    assert body["token_prefix"] == token[:12]
+    assert body["expires_at"] is not None
+    script = {"Authorization": f"Bearer {token}"}
+    assert api.client.get("/api/v1/users/me", headers=script).json()["role"] == "staff"
+    subject = api.client.post("/api/v1/subjects", json={"code": "S01"}, headers=script)
+    assert subject.status_code == 201
+    listed = api.client.get("/api/v1/tokens", headers=api.as_("staff")).json()
+    assert [t["name"] for t in listed["items"]] == ["analysis script"]
+    assert "token" not in listed["items"][0]
+    assert listed["items"][0]["last_used_at"] is not None
+    # another user cannot see or revoke it
+    other = api.client.delete(f"/api/v1/tokens/{body['id']}", headers=api.as_("viewer"))
+    assert other.status_code == 404
+    revoked = api.client.delete(f"/api/v1/tokens/{body['id']}", headers=api.as_("staff"))
+    assert revoked.status_code == 204
+    refused = api.client.get("/api/v1/users/me", headers=script)
+    assert refused.status_code == 401
+    assert refused.json() == {"detail": "unknown or revoked API token", "field": "token"}
+
+
+def test_api_token_expiry(api: Api) -> None:
+    from datetime import timedelta
+
+    from services.core.db.base import utcnow
+    from services.core.db.models import ApiToken
+
+    created = api.client.post(
+        "/api/v1/tokens", json={"name": "short", "expires_in_days": 1}, headers=api.as_("viewer")
+    ).json()
+    with api.client.app.state.sessions() as db:
+        db.get(ApiToken, created["id"]).expires_at = utcnow() - timedelta(seconds=1)
+        db.commit()
+    response = api.client.get(
+        "/api/v1/users/me", headers={"Authorization": f"Bearer {created['token']}"}
+    )
+    assert response.status_code == 401
+    assert response.json()["detail"] == "API token expired"
+    bad = api.client.post(
+        "/api/v1/tokens", json={"name": "x", "expires_in_days": 0}, headers=api.as_("viewer")
+    )
+    assert bad.status_code == 422
+    assert bad.json()["detail"][0]["field"] == "expires_in_days"
+
+
+def test_jwt_key_is_generated_once_with_mode_600(tmp_path: Path) -> None:
+    settings = make_settings(tmp_path / "data", f"sqlite:///{tmp_path / 'db.sqlite'}")
+    with TestClient(create_app(settings)) as client:
+        headers = login(client, ADMIN_EMAIL, ADMIN_PASSWORD)
+    key_file = tmp_path / "data" / "api" / "jwt.key"
+    assert stat.S_IMODE(key_file.stat().st_mode) == 0o600
+    key = key_file.read_text()
+    # a restart keeps the key, so tokens issued before it stay valid
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/api/v1/users/me", headers=headers).status_code == 200
+    assert key_file.read_text() == key
+
+
+def test_first_start_without_settings_creates_an_admin_and_logs_its_password_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    settings = make_settings(
+        tmp_path / "data",
+        f"sqlite:///{tmp_path / 'db.sqlite'}",
+        admin_email=None,
+        admin_password=None,
+    )
+    with (
+        caplog.at_level(logging.WARNING, logger="services.api.accounts"),
+        TestClient(create_app(settings)),
+    ):
+        pass
+    lines = [r.getMessage() for r in caplog.records if "first start" in r.getMessage()]
+    assert len(lines) == 1
+    password = lines[0].split(" with password ")[1].split(" ")[0]
+    with TestClient(create_app(settings)) as client:  # second start: nothing new
+        headers = login(client, "admin@localhost", password)
+        assert client.get("/api/v1/users/me", headers=headers).json()["role"] == "admin"
+        users = client.get("/api/v1/users", headers=headers).json()
+        assert users["total"] == 1
+    assert len([r for r in caplog.records if "first start" in r.getMessage()]) == 1
+
+
+def test_admin_manages_users_and_the_last_admin_stays(api: Api) -> None:
+    admin = api.as_("admin")
+    taken = api.client.post(
+        "/api/v1/users", json={"email": "STAFF@lab.test", "password": PASSWORD}, headers=admin
+    )
+    assert taken.status_code == 409
+    assert taken.json() == {"detail": "a user with e-mail staff@lab.test exists", "field": "email"}
+    short = api.client.post(
+        "/api/v1/users", json={"email": "new@lab.test", "password": "short"}, headers=admin
+    )
+    assert short.status_code == 422
+    assert short.json()["detail"][0]["field"] == "password"
+    last = api.client.patch(
+        f"/api/v1/users/{api.user_ids['admin']}", json={"role": "staff"}, headers=admin
+    )
+    assert last.status_code == 409
+    assert last.json() == {"detail": "this is the last active admin", "field": "role"}
+    promoted = api.client.patch(
+        f"/api/v1/users/{api.user_ids['staff']}", json={"role": "admin"}, headers=admin
+    )
+    assert promoted.json()["role"] == "admin"
+    entries = api.client.get("/api/v1/audit?action=user.update", headers=admin).json()["items"]
+    assert entries[0]["target_id"] == str(api.user_ids["staff"])
+    assert entries[0]["detail"] == {"role": "admin"}
+    assert entries[0]["actor_email"] == ADMIN_EMAIL
+
+
+def test_change_own_password(api: Api) -> None:
+    wrong = api.client.post(
+        "/api/v1/users/me/password",
+        json={"current_password": "not-it", "new_password": "another-long-password"},
+        headers=api.as_("viewer"),
+    )
+    assert wrong.status_code == 401
+    assert wrong.json()["field"] == "current_password"
+    changed = api.client.post(
+        "/api/v1/users/me/password",
+        json={"current_password": PASSWORD, "new_password": "another-long-password"},
+        headers=api.as_("viewer"),
+    )
+    assert changed.status_code == 204
+    login(api.client, "viewer@lab.test", "another-long-password")
