@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR, Action
 
@@ -18,9 +18,17 @@ MARKER_STREAM_TYPE = "Markers"
 
 
 class ActionMarker(BaseModel):
-    """One executed action, time-stamped on the LSL clock (seconds)."""
+    """One executed action, time-stamped on the LSL clock (seconds).
 
-    session_id: str = Field(description="Sim session the action belongs to.")
+    Unknown fields and non-finite numbers are refused: a marker is also a request body
+    (``POST /live/markers``) and is broadcast as JSON, which cannot carry NaN.
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    session_id: str = Field(
+        min_length=1, max_length=200, description="Sim session the action belongs to."
+    )
     step: int = Field(ge=0, description="Step index within the session (0-based).")
     episode: int = Field(ge=0, description="Episode index within the session (0-based).")
     action: Action
@@ -42,8 +50,17 @@ class ActionMarker(BaseModel):
 
     @classmethod
     def from_lsl(cls, text: str) -> ActionMarker:
-        """Parse a marker string written by :meth:`to_lsl`; raises ``ValueError`` if malformed."""
+        """Parse a marker string written by :meth:`to_lsl`.
+
+        Raises ``ValueError`` with a one-line reason (naming the field) if malformed.
+        """
         try:
             return cls.model_validate(json.loads(text))
         except (json.JSONDecodeError, TypeError) as exc:
-            raise ValueError(f"not an action marker: {text[:80]!r}") from exc
+            raise ValueError(f"not an action marker: {str(text)[:80]!r}") from exc
+        except ValidationError as exc:
+            problems = "; ".join(
+                f"{'.'.join(str(p) for p in err['loc']) or 'marker'}: {err['msg']}"
+                for err in exc.errors()
+            )
+            raise ValueError(f"invalid action marker: {problems}") from None

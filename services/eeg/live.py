@@ -13,7 +13,8 @@ the decoding side's :class:`~services.eeg.preprocessing.OnlinePreprocessor`. It 
   or no data for ``stale_after_s`` (checked by :meth:`LiveIngest.check_stale`);
 * **bad samples**: NaN or infinite values in a chunk.
 
-Each problem is recorded as a :class:`StreamIssue` and as a bad interval of the clock; the
+Each problem is recorded as a :class:`StreamIssue` (the last :data:`MAX_ISSUES` are kept,
+older ones are counted in ``issues_dropped``) and as a bad interval of the clock; the
 preprocessing restarts in a new segment (the previous segments stay available for late
 epoch requests), so no filter state crosses a break, and the ``settle_s`` after every
 (re)start is bad too (the causal band-pass needs time to settle). :meth:`LiveIngest.epoch_for`
@@ -44,13 +45,23 @@ from services.eeg.virtual_subject import STIM_CHANNEL
 
 MAX_SEGMENTS = 3
 """Preprocessing segments kept (the current one and the two before the last breaks)."""
-IssueKind = Literal["dropped_samples", "gap", "clock_jump", "disconnect", "bad_samples"]
+MAX_ISSUES = 100
+"""Stream issues kept; older ones are dropped and counted (``LiveIngest.issues_dropped``)."""
+MAX_BAD_INTERVALS = 1000
+"""Bad intervals of the clock kept (far more than the buffer can hold epochs for)."""
+IssueKind = Literal[
+    "dropped_samples", "gap", "clock_jump", "disconnect", "bad_samples", "bad_marker"
+]
 EpochStatus = Literal["ok", "pending", "rejected"]
 
 
 @dataclass(frozen=True)
 class StreamIssue:
-    """A detected problem in the incoming stream (times on the stream clock, s)."""
+    """A detected problem in the incoming stream (times on the stream clock, s).
+
+    ``bad_marker`` (a marker that could not be parsed) does not make data bad; every other
+    kind does.
+    """
 
     kind: IssueKind
     start: float
@@ -168,8 +179,10 @@ class LiveIngest:
         self.stale_after_s = stale_after_s
         self._clock = clock
         self._lock = threading.Lock()
-        self.issues: list[StreamIssue] = []
-        self._bad: list[tuple[float, float, str]] = []
+        self._issues: deque[StreamIssue] = deque(maxlen=MAX_ISSUES)
+        self.issues_dropped = 0
+        self._open_disconnect: StreamIssue | None = None
+        self._bad: deque[tuple[float, float, str]] = deque(maxlen=MAX_BAD_INTERVALS)
         self._triggers: deque[Trigger] = deque(maxlen=10000)
         self._last_ts: float | None = None
         self._last_arrival: float | None = None
@@ -306,14 +319,29 @@ class LiveIngest:
                 self._triggers.append(Trigger(float(t[i]), int(codes[i])))
             self._last_status = int(codes[-1])
 
+    @property
+    def issues(self) -> list[StreamIssue]:
+        """The last :data:`MAX_ISSUES` detected problems, oldest first."""
+        with self._lock:
+            return list(self._issues)
+
+    def _add_issue(self, issue: StreamIssue) -> None:
+        if len(self._issues) == self._issues.maxlen:
+            self.issues_dropped += 1
+        self._issues.append(issue)
+
     def _close_disconnect(self, resumed_at: float) -> None:
         """Close the open disconnect issue at ``resumed_at`` and mark the outage bad."""
-        for i in range(len(self.issues) - 1, -1, -1):
-            issue = self.issues[i]
-            if issue.kind == "disconnect" and math.isinf(issue.end):
-                self.issues[i] = StreamIssue("disconnect", issue.start, resumed_at, issue.detail)
-                self._bad.append((issue.start, resumed_at, f"disconnect: {issue.detail}"))
+        issue = self._open_disconnect
+        if issue is None:
+            return
+        self._open_disconnect = None
+        closed = StreamIssue("disconnect", issue.start, resumed_at, issue.detail)
+        for i in range(len(self._issues) - 1, -1, -1):
+            if self._issues[i] is issue:  # still kept (not dropped)
+                self._issues[i] = closed
                 break
+        self._bad.append((issue.start, resumed_at, f"disconnect: {issue.detail}"))
 
     def _restart(self, first_ts: float, bad_from: float | None) -> None:
         """Start a new preprocessing segment; data from ``bad_from`` until settled are bad."""
@@ -325,17 +353,21 @@ class LiveIngest:
         self._bad.append((start, first_ts + self.settle_s, "filter settling after (re)start"))
 
     def _issue(self, kind: IssueKind, start: float, end: float, detail: str) -> None:
-        self.issues.append(StreamIssue(kind, start, end, detail))
+        self._add_issue(StreamIssue(kind, start, end, detail))
         self._bad.append((start, end, f"{kind.replace('_', ' ')}: {detail}"))
-        if len(self._bad) > 1000:
-            self._bad = self._bad[-1000:]
+
+    def report_bad_marker(self, timestamp: float, detail: str) -> None:
+        """Record a marker that could not be used (the EEG data stay good)."""
+        with self._lock:
+            self._add_issue(StreamIssue("bad_marker", timestamp, timestamp, detail))
 
     def mark_disconnected(self, detail: str = "stream disconnected") -> None:
         """Record that the source went away (LSL stream lost, websocket closed)."""
         with self._lock:
             if self._disconnected_at is None and self._last_ts is not None:
                 self._disconnected_at = self._last_ts
-                self.issues.append(StreamIssue("disconnect", self._last_ts, math.inf, detail))
+                self._open_disconnect = StreamIssue("disconnect", self._last_ts, math.inf, detail)
+                self._add_issue(self._open_disconnect)
 
     def check_stale(self) -> bool:
         """Mark a disconnect when no data arrived for ``stale_after_s``; True if disconnected."""
@@ -408,14 +440,24 @@ class LiveIngest:
         return EpochResult(onset, "ok", epoch=epoch)
 
     def wait_epoch(
-        self, onset: float, *, timeout_s: float = 2.0, poll_s: float = 0.002
+        self,
+        onset: float,
+        *,
+        timeout_s: float = 2.0,
+        poll_s: float = 0.002,
+        stop: threading.Event | None = None,
     ) -> EpochResult:
-        """Poll :meth:`epoch_for` until it is not pending or ``timeout_s`` passes."""
+        """Poll :meth:`epoch_for` until it is not pending or ``timeout_s`` passes.
+
+        ``stop`` (optional) ends the wait early with a rejection (the source is closing).
+        """
         deadline = time.monotonic() + timeout_s
         while True:
             result = self.epoch_for(onset)
             if result.status != "pending":
                 return result
+            if stop is not None and stop.is_set():
+                return EpochResult(onset, "rejected", reason="the live source was closed")
             if time.monotonic() >= deadline:
                 self.check_stale()
                 return EpochResult(

@@ -7,15 +7,23 @@
   timestamps (clock-synchronised, not de-jittered, so gaps stay visible), goes through
   the integrity checks.
 * :class:`MarkerInlet` reads :class:`~services.core.markers.ActionMarker` objects from the
-  sim's marker stream; marker timestamps and EEG timestamps are both on the LSL clock.
+  sim's marker stream, one at a time (a malformed marker is returned as a
+  :class:`RejectedMarker` with the reason, the rest of its chunk is kept); marker
+  timestamps and EEG timestamps are both on the LSL clock.
+
+Both release their LSL inlet on every path: a constructor that fails closes what it opened.
 
 Set ``LSLAPICFG`` to ``services/core/lsl_loopback.cfg`` to keep streams on this machine.
 """
 
 from __future__ import annotations
 
+import logging
+import threading
 import time
 from collections.abc import Sequence
+from contextlib import suppress
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import mne
@@ -35,9 +43,13 @@ __all__ = [
     "EEG_STREAM_NAME",
     "LslEegIngest",
     "MarkerInlet",
+    "PulledMarkers",
+    "RejectedMarker",
     "lsl_clock",
     "replay",
 ]
+
+logger = logging.getLogger(__name__)
 
 
 def lsl_clock() -> float:
@@ -101,6 +113,11 @@ class LslEegIngest:
     ------
     RuntimeError
         If no stream named ``name`` appears within ``timeout``.
+    ValueError
+        If the stream lacks channels the ingest needs (the inlet is closed again).
+
+    A chunk the ingest cannot take stops the ingest: :attr:`error` names the problem (it is
+    logged once), and so does a stream whose acquisition stopped by itself.
     """
 
     def __init__(
@@ -113,6 +130,9 @@ class LslEegIngest:
         bufsize: float = 5.0,
         **ingest_kwargs,
     ) -> None:
+        self.name = name
+        self._failure: str | None = None
+        self._closed = threading.Event()
         self.stream = StreamLSL(bufsize, name=name)
         try:
             self.stream.connect(
@@ -120,32 +140,74 @@ class LslEegIngest:
             )
         except RuntimeError as exc:
             raise RuntimeError(f"no LSL stream named {name!r} within {timeout:g} s") from exc
-        self.ingest = LiveIngest(
-            self.stream.ch_names,
-            self.stream.info["sfreq"],
-            eeg_ch_names=eeg_ch_names,
-            params=params,
-            **ingest_kwargs,
-        )
-        self.stream.add_callback(self._on_chunk)
+        try:
+            self.ingest = LiveIngest(
+                self.stream.ch_names,
+                self.stream.info["sfreq"],
+                eeg_ch_names=eeg_ch_names,
+                params=params,
+                **ingest_kwargs,
+            )
+            self.stream.add_callback(self._on_chunk)
+        except BaseException:
+            self._disconnect()
+            raise
 
     def _on_chunk(
         self, data: np.ndarray, timestamps: np.ndarray, info
     ) -> tuple[np.ndarray, np.ndarray]:
-        self.ingest.push_chunk(data, timestamps)
+        if self._failure is None:
+            try:
+                self.ingest.push_chunk(data, timestamps)
+            except Exception as exc:
+                self._failure = f"EEG stream {self.name!r}: {type(exc).__name__}: {exc}"
+                logger.exception("LSL ingest of %r stopped", self.name)
+                self.ingest.mark_disconnected(self._failure)
         return data, timestamps
+
+    @property
+    def error(self) -> str | None:
+        """Why the ingest stopped receiving data, or None while it works (or was closed)."""
+        if self._failure is not None:
+            return self._failure
+        if not self._closed.is_set() and not self.stream.connected:
+            return f"EEG stream {self.name!r}: LSL acquisition stopped (see the log)"
+        return None
+
+    def _disconnect(self) -> None:
+        if self.stream.connected:
+            self.stream.disconnect()
 
     def close(self) -> None:
         """Disconnect from the stream and report the disconnect to the ingest."""
-        if self.stream.connected:
-            self.stream.disconnect()
-        self.ingest.mark_disconnected("LSL inlet closed")
+        self._closed.set()
+        try:
+            self._disconnect()
+        finally:
+            self.ingest.mark_disconnected("LSL inlet closed")
 
     def __enter__(self) -> LslEegIngest:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@dataclass(frozen=True)
+class RejectedMarker:
+    """A marker sample that is not a valid :class:`ActionMarker`."""
+
+    timestamp: float
+    """LSL time the sample was sent."""
+    reason: str
+
+
+@dataclass
+class PulledMarkers:
+    """What one :meth:`MarkerInlet.pull` received: valid markers and rejected samples."""
+
+    markers: list[ActionMarker] = field(default_factory=list)
+    rejected: list[RejectedMarker] = field(default_factory=list)
 
 
 class MarkerInlet:
@@ -172,12 +234,28 @@ class MarkerInlet:
         if not infos:
             raise RuntimeError(f"no LSL marker stream named {name!r} within {timeout:g} s")
         self._inlet = StreamInlet(infos[0], processing_flags=["clocksync"])
-        self._inlet.open_stream(timeout=timeout)
+        try:
+            self._inlet.open_stream(timeout=timeout)
+        except BaseException:
+            self.close()
+            raise
 
-    def pull(self, timeout: float = 0.0) -> list[ActionMarker]:
-        """Markers received since the last call (malformed ones raise ``ValueError``)."""
-        samples, _ = self._inlet.pull_chunk(timeout=timeout)
-        return [ActionMarker.from_lsl(sample[0]) for sample in samples]
+    def pull(self, timeout: float = 0.0) -> PulledMarkers:
+        """Markers received since the last call, each parsed on its own.
+
+        A malformed sample is returned in ``rejected`` with the reason; it does not affect
+        the other markers of the chunk.
+        """
+        samples, timestamps = self._inlet.pull_chunk(timeout=timeout)
+        pulled = PulledMarkers()
+        for sample, timestamp in zip(samples, timestamps, strict=True):
+            try:
+                pulled.markers.append(ActionMarker.from_lsl(sample[0]))
+            except (ValueError, IndexError) as exc:
+                pulled.rejected.append(RejectedMarker(float(timestamp), str(exc)))
+        return pulled
 
     def close(self) -> None:
-        self._inlet.close_stream()
+        """Close the inlet (safe to call more than once)."""
+        with suppress(Exception):  # already closed or lost: nothing left to release
+            self._inlet.close_stream()

@@ -25,7 +25,7 @@ class EEGSettings(BaseServiceSettings):
         validation_alias=AliasChoices("BGRL_EEG_DATA_DIR", "BGRL_DATA_DIR", "data_dir"),
         description="Folder below which eeg/ holds recordings, classifiers and jobs.",
     )
-    max_training_epochs: int = Field(
+    max_training_passes: int = Field(
         300, ge=1, le=10000, description="Upper bound on training passes a job may ask for."
     )
     epoch_wait_s: float = Field(

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from services.eeg.live import LiveIngest
+from services.eeg.live import MAX_ISSUES, LiveIngest
 from services.eeg.preprocessing import epochs_from_raw
 from services.eeg.virtual_subject import STIM_CHANNEL, simulate_recording
 
@@ -111,6 +111,30 @@ def test_nan_samples_are_rejected_not_classified():
     result = ingest.epoch_for(1.5)
     assert result.status == "rejected" and "bad samples" in result.reason
     assert ingest.epoch_for(3.5).ok
+
+
+def test_issues_are_bounded_and_an_outage_is_bad_even_after_its_issue_was_dropped():
+    ingest, clock = _ingest()
+    x = _noise(32)
+    t = 0.0
+    for _ in range(MAX_ISSUES + 20):  # 10 samples lost before every chunk after the first
+        ingest.push_chunk(x, first_timestamp=t)
+        clock.now += 0.1
+        t += (len(x) + 10) / SFREQ
+    kept = ingest.issues
+    assert len(kept) == MAX_ISSUES and ingest.issues_dropped == 19
+    assert {issue.kind for issue in kept} == {"dropped_samples"}
+    assert kept[0].start == pytest.approx((19 * 42 + 31) / SFREQ)  # the 20th drop is the oldest
+    _feed(ingest, clock, t, 3.0)
+    ingest.mark_disconnected("cable")
+    for _ in range(MAX_ISSUES):  # push the open disconnect out of the kept issues
+        ingest.report_bad_marker(t, "not a marker")
+    assert "disconnect" not in {issue.kind for issue in ingest.issues}
+    clock.now += 5.0
+    _feed(ingest, clock, t + 8.0, 3.0)
+    outage = ingest.epoch_for(t + 4.0)
+    assert outage.status == "rejected" and "disconnect: cable" in outage.reason
+    assert ingest.epoch_for(t + 9.5).ok  # bad markers do not make data bad
 
 
 def test_status_triggers_and_bad_input():
