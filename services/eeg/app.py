@@ -48,6 +48,7 @@ def create_app(settings: EEGSettings | None = None) -> FastAPI:
         max_body_size=settings.max_upload_bytes,
         lifespan=lifespan,
         routers=[recordings.router, jobs.router, classifiers.router, live.router],
+        service_token=settings.service_token,
     )
     app.state.settings = settings
     return app

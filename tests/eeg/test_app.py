@@ -363,3 +363,12 @@ def test_jobs_cut_off_by_a_restart_are_marked_failed(tmp_path):
     )
     assert (migrated["status"], migrated["max_passes"]) == ("failed", 7)
     assert not staging.exists()
+
+
+def test_service_token_guards_every_route_but_health(tmp_path):
+    settings = EEGSettings(data_dir=tmp_path, service_token="s" * 16)
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/health").json() == {"status": "ok", "service": "eeg"}
+        refused = client.get("/recordings")
+        assert refused.status_code == 401 and refused.json()["field"] == "x-service-token"
+        assert client.get("/recordings", headers={"x-service-token": "s" * 16}).json() == []
