@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import platform
 import time
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -28,15 +29,14 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from services.learner.experiments import SPL_TARGET, make_spec, ppo_config_for
 from services.learner.feedback import (
     FeedbackConfig,
     FeedbackLearner,
-    OracleFeedbackSource,
-    collect_feedback,
 )
 from services.learner.networks import ObsNormalizer
 from services.learner.ppo import Callback, PPOConfig, train
+from services.learner.runs import SPL_TARGET, learn_hf_policy
+from services.learner.specs import RunSpec
 
 ENV_ID = "services.sim:BrainNav-SSSG-v0"
 TARGET_TASK = "vssg"
@@ -53,28 +53,27 @@ def _ppo_throughput_sb3(steps: int) -> tuple[float, float]:
     from stable_baselines3 import PPO
 
     start, cpu_start = time.perf_counter(), time.process_time()  # env construction included
-    env = gym.make(ENV_ID, reward_mode="sparse")
-    model = PPO(
-        "MlpPolicy",
-        env,
-        learning_rate=3e-4,
-        n_steps=128,
-        batch_size=64,
-        n_epochs=64,
-        gamma=0.99,
-        gae_lambda=0.95,
-        clip_range=0.2,
-        ent_coef=0.02,
-        vf_coef=0.5,
-        max_grad_norm=25.0,
-        policy_kwargs={"net_arch": {"pi": [64, 64], "vf": [64, 64]}},
-        seed=0,
-        device="cpu",
-        verbose=0,
-    )
-    model.learn(total_timesteps=steps)
-    elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
-    env.close()
+    with closing(gym.make(ENV_ID, reward_mode="sparse")) as env:
+        model = PPO(
+            "MlpPolicy",
+            env,
+            learning_rate=3e-4,
+            n_steps=128,
+            batch_size=64,
+            n_epochs=64,
+            gamma=0.99,
+            gae_lambda=0.95,
+            clip_range=0.2,
+            ent_coef=0.02,
+            vf_coef=0.5,
+            max_grad_norm=25.0,
+            policy_kwargs={"net_arch": {"pi": [64, 64], "vf": [64, 64]}},
+            seed=0,
+            device="cpu",
+            verbose=0,
+        )
+        model.learn(total_timesteps=steps)
+        elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
     return steps / elapsed, steps / cpu
 
 
@@ -104,22 +103,19 @@ class _StopAtTarget(Callback):
 
 
 def _time_to_target(method: str, seed: int, total_steps: int) -> dict[str, Any]:
-    spec = make_spec(
+    spec = RunSpec(
         TARGET_TASK,
         method,
         seed,
         accuracy=0.7 if method == "hf_sparse" else None,
         ppo_overrides={"total_steps": total_steps},
     )
-    config = ppo_config_for(spec)
+    config = spec.ppo_config()
     start = time.perf_counter()
     hf_policy = None
     if method == "hf_sparse":
-        env = gym.make(config.env_id, **config.env_kwargs)
-        hf_policy = collect_feedback(
-            env, OracleFeedbackSource(0.7, seed=seed + 7919), 1000, seed=seed
-        ).policy
-        env.close()
+        with closing(gym.make(config.env_id, **config.env_kwargs)) as env:
+            hf_policy = learn_hf_policy(env, 0.7, seed, spec.n_labels).policy
     stopper = _StopAtTarget()
     result = train(config, stopper, hf_policy=hf_policy)
     return {

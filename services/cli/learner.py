@@ -5,10 +5,13 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from tqdm import tqdm
+
+if TYPE_CHECKING:
+    from services.learner.runs import RunFailure, RunRecord
 
 
 def _split(value: str) -> list[str]:
@@ -18,9 +21,9 @@ def _split(value: str) -> list[str]:
 def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
     """``["n_epochs=10", "reward_scale=1"]`` -> typed PPOConfig overrides (checked)."""
     from services.learner.ppo import PPOConfig
+    from services.learner.specs import RUN_FIXED_PPO_FIELDS
 
     fields = {f.name for f in dataclasses.fields(PPOConfig)}
-    fixed = {"env_id", "env_kwargs", "seed", "eval_seeds", "hf_treatment"}
     defaults = PPOConfig()
     overrides: dict[str, Any] = {}
     for item in items:
@@ -28,10 +31,11 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
         key = key.strip()
         if not sep or not raw.strip():
             raise ValueError(f"--ppo expects KEY=VALUE, got {item!r}")
-        if key in fixed:
+        if key in RUN_FIXED_PPO_FIELDS:
             raise ValueError(f"--ppo {key} is set per run by the experiment and cannot be changed")
         if key not in fields:
-            raise ValueError(f"--ppo: unknown PPO setting {key!r}; known: {sorted(fields - fixed)}")
+            known = sorted(fields - RUN_FIXED_PPO_FIELDS)
+            raise ValueError(f"--ppo: unknown PPO setting {key!r}; known: {known}")
         default = getattr(defaults, key)
         try:
             if isinstance(default, bool):
@@ -82,9 +86,15 @@ def reproduce(
         ),
     ] = None,
 ) -> None:
-    """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG."""
-    from services.learner.experiments import FULL_SEEDS, QUICK_SEEDS, build_specs
-    from services.learner.experiments import reproduce as run_reproduction
+    """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG.
+
+    Exits with 1 naming the failed runs if any run fails (the others finish and are kept in
+    results.json; the failed ones, with their tracebacks, under "failed"; a rerun retries
+    them), with 2 on bad input.
+    """
+    from services.learner.pool import reproduce as run_reproduction
+    from services.learner.pool import validate_maps
+    from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, build_specs
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
     try:
@@ -100,26 +110,47 @@ def reproduce(
             ppo_overrides=overrides,
         )
     except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
+        raise typer.BadParameter(str(exc)) from None
+    try:
+        validate_maps(specs)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--map") from None
     with tqdm(total=len(specs), desc="reproduce", unit="run") as bar:
 
-        def done(record: dict) -> None:
-            bar.set_postfix_str(
-                f"{record['task']} {record['method']} C={record['accuracy']} "
-                f"seed={record['seed']} SPL={record['final_spl']:.2f}"
-            )
+        def done(record: RunRecord) -> None:
+            bar.set_postfix_str(f"{record.run_spec.label} SPL={record.final_spl:.2f}")
             bar.update(1)
 
-        run_reproduction(
-            out,
-            specs,
-            workers=workers,
-            config_note={"cli": {"quick": quick, "seeds": n_seeds, "overrides": overrides}},
-            on_done=done,
-            on_resume=bar.update,
-        )
+        def failed(failure: RunFailure) -> None:
+            bar.write(f"run failed: {failure}")
+            bar.update(1)
+
+        try:
+            results = run_reproduction(
+                out,
+                specs,
+                workers=workers,
+                config_note={"cli": {"quick": quick, "seeds": n_seeds, "overrides": overrides}},
+                on_done=done,
+                on_failure=failed,
+                on_resume=bar.update,
+            )
+        except ValueError as exc:  # e.g. the folder holds runs with other settings
+            raise typer.BadParameter(str(exc), param_hint="--out") from None
     typer.echo((out / "summary.md").read_text())
     typer.echo(f"wrote {out / 'results.json'}, results.csv, summary.md and fig3_*.png")
+    _exit_on_failures(results.failed, out / "results.json")
+
+
+def _exit_on_failures(failures: list[RunFailure], where: Path) -> None:
+    """Name every failed run on stderr and exit 1 (nothing to do if none failed)."""
+    if not failures:
+        return
+    typer.echo(f"{len(failures)} run(s) failed (tracebacks under 'failed' in {where}):", err=True)
+    for failure in failures:
+        typer.echo(f"  {failure}", err=True)
+    typer.echo("run the same command again to retry them", err=True)
+    raise typer.Exit(1)
 
 
 def hf_sweep(
@@ -132,15 +163,19 @@ def hf_sweep(
     ] = "0.55,0.6,0.7",
 ) -> None:
     """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs feedback accuracy C."""
-    from services.learner.experiments import hf_policy_sweep
+    from services.learner.pool import hf_policy_sweep
 
-    rows = hf_policy_sweep(
-        out,
-        tasks=_split(tasks),
-        accuracies=[float(c) for c in _split(accuracies)],
-        seeds=seeds,
-        workers=workers,
-    )
+    try:
+        rows, failures = hf_policy_sweep(
+            out,
+            tasks=_split(tasks),
+            accuracies=[float(c) for c in _split(accuracies)],
+            seeds=seeds,
+            workers=workers,
+            on_failure=lambda failure: typer.echo(f"run failed: {failure}", err=True),
+        )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
     groups: dict[tuple[str, float], list[dict]] = {}
     for row in rows:
         groups.setdefault((row["task"], row["accuracy"]), []).append(row)
@@ -151,6 +186,7 @@ def hf_sweep(
             f"{task} C={accuracy:g} n={len(members)} greedy SPL "
             f"{sum(greedy) / len(greedy):.2f}, sampled success {sum(sampled) / len(sampled):.2f}"
         )
+    _exit_on_failures(failures, out / "hf_policies.json")
 
 
 def bench_learner(
@@ -177,12 +213,12 @@ def compare(
     out: Annotated[Path, typer.Option(help="Output folder (compare.md/json, plots).")],
 ) -> None:
     """Factor studies side by side: a table and per-run plots over several reproductions."""
-    from services.learner.experiments import compare_studies
+    from services.learner.outputs import compare_studies
 
     try:
         compare_studies(folders, out)
     except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
+        raise typer.BadParameter(str(exc)) from None
     typer.echo((out / "compare.md").read_text())
     typer.echo(f"wrote {out / 'compare.md'}, compare.json and compare_*.png")
 

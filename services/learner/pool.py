@@ -1,0 +1,214 @@
+"""Running many specs over spawned worker processes, with resume and failure isolation.
+
+:func:`reproduce` runs the specs of a reproduction that ``out_dir/results.json`` does not
+hold yet, rewrites that file after every finished run (an interrupted reproduction resumes
+where it stopped), then writes the CSV, the summary and the plots. A run that raises is
+recorded in ``results.json["failed"]`` with its error type, message and traceback while the
+other runs go on; a later call retries it. :func:`hf_policy_sweep` does the same for stage 2
+alone (``hf_policies.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Protocol, TypeVar
+
+from services.core.files import write_json_atomic
+from services.learner.feedback import FeedbackConfig
+from services.learner.outputs import Results, load_results, save_results, write_outputs
+from services.learner.ppo import PPOConfig
+from services.learner.runs import (
+    SPL_TARGET,
+    HFPolicySpec,
+    RunFailure,
+    RunRecord,
+    hf_policy_run,
+    run_one,
+)
+from services.learner.specs import ACCURACIES, N_VSSG_EVAL_STARTS, RunSpec, settings_conflict
+
+
+class _Spec(Protocol):
+    @property
+    def key(self) -> tuple[Any, ...]: ...
+
+    @property
+    def label(self) -> str: ...
+
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+SpecT = TypeVar("SpecT", bound=_Spec)
+ResultT = TypeVar("ResultT")
+
+
+def _worker_init() -> None:
+    import torch
+
+    torch.set_num_threads(1)  # one run per core
+
+
+def _guarded(function: Callable[[SpecT], ResultT], spec: SpecT) -> ResultT | RunFailure:
+    """Run ``function(spec)`` in a worker; an exception becomes a :class:`RunFailure`."""
+    try:
+        return function(spec)
+    except Exception as exc:  # every run error is recorded, none is lost
+        return RunFailure.from_exception(spec, exc)
+
+
+def run_isolated(
+    function: Callable[[SpecT], ResultT],
+    specs: Sequence[SpecT],
+    *,
+    workers: int,
+    on_result: Callable[[ResultT], None],
+    on_failure: Callable[[RunFailure], None],
+) -> None:
+    """Run ``function`` on every spec over ``workers`` spawned processes.
+
+    Each finished run calls ``on_result`` (in completion order) or, if it raised or its
+    worker died, ``on_failure``: one run's failure never stops or loses the others.
+    """
+    if not specs:
+        return
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init) as pool:
+        futures: dict[Future[Any], SpecT] = {
+            pool.submit(_guarded, function, spec): spec for spec in specs
+        }
+        for future in as_completed(futures):
+            try:
+                outcome = future.result()
+            except Exception as exc:  # e.g. a worker killed (BrokenProcessPool)
+                outcome = RunFailure.from_exception(futures[future], exc)
+            if isinstance(outcome, RunFailure):
+                on_failure(outcome)
+            else:
+                on_result(outcome)
+
+
+def validate_maps(specs: Sequence[RunSpec]) -> None:
+    """Load every map the specs name; a one-line ValueError for the first bad one."""
+    from services.sim.maps import MapError, load_map
+
+    for map_path in sorted({s.map_path for s in specs if s.map_path is not None}):
+        try:
+            load_map(map_path)
+        except MapError as exc:
+            raise ValueError(str(exc).splitlines()[0]) from None
+
+
+def reproduce(
+    out_dir: str | Path,
+    specs: Sequence[RunSpec],
+    *,
+    workers: int = 2,
+    config_note: dict[str, Any] | None = None,
+    on_done: Callable[[RunRecord], None] | None = None,
+    on_failure: Callable[[RunFailure], None] | None = None,
+    on_resume: Callable[[int], None] | None = None,
+) -> Results:
+    """Run every spec not yet in ``out_dir/results.json`` and write the outputs.
+
+    ``on_done`` is called with each new run's record, ``on_failure`` with each failed run,
+    ``on_resume`` once with the number of specs skipped because they are already done
+    (progress bars start there).
+
+    ``out_dir`` accumulates: runs from earlier calls stay in ``results.json`` and in the
+    summary and plots, so a reproduction can be extended by more seeds or methods; failed
+    runs of earlier calls are retried. Runs with other settings (labels, map, PPO overrides)
+    and maps that do not load are refused with a ValueError before anything runs. Returns
+    the results; ``results.failed`` lists the runs that failed in this call.
+    """
+    validate_maps(specs)
+    out = Path(out_dir)
+    results_path = out / "results.json"
+    config = {
+        "ppo": asdict(PPOConfig()),
+        "feedback": asdict(FeedbackConfig()),
+        "n_vssg_eval_starts": N_VSSG_EVAL_STARTS,
+        "spl_target": SPL_TARGET,
+        "label_steps_counted_in_budget": False,
+        **(config_note or {}),
+    }
+    runs: list[RunRecord] = load_results(results_path).runs if results_path.exists() else []
+    if settings_conflict([*specs, *(r.run_spec for r in runs)]):
+        raise ValueError(
+            f"{out} holds runs with other settings (labels, map or PPO overrides); "
+            "use another output folder"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    done = {r.run_spec.key for r in runs}
+    pending = [s for s in specs if s.key not in done]
+    if on_resume is not None:
+        on_resume(len(specs) - len(pending))
+    results = Results(config=config, runs=runs)
+
+    def finished(record: RunRecord) -> None:
+        results.runs.append(record)
+        save_results(results_path, results)
+        if on_done is not None:
+            on_done(record)
+
+    def failed(failure: RunFailure) -> None:
+        results.failed.append(failure)
+        save_results(results_path, results)
+        if on_failure is not None:
+            on_failure(failure)
+
+    run_isolated(run_one, pending, workers=workers, on_result=finished, on_failure=failed)
+    save_results(results_path, results)
+    write_outputs(out, results.runs)
+    return results
+
+
+def hf_policy_sweep(
+    out_dir: str | Path,
+    *,
+    tasks: Sequence[str] = ("sssg", "vssg"),
+    accuracies: Sequence[float] = ACCURACIES,
+    seeds: int = 10,
+    workers: int = 1,
+    on_failure: Callable[[RunFailure], None] | None = None,
+) -> tuple[list[dict[str, Any]], list[RunFailure]]:
+    """:func:`~services.learner.runs.hf_policy_run` over tasks x C x seeds.
+
+    Writes ``out_dir/hf_policies.json`` (``{"runs": [...], "failed": [...]}``) after every
+    run; runs already there are skipped, failed ones retried. Returns (rows, failures).
+    """
+    specs = [
+        HFPolicySpec(task, accuracy, seed)
+        for seed in range(seeds)
+        for task in tasks
+        for accuracy in accuracies
+    ]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "hf_policies.json"
+    rows: list[dict[str, Any]] = json.loads(path.read_text())["runs"] if path.exists() else []
+    done = {(r["task"], r["accuracy"], r["seed"]) for r in rows}
+    failures: list[RunFailure] = []
+
+    def save() -> None:
+        document = {"runs": rows, "failed": [f.to_dict() for f in failures]}
+        write_json_atomic(path, document, indent=None)
+
+    def finished(row: dict[str, Any]) -> None:
+        rows.append(row)
+        save()
+
+    def failed(failure: RunFailure) -> None:
+        failures.append(failure)
+        save()
+        if on_failure is not None:
+            on_failure(failure)
+
+    pending = [s for s in specs if s.key not in done]
+    run_isolated(hf_policy_run, pending, workers=workers, on_result=finished, on_failure=failed)
+    save()
+    return rows, failures

@@ -1,0 +1,270 @@
+"""Executing one run: :func:`run_one` (spec -> :class:`RunRecord`) and :func:`hf_policy_run`.
+
+Both are pure functions of their arguments (seeded through :mod:`services.learner.seeding`),
+close every env they open on every path, and return JSON-able frozen records whose
+``to_dict()`` field names are those of ``results.json`` / ``hf_policies.json``.
+
+The 1000 label-collection steps of stage 2 are *not* counted in the RL budget, as in the
+paper, where pi_HF is learned in a separate session before RL.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections.abc import Mapping, Sequence
+from contextlib import closing
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
+from services.learner.feedback import HFPolicy, HFResult, OracleFeedbackSource, collect_feedback
+from services.learner.ppo import Callback, PPOConfig, train
+from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
+from services.learner.specs import N_VSSG_EVAL_STARTS, TASK_ENV_IDS, RunSpec
+
+SPL_TARGET = 0.7
+N_HF_PROBE_EPISODES = 20
+"""Episodes of the *sampling* pi_HF that :func:`hf_policy_run` measures."""
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """Outcome of one run (one ``runs`` entry of ``results.json``)."""
+
+    task: str
+    method: str
+    accuracy: float | None
+    seed: int
+    hf_treatment: str | None
+    curve: list[list[float]]
+    """``[[env_steps, SPL of the greedy pi_RL], ...]`` at every evaluation."""
+    final_spl: float
+    hf_policy_spl: float | None
+    """SPL of the greedy pi_HF on the evaluation starts (hf_sparse), measured before RL."""
+    wall_seconds: float
+    steps_to_0_7: int | None
+    n_episodes: int = 0
+    n_hf_episodes: int = 0
+    training_episodes: list[dict[str, Any]] | None = None
+    """Per ``eval_every`` window: episodes, HF episodes, mean length, success, collision."""
+    hf: dict[str, Any] | None = None
+    """Stage 2's summary (Fhat's validation accuracies, realised label accuracy)."""
+    spec: dict[str, Any] | None = None
+    """The :class:`RunSpec` as a dict."""
+
+    @property
+    def run_spec(self) -> RunSpec:
+        """The spec this record came from."""
+        if self.spec is None:
+            raise ValueError("this record carries no spec")
+        return RunSpec.from_dict(self.spec)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> RunRecord:
+        """Rebuild from :meth:`to_dict` output (extra keys are refused)."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown run record fields {sorted(unknown)}")
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class RunFailure:
+    """A run that raised: its spec and the error (type, message, traceback)."""
+
+    spec: dict[str, Any]
+    label: str
+    """The run's short name (``RunSpec.label``)."""
+    error_type: str
+    message: str
+    traceback: str
+
+    @classmethod
+    def from_exception(cls, spec: RunSpec | HFPolicySpec, exc: BaseException) -> RunFailure:
+        """Record ``exc`` raised by the run of ``spec``."""
+        return cls(
+            spec=spec.to_dict(),
+            label=spec.label,
+            error_type=type(exc).__name__,
+            message=str(exc),
+            traceback="".join(traceback.format_exception(exc)),
+        )
+
+    def __str__(self) -> str:
+        return f"{self.label}: {self.error_type}: {self.message}"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> RunFailure:
+        """Rebuild from :meth:`to_dict` output."""
+        return cls(**data)
+
+
+def steps_to_reach(curve: Sequence[Sequence[float]], target: float = SPL_TARGET) -> int | None:
+    """First evaluated env step with SPL >= target, or None if never reached."""
+    return next((int(step) for step, spl in curve if spl >= target), None)
+
+
+def episode_stats(
+    episodes: Sequence[Sequence[Any]], window: int, total_steps: int
+) -> list[dict[str, Any]]:
+    """Training-episode statistics per window of env steps (what the behaviour did).
+
+    For each window ``[start, start + window)``: number of finished episodes, their mean
+    length, success and collision rates, and how many followed pi_HF.
+    """
+    rows = []
+    for start in range(0, total_steps, window):
+        inside = [e for e in episodes if start < e[0] <= start + window]
+        n = len(inside)
+        rows.append(
+            {
+                "steps": start + window,
+                "episodes": n,
+                "hf_episodes": sum(bool(e[4]) for e in inside),
+                "mean_length": float(np.mean([e[1] for e in inside])) if n else None,
+                "success_rate": float(np.mean([e[2] for e in inside])) if n else None,
+                "collision_rate": float(np.mean([e[3] for e in inside])) if n else None,
+            }
+        )
+    return rows
+
+
+def learn_hf_policy(env: gym.Env, accuracy: float, seed: int, n_labels: int) -> HFResult:
+    """Stage 2 from simulated feedback at accuracy C, on the run's label streams.
+
+    The labels depend on ``seed`` only (not on method, treatment or PPO settings), so every
+    study guides the runs of one seed with the same pi_HF.
+    """
+    seeds = RunSeeds(seed)
+    source = OracleFeedbackSource(accuracy, seed=seeds.int_seed(Stream.LABEL_NOISE))
+    return collect_feedback(env, source, n_labels, seed=seeds.int_seed(Stream.LABEL_COLLECTION))
+
+
+def run_one(
+    spec: RunSpec,
+    *,
+    callback: Callback | None = None,
+    checkpoint_path: str | Path | None = None,
+    checkpoint_every: int = 10,
+    model_path: str | Path | None = None,
+) -> RunRecord:
+    """Execute one run (stage 2 for hf_sparse, then stage 3) and return its record.
+
+    ``callback``, ``checkpoint_path`` and ``checkpoint_every`` go to :func:`train` (a job
+    worker reports progress, stops on cancel and resumes from the checkpoint); with
+    ``model_path`` the trained policy is exported there as TorchScript.
+    """
+    start = time.perf_counter()
+    config: PPOConfig = spec.ppo_config()
+    hf_policy: HFPolicy | None = None
+    hf_policy_spl = None
+    hf_summary = None
+    if spec.method == "hf_sparse":
+        assert spec.accuracy is not None  # RunSpec guarantees it for hf_sparse
+        with closing(gym.make(config.env_id, **config.env_kwargs)) as label_env:
+            hf = learn_hf_policy(label_env, spec.accuracy, spec.seed, spec.n_labels)
+            hf_policy = hf.policy
+            hf_policy_spl = evaluate_spl(label_env, hf_policy.act, config.eval_seeds)
+        hf_summary = hf.summary()
+    result = train(
+        config,
+        callback,
+        hf_policy=hf_policy,
+        checkpoint_path=checkpoint_path,
+        checkpoint_every=checkpoint_every,
+    )
+    if model_path is not None:
+        result.export_torchscript(model_path)
+    curve = [[int(step), float(spl)] for step, spl in result.curve]
+    return RunRecord(
+        task=spec.task,
+        method=spec.method,
+        accuracy=spec.accuracy,
+        seed=spec.seed,
+        hf_treatment=spec.hf_treatment,
+        curve=curve,
+        final_spl=float(result.final_spl),
+        hf_policy_spl=hf_policy_spl,
+        wall_seconds=time.perf_counter() - start,
+        steps_to_0_7=steps_to_reach(curve),
+        n_episodes=result.n_episodes,
+        n_hf_episodes=result.n_hf_episodes,
+        training_episodes=episode_stats(result.episodes, config.eval_every, result.global_step),
+        hf=hf_summary,
+        spec=spec.to_dict(),
+    )
+
+
+@dataclass(frozen=True)
+class HFPolicySpec:
+    """One stage-2-alone measurement: task, feedback accuracy C, seed, labels."""
+
+    task: str
+    accuracy: float
+    seed: int
+    n_labels: int = 1000
+
+    def __post_init__(self) -> None:
+        if self.task not in TASK_ENV_IDS:
+            raise ValueError(f"unknown task {self.task!r}; expected one of {sorted(TASK_ENV_IDS)}")
+        if not 0.0 <= self.accuracy <= 1.0:
+            raise ValueError(f"accuracy must be in [0, 1], got {self.accuracy}")
+        if self.seed < 0 or self.n_labels < 1:
+            raise ValueError("seed must be >= 0 and n_labels >= 1")
+
+    @property
+    def key(self) -> tuple[Any, ...]:
+        """Identity inside a sweep (what resuming matches on)."""
+        return (self.task, self.accuracy, self.seed)
+
+    @property
+    def label(self) -> str:
+        """E.g. ``vssg C=0.7 seed=3``."""
+        return f"{self.task} C={self.accuracy:g} seed={self.seed}"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return asdict(self)
+
+
+def hf_policy_run(spec: HFPolicySpec) -> dict[str, Any]:
+    """Stage 2 alone: train pi_HF from simulated feedback and measure it (no RL).
+
+    Reports the greedy pi_HF's SPL on the task's evaluation starts (what guides RL), the
+    success rate of the *sampling* pi_HF (softmax(beta * sigmoid(Fhat)), 20 episodes from
+    the first 20 evaluation starts) and Fhat's validation accuracies: one ``runs`` row of
+    ``hf_policies.json``.
+    """
+    start = time.perf_counter()
+    with closing(gym.make(TASK_ENV_IDS[spec.task], reward_mode="sparse")) as env:
+        hf = learn_hf_policy(env, spec.accuracy, spec.seed, spec.n_labels)
+        policy = hf.policy
+        greedy_spl = evaluate_spl(env, policy.act, eval_seeds(spec.task, N_VSSG_EVAL_STARTS))
+        rng = RunSeeds(spec.seed).generator(Stream.HF_PROBE)
+        sampled = [
+            run_episode(env, lambda o: policy.act(o, rng), reset_seed)[0]
+            for reset_seed in evaluation_reset_seeds(N_HF_PROBE_EPISODES)
+        ]
+    return {
+        "task": spec.task,
+        "accuracy": spec.accuracy,
+        "seed": spec.seed,
+        "greedy_spl": greedy_spl,
+        "sampled_success_rate": float(np.mean(sampled)),
+        **hf.summary(),
+        "wall_seconds": time.perf_counter() - start,
+    }

@@ -1,0 +1,154 @@
+"""What one run of the simulated-feedback experiment (paper Fig. 3) is: :class:`RunSpec`.
+
+A spec is a frozen, JSON-able description: a process pool or a Celery worker takes one and
+returns a :class:`~services.learner.runs.RunRecord`. ``RunSpec.to_dict()`` has the field
+names of the ``spec`` of every run in ``results.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from services.learner.evaluation import eval_seeds
+from services.learner.ppo import PPOConfig
+
+TASK_ENV_IDS = {"sssg": "services.sim:BrainNav-SSSG-v0", "vssg": "services.sim:BrainNav-VSSG-v0"}
+METHODS = ("rl_sparse", "rl_rich", "hf_sparse")
+ACCURACIES = (0.55, 0.6, 0.7)
+TREATMENTS = ("authors", "truncated_is")
+N_VSSG_EVAL_STARTS = 5
+QUICK_SEEDS = 2
+FULL_SEEDS = 10
+RUN_FIXED_PPO_FIELDS = frozenset({"env_id", "env_kwargs", "seed", "eval_seeds", "hf_treatment"})
+"""PPOConfig fields a spec sets per run; ``ppo_overrides`` may not change them."""
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: a task, a method, a seed, and what is held fixed (map, labels, PPO).
+
+    ``accuracy`` (the simulated feedback's C) is required for ``hf_sparse`` and None
+    otherwise; ``hf_treatment`` is ``authors`` or ``truncated_is`` for ``hf_sparse``
+    (default ``authors``) and None otherwise.
+    """
+
+    task: str
+    method: str
+    seed: int
+    accuracy: float | None = None
+    hf_treatment: str | None = None
+    n_labels: int = 1000
+    map_path: str | None = None
+    ppo_overrides: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.task not in TASK_ENV_IDS:
+            raise ValueError(f"unknown task {self.task!r}; expected one of {sorted(TASK_ENV_IDS)}")
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; expected one of {METHODS}")
+        if (self.method == "hf_sparse") != (self.accuracy is not None):
+            raise ValueError("accuracy is required for hf_sparse and must be None otherwise")
+        if self.accuracy is not None and not 0.0 <= self.accuracy <= 1.0:
+            raise ValueError(f"accuracy must be in [0, 1], got {self.accuracy}")
+        treatment = self.hf_treatment
+        if self.method == "hf_sparse":
+            treatment = treatment or "authors"
+            if treatment not in TREATMENTS:
+                raise ValueError(
+                    f"unknown hf_treatment {treatment!r}; expected one of {TREATMENTS}"
+                )
+        elif treatment not in (None, "authors"):
+            raise ValueError(f"hf_treatment applies to hf_sparse only, not {self.method}")
+        else:
+            treatment = None
+        if self.seed < 0 or self.n_labels < 1:
+            raise ValueError("seed must be >= 0 and n_labels >= 1")
+        fixed = RUN_FIXED_PPO_FIELDS & set(self.ppo_overrides)
+        if fixed:
+            raise ValueError(f"ppo_overrides cannot set {sorted(fixed)}: the spec sets them")
+        object.__setattr__(self, "hf_treatment", treatment)
+        object.__setattr__(self, "seed", int(self.seed))
+        object.__setattr__(self, "n_labels", int(self.n_labels))
+        object.__setattr__(self, "ppo_overrides", dict(self.ppo_overrides))
+        try:
+            self.ppo_config()  # unknown or inconsistent PPO settings fail here, not in a worker
+        except TypeError as exc:
+            raise ValueError(f"ppo_overrides: {exc}") from None
+
+    @property
+    def key(self) -> tuple[Any, ...]:
+        """Identity of the run inside a reproduction (what resuming matches on)."""
+        return (self.task, self.method, self.accuracy, self.seed, self.hf_treatment)
+
+    @property
+    def label(self) -> str:
+        """Short human-readable name, e.g. ``vssg hf_sparse C=0.7 [authors] seed=3``."""
+        parts = [self.task, self.method]
+        if self.accuracy is not None:
+            parts += [f"C={self.accuracy:g}", f"[{self.hf_treatment}]"]
+        return " ".join([*parts, f"seed={self.seed}"])
+
+    def ppo_config(self) -> PPOConfig:
+        """The run's PPOConfig: the same network and hyperparameters for every method."""
+        env_kwargs: dict[str, Any] = {
+            "reward_mode": "rich" if self.method == "rl_rich" else "sparse"
+        }
+        if self.map_path is not None:
+            env_kwargs["map_path"] = self.map_path
+        return PPOConfig(
+            env_id=TASK_ENV_IDS[self.task],
+            env_kwargs=env_kwargs,
+            seed=self.seed,
+            eval_seeds=eval_seeds(self.task, N_VSSG_EVAL_STARTS),
+            hf_treatment=self.hf_treatment or "authors",  # type: ignore[arg-type]
+            **self.ppo_overrides,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (the ``spec`` of a run in ``results.json``)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> RunSpec:
+        """Rebuild from :meth:`to_dict` output (or a ``results.json`` spec)."""
+        return cls(**data)
+
+
+def settings_conflict(specs: Sequence[RunSpec]) -> bool:
+    """True if the specs differ in map, PPO overrides or (for hf_sparse) label count."""
+    base = {json.dumps([s.map_path, s.ppo_overrides], sort_keys=True) for s in specs}
+    labels = {s.n_labels for s in specs if s.method == "hf_sparse"}
+    return len(base) > 1 or len(labels) > 1
+
+
+def build_specs(
+    *,
+    seeds: int,
+    tasks: Sequence[str] = ("sssg", "vssg"),
+    methods: Sequence[str] = METHODS,
+    accuracies: Sequence[float] = ACCURACIES,
+    treatments: Sequence[str] = ("authors",),
+    first_seed: int = 0,
+    map_path: str | None = None,
+    ppo_overrides: Mapping[str, Any] | None = None,
+) -> list[RunSpec]:
+    """Every run of a reproduction, seed-major so early results cover every method."""
+    overrides = dict(ppo_overrides or {})
+    specs = []
+    for seed in range(first_seed, first_seed + seeds):
+        for task in tasks:
+            for method in methods:
+                if method != "hf_sparse":
+                    specs.append(RunSpec(task, method, seed, None, None, 1000, map_path, overrides))
+                    continue
+                for treatment in treatments:
+                    for accuracy in accuracies:
+                        specs.append(
+                            RunSpec(
+                                task, method, seed, accuracy, treatment, 1000, map_path, overrides
+                            )
+                        )
+    return specs
