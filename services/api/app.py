@@ -11,8 +11,7 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-import httpx
-from fastapi import FastAPI, Request
+from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
@@ -24,6 +23,7 @@ from services.api.routes import (
     audit,
     auth,
     classifiers,
+    dashboard,
     health,
     hf_models,
     job_events,
@@ -46,6 +46,9 @@ from services.core.web import create_service_app
 
 log = logging.getLogger(__name__)
 
+MULTIPART_OVERHEAD_BYTES = 64 * 1024
+"""Room for a multipart envelope around an upload of ``max_upload_bytes``."""
+
 ROUTERS = (
     health.router,
     auth.router,
@@ -61,16 +64,12 @@ ROUTERS = (
     job_events.router,
     artifacts.router,
     audit.router,
+    dashboard.router,
 )
 
 
-def create_app(
-    settings: ApiSettings | None = None, *, eeg_transport: httpx.BaseTransport | None = None
-) -> FastAPI:
-    """Build the api; ``settings`` default to the environment's ``BGRL_*`` variables.
-
-    ``eeg_transport`` (tests) carries validation requests to an in-process EEG service.
-    """
+def create_app(settings: ApiSettings | None = None) -> FastAPI:
+    """Build the api; ``settings`` default to the environment's ``BGRL_*`` variables."""
     settings = settings if settings is not None else load_settings(ApiSettings)
 
     @asynccontextmanager
@@ -91,6 +90,10 @@ def create_app(
         finally:
             engine.dispose()
 
+    # uploads may be as large as max_upload_bytes; every other body max_request_bytes
+    uploads = APIRouter(max_body_size=settings.max_upload_bytes + MULTIPART_OVERHEAD_BYTES)
+    uploads.include_router(recordings.router)
+    after_uploads = ROUTERS[ROUTERS.index(recordings.router) + 1 :]
     app = create_service_app(
         name="api",
         title="Brain-guided RL platform API",
@@ -98,11 +101,10 @@ def create_app(
         version="0.1.0",
         max_body_size=settings.max_request_bytes,
         lifespan=lifespan,
-        routers=ROUTERS,
+        routers=[*ROUTERS[: ROUTERS.index(recordings.router)], uploads, *after_uploads],
     )
     app.state.settings = settings
     app.state.limiter = LoginLimiter(settings.login_max_failures, settings.login_window_s)
-    app.state.eeg_transport = eeg_transport
 
     @app.exception_handler(UnauthorizedError)
     async def unauthorized(request: Request, exc: UnauthorizedError) -> JSONResponse:

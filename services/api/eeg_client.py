@@ -45,7 +45,6 @@ def validate_recording(
     eeg_url: str | None,
     timeout_s: float,
     service_token: str | None = None,
-    transport: httpx.BaseTransport | None = None,
 ) -> Validation:
     """Send the file to the EEG service's ``POST /recordings`` and read its verdict."""
     if not eeg_url:
@@ -54,7 +53,7 @@ def validate_recording(
     if service_token:
         headers[SERVICE_TOKEN_HEADER] = service_token
     try:
-        with httpx.Client(base_url=eeg_url, timeout=timeout_s, transport=transport) as client:
+        with httpx.Client(base_url=eeg_url, timeout=timeout_s) as client:
             response = client.post(
                 "/recordings",
                 params={"filename": filename},

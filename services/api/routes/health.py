@@ -1,30 +1,16 @@
-"""Liveness, readiness and the start page (no authentication)."""
+"""Liveness and readiness (no authentication); the start page is the dashboard's."""
 
 from __future__ import annotations
 
 from typing import Any
 
 from fastapi import APIRouter, Request
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
 from services.core.db.migrate import current_revision, head_revision
 
 router = APIRouter(tags=["service"])
-
-START_PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>Brain-guided RL platform</title></head>
-<body><h1>Brain-guided RL platform</h1>
-<p>REST API under <code>/api/v1</code>: <a href="/docs">interactive docs</a>,
-<a href="/openapi.json">OpenAPI schema</a>. Sign in with
-<code>POST /api/v1/auth/token</code>.</p></body></html>
-"""
-
-
-@router.get("/", response_class=HTMLResponse, include_in_schema=False)
-def start_page() -> str:
-    """A plain page linking the API docs."""
-    return START_PAGE
 
 
 @router.get("/healthz")

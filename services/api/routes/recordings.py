@@ -46,7 +46,6 @@ def _apply_validation(
         eeg_url=settings.eeg_url,
         timeout_s=settings.eeg_timeout_s,
         service_token=settings.service_token,
-        transport=request.app.state.eeg_transport,
     )
     recording.validation_status = result.status
     recording.validation_reason = result.reason
