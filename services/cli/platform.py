@@ -1,0 +1,303 @@
+"""``bgrl login``, ``bgrl jobs ...``, ``bgrl models pull`` (the platform api from a shell) and
+``bgrl bench api``."""
+
+from __future__ import annotations
+
+import json
+import socket
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated, Any, NoReturn, get_args
+
+import typer
+
+from services.client import Job, PlatformClient, PlatformError
+from services.client.config import (
+    DEFAULT_API_URL,
+    ClientSettings,
+    Credentials,
+    CredentialsError,
+    load_credentials,
+    save_credentials,
+)
+from services.client.schemas import JobKind, JobStatus
+from services.core.settings import SettingsError, load_settings
+
+jobs_app = typer.Typer(help="Submit, follow and cancel jobs on the platform.", no_args_is_help=True)
+models_app = typer.Typer(help="Download trained models.", no_args_is_help=True)
+
+UrlOption = Annotated[
+    str | None,
+    typer.Option(
+        "--url",
+        help=f"Base URL of the api (default: BGRL_API_URL, the URL saved by "
+        f"`bgrl login`, else {DEFAULT_API_URL}).",
+    ),
+]
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
+
+
+def _fail(message: str, code: int = EXIT_FAILED) -> NoReturn:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code)
+
+
+def _settings() -> ClientSettings:
+    try:
+        return load_settings(ClientSettings)
+    except SettingsError as exc:
+        _fail(str(exc), EXIT_BAD_INPUT)
+
+
+@contextmanager
+def _client(url: str | None) -> Iterator[PlatformClient]:
+    """A client signed in with BGRL_API_TOKEN or the saved credentials; API errors become
+    one line on stderr (exit 2 for refused input, 1 otherwise)."""
+    settings = _settings()
+    token = settings.api_token.get_secret_value() if settings.api_token else None
+    saved_url = None
+    if token is None:
+        try:
+            saved = load_credentials(settings.credentials_file)
+        except CredentialsError as exc:
+            _fail(str(exc))
+        token, saved_url = saved.token, saved.api_url
+    base_url = url or settings.api_url or saved_url or DEFAULT_API_URL
+    try:
+        with PlatformClient(base_url, token) as client:
+            yield client
+    except PlatformError as exc:
+        _fail(str(exc), EXIT_BAD_INPUT if exc.is_bad_input else EXIT_FAILED)
+
+
+def login(
+    url: UrlOption = None,
+    email: Annotated[str | None, typer.Option(help="Your account's e-mail (prompted).")] = None,
+    password_stdin: Annotated[
+        bool, typer.Option(help="Read the password from the first line of stdin.")
+    ] = False,
+    token: Annotated[
+        str | None, typer.Option(help="Save this existing API token instead of signing in.")
+    ] = None,
+    days: Annotated[
+        int, typer.Option(min=1, max=3650, help="Lifetime of the API token created.")
+    ] = 90,
+) -> None:
+    """Sign in and save an API token for later commands (mode 600, BGRL_CREDENTIALS_FILE,
+    default ~/.config/bgrl/credentials.json)."""
+    settings = _settings()
+    base_url = url or settings.api_url or DEFAULT_API_URL
+    try:
+        with PlatformClient(base_url) as client:
+            if token is not None:
+                user = client.login_with_api_token(token)
+                saved = Credentials(api_url=base_url, email=user.email, token=token)
+                expires = "as issued"
+            else:
+                email = email or typer.prompt("e-mail")
+                if password_stdin:
+                    password = sys.stdin.readline().rstrip("\n")
+                else:
+                    password = typer.prompt("password", hide_input=True)
+                client.login(email, password)
+                name = f"bgrl cli on {socket.gethostname()}"[:100]
+                created = client.create_api_token(name, expires_in_days=days)
+                assert created.token is not None
+                user = client.me()
+                saved = Credentials(
+                    api_url=base_url, email=user.email, token=created.token, token_id=created.id
+                )
+                expires = f"until {created.expires_at:%Y-%m-%d}" if created.expires_at else ""
+    except PlatformError as exc:
+        _fail(str(exc), EXIT_BAD_INPUT if exc.is_bad_input else EXIT_FAILED)
+    save_credentials(settings.credentials_file, saved)
+    typer.echo(
+        f"signed in to {base_url} as {user.email} ({user.role}); API token ({expires}) saved "
+        f"to {settings.credentials_file}"
+    )
+
+
+def _parse_value(text: str) -> Any:
+    """``--set`` values: JSON when they parse as JSON (numbers, true, lists...), else text."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def build_config(config: str | None, assignments: list[str]) -> dict[str, Any]:
+    """The job config from ``--config JSON|@file`` and ``--set key=value`` (dotted keys nest,
+    e.g. ``ppo.n_epochs=4``); ValueError with one line on bad input."""
+    values: dict[str, Any] = {}
+    if config is not None:
+        source = "--config"
+        text = config
+        if config.startswith("@"):
+            source = config[1:]
+            try:
+                text = Path(source).read_text(encoding="utf-8")
+            except OSError as exc:
+                raise ValueError(f"--config: cannot read {source} ({exc.strerror})") from None
+        try:
+            parsed = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(
+                f"{source} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
+            ) from None
+        if not isinstance(parsed, dict):
+            raise ValueError(f"{source} must be a JSON object, not {type(parsed).__name__}")
+        values = parsed
+    for item in assignments:
+        key, sep, raw = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(parts):
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE (e.g. seed=3 or ppo.n_epochs=4)")
+        target = values
+        for part in parts[:-1]:
+            child = target.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise ValueError(f"--set {item!r}: {part} is not an object in the config")
+            target = child
+        target[parts[-1]] = _parse_value(raw.strip())
+    return values
+
+
+def submit(
+    kind: Annotated[str, typer.Argument(help=f"Job kind: {', '.join(get_args(JobKind))}.")],
+    config: Annotated[
+        str | None, typer.Option(help="The config as JSON, or @FILE holding it.")
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="KEY=VALUE config entry (repeatable; ppo.n_epochs=4 nests)."),
+    ] = None,
+    url: UrlOption = None,
+) -> None:
+    """Submit a job; prints its id (e.g. JOB=$(bgrl jobs submit guided_ppo --set ...))."""
+    if kind not in get_args(JobKind):
+        _fail(
+            f"unknown job kind {kind!r}; use one of {', '.join(get_args(JobKind))}", EXIT_BAD_INPUT
+        )
+    try:
+        values = build_config(config, set_ or [])
+    except ValueError as exc:
+        _fail(str(exc), EXIT_BAD_INPUT)
+    with _client(url) as client:
+        job = client.submit_job(kind, values)  # type: ignore[arg-type]
+    typer.echo(f"submitted {job.kind} job {job.id} ({job.status})", err=True)
+    typer.echo(job.id)
+
+
+def _age(moment: datetime | None) -> str:
+    if moment is None:
+        return "-"
+    return moment.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def list_jobs(
+    status: Annotated[
+        str | None, typer.Option(help=f"Only jobs in: {', '.join(get_args(JobStatus))}.")
+    ] = None,
+    kind: Annotated[str | None, typer.Option(help="Only jobs of this kind.")] = None,
+    limit: Annotated[int, typer.Option(min=1, max=500, help="Jobs shown (newest first).")] = 20,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the page as JSON.")] = False,
+    url: UrlOption = None,
+) -> None:
+    """The newest jobs: id, kind, status, progress, created."""
+    if status is not None and status not in get_args(JobStatus):
+        _fail(
+            f"unknown status {status!r}; use one of {', '.join(get_args(JobStatus))}",
+            EXIT_BAD_INPUT,
+        )
+    with _client(url) as client:
+        page = client.list_jobs(status=status, kind=kind, limit=limit)  # type: ignore[arg-type]
+    if as_json:
+        typer.echo(page.model_dump_json(indent=2))
+        return
+    typer.echo(f"{'id':<32}  {'kind':<15}  {'status':<9}  {'progress':>8}  created (UTC)")
+    for job in page.items:
+        typer.echo(
+            f"{job.id:<32}  {job.kind:<15}  {job.status:<9}  {job.progress:>8.0%}  "
+            f"{_age(job.created_at)}"
+        )
+    typer.echo(f"{len(page.items)} of {page.total} job(s)", err=True)
+
+
+def _describe(job: Job) -> str:
+    text = f"job {job.id} {job.status}"
+    if job.status == "failed" and job.error:
+        text += f": {job.error}"
+    if job.resumed_from_step is not None:
+        text += f" (resumed from step {job.resumed_from_step})"
+    return text
+
+
+def wait(
+    job_id: Annotated[str, typer.Argument(help="The job's id.")],
+    timeout: Annotated[
+        float | None, typer.Option(min=0, help="Give up after this many seconds.")
+    ] = None,
+    poll: Annotated[float, typer.Option(min=0.1, help="Seconds between checks.")] = 1.0,
+    url: UrlOption = None,
+) -> None:
+    """Follow a job with a progress bar until it ends; exit 0 only if it succeeded."""
+    from tqdm import tqdm
+
+    with (
+        _client(url) as client,
+        tqdm(
+            total=100,
+            desc=job_id[:8],
+            unit="%",
+            bar_format="{l_bar}{bar}| {n:.0f}% [{elapsed}{postfix}]",
+        ) as bar,
+    ):
+
+        def on_progress(job: Job) -> None:
+            bar.n = round(100 * job.progress, 1)
+            bar.set_postfix_str(f"{job.status}, {job.steps_done} steps", refresh=False)
+            bar.refresh()
+
+        job = client.wait_job(job_id, timeout_s=timeout, on_progress=on_progress, poll_s=poll)
+    typer.echo(_describe(job), err=job.status != "succeeded")
+    if job.status != "succeeded":
+        raise typer.Exit(EXIT_FAILED)
+
+
+def cancel(
+    job_id: Annotated[str, typer.Argument(help="The job's id.")], url: UrlOption = None
+) -> None:
+    """Cancel a job: a queued one at once, a running one within seconds."""
+    with _client(url) as client:
+        job = client.cancel_job(job_id)
+    state = "cancelled" if job.status == "cancelled" else "cancel requested"
+    typer.echo(f"job {job.id}: {state}")
+
+
+def pull(
+    job_id: Annotated[str, typer.Argument(help="A finished guided_ppo job's id.")],
+    out: Annotated[Path, typer.Option(help="Where to save the TorchScript policy (.pt).")],
+    url: UrlOption = None,
+) -> None:
+    """Download a job's trained policy, verifying its SHA-256 (a corrupt file is not kept)."""
+    if out.is_dir():
+        out = out / f"policy-{job_id}.pt"
+    with _client(url) as client:
+        saved = client.download_model(job_id, out)
+    typer.echo(f"saved {saved.path} ({saved.size_bytes} bytes, sha256 {saved.sha256})")
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``login``, ``jobs``, ``models`` and ``bench api``."""
+    app.command("login")(login)
+    jobs_app.command("submit")(submit)
+    jobs_app.command("list")(list_jobs)
+    jobs_app.command("wait")(wait)
+    jobs_app.command("cancel")(cancel)
+    models_app.command("pull")(pull)
+    app.add_typer(jobs_app, name="jobs")
+    app.add_typer(models_app, name="models")

@@ -1,0 +1,117 @@
+"""The platform api served by uvicorn on loopback (SQLite in a temp folder) for client tests."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+import uvicorn
+from argon2 import PasswordHasher
+from fastapi import FastAPI
+
+from services.api import security
+from services.api.app import create_app
+from services.api.settings import ApiSettings
+from services.client import PlatformClient
+from services.core.db.models import Artifact, Job
+
+ADMIN_EMAIL = "admin@lab.test"
+ADMIN_PASSWORD = "admin-password-123"
+STAFF_EMAIL = "staff@lab.test"
+VIEWER_EMAIL = "viewer@lab.test"
+PASSWORD = "a-long-password-1"
+MODEL_BYTES = b"PK\x03\x04 a stand-in for a TorchScript archive " * 100
+
+
+@dataclass
+class LiveApi:
+    """A running api: its URL, app (for direct database access) and settings."""
+
+    url: str
+    app: FastAPI
+    settings: ApiSettings
+
+    def finished_job_with_model(self, data: bytes = MODEL_BYTES) -> tuple[str, Path]:
+        """A succeeded guided_ppo job whose model is ``data`` in the artifact store: the
+        job's id and the stored file (what a worker leaves behind)."""
+        stored = self.app.state.store.put_bytes(data, kind="model", name="policy.pt")
+        with self.app.state.sessions() as db:
+            job = Job(
+                kind="guided_ppo",
+                config={"task": "sssg", "method": "rl_sparse", "seed": 0, "total_steps": 2000},
+                status="succeeded",
+                progress=1.0,
+            )
+            db.add(job)
+            db.flush()
+            artifact = Artifact(
+                kind="model",
+                relpath=stored.relpath,
+                sha256=stored.sha256,
+                size_bytes=stored.size_bytes,
+                job_id=job.id,
+            )
+            db.add(artifact)
+            db.flush()
+            job.model_artifact_id = artifact.id
+            db.commit()
+            return job.id, self.app.state.store.path(stored.relpath)
+
+
+@pytest.fixture(scope="module")
+def live_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveApi]:
+    """The api on 127.0.0.1 (a free port) with an admin, a staff and a viewer account."""
+    patch = pytest.MonkeyPatch()
+    # Argon2 at minimal cost: these tests check the flow, not the hash's strength.
+    patch.setattr(security, "_hasher", PasswordHasher(time_cost=1, memory_cost=64, parallelism=1))
+    root = tmp_path_factory.mktemp("live-api")
+    settings = ApiSettings(
+        data_dir=root / "data",
+        database_url=f"sqlite:///{root / 'bgrl.db'}",
+        broker_url=None,
+        admin_email=ADMIN_EMAIL,
+        admin_password=ADMIN_PASSWORD,
+        eeg_url=None,
+    )
+    app = create_app(settings)
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "api did not start"
+        time.sleep(0.02)
+    live = LiveApi(url=f"http://127.0.0.1:{port}", app=app, settings=settings)
+    with PlatformClient(live.url) as admin:
+        admin.login(ADMIN_EMAIL, ADMIN_PASSWORD)
+        for email, role in ((STAFF_EMAIL, "staff"), (VIEWER_EMAIL, "viewer")):
+            response = httpx.post(
+                f"{live.url}/api/v1/users",
+                json={"email": email, "password": PASSWORD, "role": role},
+                headers={"Authorization": f"Bearer {admin.token}"},
+            )
+            assert response.status_code == 201, response.text
+    try:
+        yield live
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+        sock.close()
+        patch.undo()
+
+
+@pytest.fixture
+def staff(live_api: LiveApi) -> Iterator[PlatformClient]:
+    """A client signed in as staff."""
+    with PlatformClient(live_api.url) as client:
+        client.login(STAFF_EMAIL, PASSWORD)
+        yield client

@@ -1,0 +1,186 @@
+"""``bgrl login``, ``bgrl jobs ...`` and ``bgrl models pull`` against the real api on loopback."""
+
+from __future__ import annotations
+
+import json
+import stat
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from services.cli.main import app
+from services.cli.platform import build_config
+from services.client import PlatformClient
+from tests.client.conftest import MODEL_BYTES, PASSWORD, STAFF_EMAIL, LiveApi
+
+runner = CliRunner()
+
+
+@pytest.fixture
+def credentials(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    """Where the CLI keeps its token in this test (no BGRL_API_URL / BGRL_API_TOKEN)."""
+    path = tmp_path / "config" / "bgrl" / "credentials.json"
+    monkeypatch.setenv("BGRL_CREDENTIALS_FILE", str(path))
+    monkeypatch.delenv("BGRL_API_URL", raising=False)
+    monkeypatch.delenv("BGRL_API_TOKEN", raising=False)
+    return path
+
+
+@pytest.fixture
+def signed_in(live_api: LiveApi, credentials: Path) -> Iterator[Path]:
+    """The CLI signed in as staff."""
+    result = runner.invoke(
+        app,
+        ["login", "--url", live_api.url, "--email", STAFF_EMAIL, "--password-stdin"],
+        input=PASSWORD + "\n",
+    )
+    assert result.exit_code == 0, result.output
+    yield credentials
+
+
+def bgrl(*args: str) -> tuple[int, str, str]:
+    result = runner.invoke(app, list(args))
+    return result.exit_code, result.stdout, result.stderr
+
+
+def test_login_saves_an_api_token_readable_by_the_owner_only(
+    live_api: LiveApi, signed_in: Path
+) -> None:
+    assert stat.S_IMODE(signed_in.stat().st_mode) == 0o600
+    saved = json.loads(signed_in.read_text())
+    assert (saved["api_url"], saved["email"]) == (live_api.url, STAFF_EMAIL)
+    assert saved["token"].startswith("bgrl_")
+    with PlatformClient(live_api.url) as client:
+        assert client.login_with_api_token(saved["token"]).email == STAFF_EMAIL
+
+
+def test_wrong_password_is_one_line(live_api: LiveApi, credentials: Path) -> None:
+    result = runner.invoke(
+        app,
+        ["login", "--url", live_api.url, "--email", STAFF_EMAIL, "--password-stdin"],
+        input="wrong-password\n",
+    )
+    assert result.exit_code == 1
+    assert result.stderr == (
+        "error: HTTP 401: wrong e-mail or password, or account deactivated (field password)\n"
+    )
+    assert not credentials.exists()
+
+
+def test_not_signed_in(credentials: Path) -> None:
+    code, out, err = bgrl("jobs", "list")
+    assert (code, out) == (1, "")
+    assert err == f"error: not signed in ({credentials} does not exist): run `bgrl login`\n"
+
+
+def test_submit_list_wait_cancel(live_api: LiveApi, signed_in: Path, tmp_path: Path) -> None:
+    config_file = tmp_path / "job.json"
+    config_file.write_text(json.dumps({"task": "VSSG", "method": "rl_sparse"}))
+    code, out, err = bgrl(
+        "jobs", "submit", "guided_ppo", "--config", f"@{config_file}",
+        "--set", "total_steps=2000", "--set", "ppo.n_epochs=4", "--set", "seed=7",
+    )  # fmt: skip
+    assert code == 0, err
+    job_id = out.strip()
+    assert err == f"submitted guided_ppo job {job_id} (queued)\n"
+    token = json.loads(signed_in.read_text())["token"]
+    with PlatformClient(live_api.url, token) as client:
+        assert client.get_job(job_id).config == {
+            "task": "vssg",
+            "method": "rl_sparse",
+            "seed": 7,
+            "total_steps": 2000,
+            "hf_treatment": "authors",
+            "n_labels": 1000,
+            "ppo": {"n_epochs": 4},
+        }
+
+    code, out, _ = bgrl("jobs", "list", "--status", "queued", "--limit", "500")
+    assert code == 0
+    assert any(line.split()[:3] == [job_id, "guided_ppo", "queued"] for line in out.splitlines())
+    code, out, _ = bgrl("jobs", "list", "--json", "--limit", "1")
+    assert (code, json.loads(out)["limit"]) == (0, 1)
+
+    assert bgrl("jobs", "cancel", job_id)[:2] == (0, f"job {job_id}: cancelled\n")
+    code, out, err = bgrl("jobs", "wait", job_id, "--poll", "0.1")
+    assert code == 1
+    assert err.endswith(f"job {job_id} cancelled\n")
+    code, _, err = bgrl("jobs", "cancel", job_id)
+    assert (code, err) == (
+        1,
+        f"error: HTTP 409: job {job_id} is already cancelled (field job_id)\n",
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["jobs", "submit", "ppo"],
+         "error: unknown job kind 'ppo'; use one of guided_ppo, reproduce, eeg_calibration\n"),
+        (["jobs", "submit", "guided_ppo", "--config", "{task: sssg}"],
+         "error: --config is not valid JSON: Expecting property name enclosed in double quotes "
+         "at line 1 column 2\n"),
+        (["jobs", "submit", "guided_ppo", "--config", "[1]"],
+         "error: --config must be a JSON object, not list\n"),
+        (["jobs", "submit", "guided_ppo", "--set", "seed"],
+         "error: --set 'seed': expected KEY=VALUE (e.g. seed=3 or ppo.n_epochs=4)\n"),
+        (["jobs", "submit", "guided_ppo", "--config", "@/nonexistent/job.json"],
+         "error: --config: cannot read /nonexistent/job.json (No such file or directory)\n"),
+        (["jobs", "submit", "guided_ppo", "--set", "task=sssg", "--set", "method=rl_sparse",
+          "--set", "gamma=0.9"],
+         "error: HTTP 422: config.gamma: Extra inputs are not permitted (field config.gamma)\n"),
+        (["jobs", "list", "--status", "done"],
+         "error: unknown status 'done'; use one of queued, running, succeeded, failed, "
+         "cancelled\n"),
+    ],
+)  # fmt: skip
+def test_bad_input_is_one_line_and_exit_2(signed_in: Path, args: list[str], message: str) -> None:
+    code, out, err = bgrl(*args)
+    assert (code, out, err) == (2, "", message)
+
+
+def test_wait_and_pull_a_finished_job(live_api: LiveApi, signed_in: Path, tmp_path: Path) -> None:
+    job_id, stored = live_api.finished_job_with_model()
+    code, out, err = bgrl("jobs", "wait", job_id)
+    assert (code, out) == (0, f"job {job_id} succeeded\n")
+    assert "100%" in err
+
+    code, out, _ = bgrl("models", "pull", job_id, "--out", str(tmp_path))
+    target = tmp_path / f"policy-{job_id}.pt"
+    assert code == 0
+    assert target.read_bytes() == MODEL_BYTES
+    assert out.startswith(f"saved {target} ({len(MODEL_BYTES)} bytes, sha256 ")
+
+    stored.write_bytes(b"x" + MODEL_BYTES[1:])
+    corrupt = tmp_path / "corrupt.pt"
+    code, _, err = bgrl("models", "pull", job_id, "--out", str(corrupt))
+    assert code == 1
+    assert err.startswith(f"error: download of /api/v1/jobs/{job_id}/model is corrupt: sha256 ")
+    assert not corrupt.exists()
+
+
+def test_api_token_from_the_environment(
+    live_api: LiveApi, credentials: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with PlatformClient(live_api.url) as client:
+        client.login(STAFF_EMAIL, PASSWORD)
+        token = client.create_api_token("ci").token
+    assert token is not None
+    monkeypatch.setenv("BGRL_API_TOKEN", token)
+    monkeypatch.setenv("BGRL_API_URL", live_api.url)
+    code, out, _ = bgrl("jobs", "list", "--json")
+    assert code == 0
+    assert json.loads(out)["offset"] == 0
+    assert not credentials.exists()
+
+
+def test_build_config_nests_and_parses_values() -> None:
+    assert build_config('{"ppo": {"gamma": 0.9}}', ["ppo.n_epochs=4", "task=sssg", "x=[1, 2]"]) == {
+        "ppo": {"gamma": 0.9, "n_epochs": 4},
+        "task": "sssg",
+        "x": [1, 2],
+    }
+    with pytest.raises(ValueError, match=r"--set 'task.x=1': task is not an object"):
+        build_config(None, ["task=sssg", "task.x=1"])
