@@ -1,0 +1,104 @@
+"""``bgrl user``: accounts of the platform, straight in its database (e.g. the first admin)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+user_app = typer.Typer(
+    help="Platform accounts (works on BGRL_DATABASE_URL directly).", no_args_is_help=True
+)
+
+
+def _sessions():
+    from services.api.settings import ApiSettings
+    from services.core.db.migrate import upgrade_database
+    from services.core.db.session import make_engine, make_session_factory
+    from services.core.settings import SettingsError, load_settings
+
+    try:
+        settings = load_settings(ApiSettings)
+    except SettingsError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    settings.ensure_data_dir()
+    url = settings.resolved_database_url
+    upgrade_database(url)
+    return make_session_factory(make_engine(url))
+
+
+def create(
+    email: Annotated[str, typer.Argument(help="E-mail address (the login name).")],
+    admin: Annotated[bool, typer.Option("--admin", help="Make the account an admin.")] = False,
+    role: Annotated[str, typer.Option(help="Role if not --admin: staff or viewer.")] = "staff",
+    password: Annotated[
+        str | None,
+        typer.Option(help="Password (at least 12 characters); asked for when omitted."),
+    ] = None,
+) -> None:
+    """Create an account; ``--admin`` for an administrator."""
+    from services.api.accounts import create_user
+    from services.core.errors import ServiceError
+
+    if password is None:
+        password = typer.prompt("Password", hide_input=True, confirmation_prompt=True)
+    with _sessions()() as db:
+        try:
+            user = create_user(db, email, password, "admin" if admin else role)
+        except ServiceError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(1) from None
+        db.commit()
+        typer.echo(f"created {user.role} {user.email} (id {user.id})")
+
+
+def list_users() -> None:
+    """Every account: id, e-mail, role, active."""
+    from sqlalchemy import select
+
+    from services.core.db.models import User
+
+    with _sessions()() as db:
+        for user in db.scalars(select(User).order_by(User.id)):
+            state = "active" if user.active else "deactivated"
+            typer.echo(f"{user.id}\t{user.email}\t{user.role}\t{state}")
+
+
+def set_password(
+    email: Annotated[str, typer.Argument(help="E-mail address of the account.")],
+    password: Annotated[
+        str | None, typer.Option(help="New password; asked for when omitted.")
+    ] = None,
+) -> None:
+    """Set an account's password (e.g. a locked-out admin) and reactivate it."""
+    from sqlalchemy import select
+
+    from services.api.accounts import check_password, normalize_email
+    from services.api.security import hash_password
+    from services.core.db.models import User
+    from services.core.errors import ServiceError
+
+    if password is None:
+        password = typer.prompt("New password", hide_input=True, confirmation_prompt=True)
+    with _sessions()() as db:
+        try:
+            check_password(password)
+            user = db.scalar(select(User).where(User.email == normalize_email(email)))
+        except ServiceError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(1) from None
+        if user is None:
+            typer.echo(f"error: no account {email}", err=True)
+            raise typer.Exit(1)
+        user.password_hash = hash_password(password)
+        user.active = True
+        db.commit()
+        typer.echo(f"password of {user.email} set")
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``bgrl user create|list|set-password``."""
+    user_app.command("create")(create)
+    user_app.command("list")(list_users)
+    user_app.command("set-password")(set_password)
+    app.add_typer(user_app, name="user")
