@@ -1,0 +1,77 @@
+// The dashboard's entry point: who is signed in, the navigation bar, and the page for the path.
+
+import { get, signOut, toSignIn, token } from "./api.js";
+import { h } from "./dom.js";
+import { classifierPage } from "./pages/classifier.js";
+import { jobPage } from "./pages/job.js";
+import { jobsPage } from "./pages/jobs.js";
+import { modelsPage } from "./pages/models.js";
+import { sessionsPage } from "./pages/sessions.js";
+import { signinPage } from "./pages/signin.js";
+import { subjectPage } from "./pages/subject.js";
+import { subjectsPage } from "./pages/subjects.js";
+
+const ROUTES = [
+  [/^\/(?:subjects)?$/, "subjects", subjectsPage],
+  [/^\/subjects\/(\d+)$/, "subjects", subjectPage],
+  [/^\/sessions$/, "sessions", sessionsPage],
+  [/^\/jobs$/, "jobs", jobsPage],
+  [/^\/jobs\/([A-Za-z0-9_-]+)$/, "jobs", jobPage],
+  [/^\/models$/, "models", modelsPage],
+  [/^\/classifiers\/(\d+)$/, "models", classifierPage],
+];
+
+function showAccount(user) {
+  const box = document.getElementById("account");
+  const button = h("button", { type: "button", class: "btn small" }, "Sign out");
+  button.addEventListener("click", () => {
+    signOut();
+    location.assign("/signin");
+  });
+  box.replaceChildren(
+    h("span", { class: "who" }, user.email, " ", h("span", { class: "badge" }, user.role)),
+    button,
+  );
+}
+
+async function main() {
+  const root = document.getElementById("main");
+  const path = location.pathname.replace(/\/+$/, "") || "/";
+  if (path === "/signin") {
+    document.title = "Sign in · Brain-guided RL platform";
+    signinPage(root);
+    return;
+  }
+  if (!token()) {
+    toSignIn();
+    return;
+  }
+  const user = await get("/api/v1/users/me");
+  showAccount(user);
+  const route = ROUTES.find(([pattern]) => pattern.test(path));
+  if (!route) {
+    root.replaceChildren(h("h1", {}, "Page not found"), h("p", {}, h("a", { href: "/" }, "Back")));
+    return;
+  }
+  const [pattern, section, render] = route;
+  for (const link of document.querySelectorAll("[data-nav]")) {
+    if (link.dataset.nav === section) link.setAttribute("aria-current", "page");
+  }
+  const params = pattern.exec(path).slice(1);
+  const context = {
+    user,
+    canEdit: user.role === "staff" || user.role === "admin",
+    query: new URLSearchParams(location.search),
+  };
+  root.replaceChildren();
+  await render(root, context, ...params);
+}
+
+main().catch((err) => {
+  if (err.status === 401) return; // on the way to the sign-in page
+  const root = document.getElementById("main");
+  root.replaceChildren(
+    h("h1", {}, "Something went wrong"),
+    h("p", { class: "message error", role: "alert" }, err.message),
+  );
+});

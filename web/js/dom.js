@@ -1,0 +1,135 @@
+// Small DOM helpers: element building, messages, dates, downloads.
+
+import { download } from "./api.js";
+
+/** Build an element: h("a", {href: "/x", class: "btn", onclick: fn}, "text", child, ...). */
+export function h(tag, attrs = {}, ...children) {
+  const svg = ["svg", "g", "path", "line", "text", "rect", "title", "polyline", "circle"];
+  const el = svg.includes(tag)
+    ? document.createElementNS("http://www.w3.org/2000/svg", tag)
+    : document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs || {})) {
+    if (value === undefined || value === null || value === false) continue;
+    if (key.startsWith("on") && typeof value === "function") {
+      el.addEventListener(key.slice(2), value);
+    } else if (key === "value" && "value" in el && !(el instanceof SVGElement)) {
+      el.value = value;
+    } else if (key === "checked" || key === "selected") {
+      el[key] = Boolean(value);
+    } else {
+      el.setAttribute(key, value === true ? "" : String(value));
+    }
+  }
+  append(el, children);
+  return el;
+}
+
+function append(el, children) {
+  for (const child of children) {
+    if (child === null || child === undefined || child === false) continue;
+    if (Array.isArray(child)) append(el, child);
+    else el.append(child instanceof Node ? child : String(child));
+  }
+}
+
+/** A live region for an action's outcome (errors are announced, role="alert"). */
+export function messageBox() {
+  const box = h("p", { class: "message", role: "status", "aria-live": "polite", hidden: true });
+  box.show = (text, kind = "ok") => {
+    box.hidden = !text;
+    box.textContent = text || "";
+    box.className = `message ${kind}`;
+    box.setAttribute("role", kind === "error" ? "alert" : "status");
+  };
+  box.error = (err) => box.show(err?.message || String(err), "error");
+  box.clear = () => box.show("");
+  return box;
+}
+
+export function fmtDateTime(iso) {
+  if (!iso) return "–";
+  return new Date(iso).toLocaleString(undefined, {
+    year: "numeric", month: "short", day: "numeric", hour: "2-digit", minute: "2-digit",
+  });
+}
+
+export function fmtTime(iso) {
+  return new Date(iso).toLocaleTimeString(undefined, { hour: "2-digit", minute: "2-digit" });
+}
+
+export function fmtBytes(n) {
+  if (n === null || n === undefined) return "–";
+  const units = ["B", "KB", "MB", "GB"];
+  let i = 0;
+  let value = n;
+  while (value >= 1024 && i < units.length - 1) {
+    value /= 1024;
+    i += 1;
+  }
+  return `${value.toFixed(i ? 1 : 0)} ${units[i]}`;
+}
+
+export function fmtNumber(value, digits = 2) {
+  return typeof value === "number" && Number.isFinite(value) ? value.toFixed(digits) : "–";
+}
+
+/** A button that downloads an API file route and reports the checksum check beside it. */
+export function downloadButton(label, path, fallbackName) {
+  const note = h("span", { class: "muted small", "aria-live": "polite" });
+  const button = h("button", { type: "button", class: "btn small" }, label);
+  button.addEventListener("click", async () => {
+    button.disabled = true;
+    note.textContent = "downloading…";
+    try {
+      const got = await download(path, fallbackName);
+      note.textContent =
+        got.checksum === "mismatch"
+          ? "checksum mismatch: file discarded"
+          : `${got.filename} (${fmtBytes(got.size)}${got.checksum === "verified" ? ", SHA-256 verified" : ""})`;
+    } catch (err) {
+      note.textContent = err.message;
+      note.classList.add("error-text");
+    } finally {
+      button.disabled = false;
+    }
+  });
+  return h("span", { class: "download" }, button, " ", note);
+}
+
+/** A table from column specs [{label, cell(row) -> node|string}] (empty text when no rows). */
+export function table(rows, columns, { caption, empty = "Nothing yet." } = {}) {
+  if (!rows.length) return h("p", { class: "muted" }, empty);
+  return h(
+    "table",
+    { class: "grid" },
+    caption ? h("caption", {}, caption) : null,
+    h("thead", {}, h("tr", {}, columns.map((c) => h("th", { scope: "col" }, c.label)))),
+    h("tbody", {}, rows.map((row) => h("tr", {}, columns.map((c) => h("td", {}, c.cell(row)))))),
+  );
+}
+
+export function statusBadge(status) {
+  return h("span", { class: `badge status-${status}` }, status);
+}
+
+/** A labelled form field: {label, input, hint} with an error line tied by aria-describedby. */
+export function field(label, input, hint = "") {
+  const id = input.id || `f-${Math.random().toString(36).slice(2, 9)}`;
+  input.id = id;
+  const error = h("span", { class: "field-error", id: `${id}-error`, "aria-live": "polite" });
+  const describedBy = [`${id}-error`];
+  let hintEl = null;
+  if (hint) {
+    hintEl = h("span", { class: "hint", id: `${id}-hint` }, hint);
+    describedBy.push(`${id}-hint`);
+  }
+  input.setAttribute("aria-describedby", describedBy.join(" "));
+  const wrapper = h("div", { class: "field" }, h("label", { for: id }, label), input, hintEl, error);
+  wrapper.setError = (message) => {
+    error.textContent = message || "";
+    if (message) input.setAttribute("aria-invalid", "true");
+    else input.removeAttribute("aria-invalid");
+  };
+  wrapper.input = input;
+  return wrapper;
+}

@@ -1,0 +1,200 @@
+// One job: live status and progress, its learning curves (in the page and as the API's PNG),
+// and its downloads (policy, curve CSV/JSON, results files and plots).
+
+import { ApiError, all, get, imageUrl } from "../api.js";
+import { lineChart, meanHalfStd } from "../chart.js";
+import { downloadButton, fmtBytes, fmtDateTime, h, messageBox, statusBadge, table } from "../dom.js";
+import { FINAL, progressBar, watchJob } from "../live.js";
+import { jobActions, jobSummary } from "./jobs.js";
+
+function facts(job) {
+  const rows = [
+    ["Kind", job.kind],
+    ["What", jobSummary(job)],
+    ["Attempts", `${job.attempts} of ${job.max_attempts}`],
+    ["Steps done", job.steps_done.toLocaleString("en")],
+    ["Resumed from step", job.resumed_from_step ?? "–"],
+    ["Submitted", fmtDateTime(job.created_at)],
+    ["Started", fmtDateTime(job.started_at)],
+    ["Finished", fmtDateTime(job.finished_at)],
+  ];
+  return h("dl", { class: "facts" }, rows.map(([k, v]) => [h("dt", {}, k), h("dd", {}, v)]));
+}
+
+/** A figure from the API (PNG), fetched with the token. */
+async function apiImage(path, alt) {
+  try {
+    return h("img", { src: await imageUrl(path), alt, class: "plot" });
+  } catch (err) {
+    if (err instanceof ApiError && err.status === 404) return h("p", { class: "muted" }, err.message);
+    throw err;
+  }
+}
+
+function hfLine(label, spl, xMax) {
+  return { label, points: [[0, spl], [xMax, spl]], dashed: true };
+}
+
+/** Fig. 3 per task from a reproduction's runs: mean ± ½ std per configuration, pi_HF dashed. */
+async function reproductionCharts(job) {
+  const runs = await all("/api/v1/jobs", { parent_id: job.id });
+  const curves = await Promise.all(runs.map(async (run) => {
+    if (run.result?.curve) return run.result.curve;
+    if (run.status === "queued") return [];
+    return (await get(`/api/v1/jobs/${run.id}/curve`)).curve;
+  }));
+  const groups = new Map();
+  runs.forEach((run, i) => {
+    const c = run.config;
+    const label = c.method === "hf_sparse"
+      ? `${c.method} C=${c.accuracy}${c.hf_treatment && c.hf_treatment !== "authors" ? ` [${c.hf_treatment}]` : ""}`
+      : c.method;
+    const key = `${c.task}|${label}`;
+    if (!groups.has(key)) groups.set(key, { task: c.task, label, curves: [], hf: [] });
+    const group = groups.get(key);
+    if (curves[i].length) group.curves.push(curves[i]);
+    if (typeof run.result?.hf_policy_spl === "number") group.hf.push(run.result.hf_policy_spl);
+  });
+  const tasks = [...new Set([...groups.values()].map((g) => g.task))].sort();
+  const done = runs.filter((r) => FINAL.has(r.status)).length;
+  const figures = tasks.map((task) => {
+    const members = [...groups.values()].filter((g) => g.task === task);
+    const series = [];
+    for (const g of members) {
+      const { points, band } = meanHalfStd(g.curves);
+      if (points.length) series.push({ label: `${g.label} (${g.curves.length} seeds)`, points, band });
+    }
+    const xMax = Math.max(1, ...series.flatMap((s) => s.points.map((p) => p[0])));
+    for (const g of members) {
+      if (g.hf.length) {
+        const mean = g.hf.reduce((a, b) => a + b, 0) / g.hf.length;
+        series.push(hfLine(`π_HF ${g.label}`, mean, xMax));
+      }
+    }
+    return lineChart(series, { title: `${task.toUpperCase()}: SPL of greedy π_RL (mean ± ½ std; dashed: π_HF)` });
+  });
+  return [h("p", { class: "muted" }, `${done} of ${runs.length} run(s) finished.`), ...figures,
+    table(runs, [
+      { label: "Run", cell: (r) => h("a", { href: `/jobs/${r.id}` }, r.id.slice(0, 8)) },
+      { label: "What", cell: (r) => jobSummary(r) },
+      { label: "Status", cell: (r) => statusBadge(r.status) },
+      { label: "Progress", cell: (r) => progressBar(r) },
+    ], { caption: "Runs" })];
+}
+
+async function curveSection(job) {
+  if (job.kind === "reproduce") return reproductionCharts(job);
+  if (job.kind === "eeg_calibration") return [];
+  const { curve } = await get(`/api/v1/jobs/${job.id}/curve`);
+  if (!curve.length) return [h("p", { class: "muted" }, "No evaluation yet.")];
+  const series = [{ label: "greedy π_RL", points: curve }];
+  if (typeof job.result?.hf_policy_spl === "number") {
+    series.push(hfLine("π_HF", job.result.hf_policy_spl, curve[curve.length - 1][0]));
+  }
+  return [lineChart(series, { title: `${jobSummary(job)}: SPL vs steps` })];
+}
+
+async function downloads(job) {
+  const artifacts = await all("/api/v1/artifacts", { job_id: job.id });
+  const items = [];
+  if (job.model_artifact_id && job.kind !== "eeg_calibration") {
+    items.push(h("li", {}, "Trained policy (TorchScript) ",
+      downloadButton("Download model", `/api/v1/jobs/${job.id}/model`, `policy-${job.id}.pt`)));
+  }
+  if (job.kind === "guided_ppo" || job.kind === "reproduce_run") {
+    items.push(h("li", {}, "Learning curve ",
+      downloadButton("CSV", `/api/v1/jobs/${job.id}/curve?format=csv`, `job-${job.id}-curve.csv`), " ",
+      downloadButton("JSON", `/api/v1/jobs/${job.id}/curve`, `job-${job.id}-curve.json`)));
+  }
+  const files = table(artifacts, [
+    { label: "File", cell: (a) => a.relpath.split("/").pop() },
+    { label: "Kind", cell: (a) => a.kind },
+    { label: "Size", cell: (a) => fmtBytes(a.size_bytes) },
+    { label: "SHA-256", cell: (a) => h("code", { title: a.sha256 }, `${a.sha256.slice(0, 12)}…`) },
+    { label: "", cell: (a) => downloadButton("Download", `/api/v1/artifacts/${a.id}/download`, a.relpath.split("/").pop()) },
+  ], { caption: "Files of this job", empty: "No files yet." });
+  return [items.length ? h("ul", { class: "plain" }, items) : null, files];
+}
+
+async function plots(job, artifacts) {
+  if (job.kind === "guided_ppo" || job.kind === "reproduce_run") {
+    return [await apiImage(`/api/v1/jobs/${job.id}/plot.png`, `Learning curve of job ${job.id} (PNG from the API)`)];
+  }
+  const pngs = artifacts.filter((a) => a.relpath.endsWith(".png"));
+  return Promise.all(pngs.map((a) => apiImage(`/api/v1/artifacts/${a.id}/download`, a.relpath.split("/").pop())));
+}
+
+export async function jobPage(root, { canEdit }, jobId) {
+  let job = await get(`/api/v1/jobs/${jobId}`);
+  document.title = `Job ${job.id.slice(0, 8)} · Brain-guided RL platform`;
+  const message = messageBox();
+  const bar = progressBar(job);
+  const badge = h("span", {}, statusBadge(job.status));
+  const error = h("p", { class: "message error", role: "alert", hidden: !job.error }, job.error || "");
+  const actions = h("span", { class: "actions" });
+  const factBox = h("div", {}, facts(job));
+  const curves = h("section", { "aria-labelledby": "curves-title" });
+  const files = h("section", { "aria-labelledby": "files-title" });
+  const pngs = h("section", { "aria-labelledby": "png-title" });
+
+  async function refreshResults() {
+    const artifacts = await all("/api/v1/artifacts", { job_id: job.id });
+    curves.replaceChildren(h("h2", { id: "curves-title" }, "Learning curves"), ...(await curveSection(job)));
+    files.replaceChildren(h("h2", { id: "files-title" }, "Downloads"), ...(await downloads(job)));
+    const images = await plots(job, artifacts);
+    pngs.replaceChildren(h("h2", { id: "png-title" }, "Figures from the API (PNG)"),
+      ...(images.length ? images : [h("p", { class: "muted" }, "No figures yet.")]));
+  }
+
+  let refreshing = null;
+  let lastRefresh = 0;
+  /** Redraw the results at most every 3 s while the job runs, and once when it ends. */
+  function scheduleRefresh() {
+    if (refreshing) return;
+    const wait = FINAL.has(job.status) ? 0 : Math.max(0, lastRefresh + 3000 - Date.now());
+    refreshing = setTimeout(async () => {
+      lastRefresh = Date.now();
+      try {
+        await refreshResults();
+      } catch (err) {
+        message.error(err);
+      } finally {
+        refreshing = null;
+      }
+    }, wait);
+  }
+
+  function update(next) {
+    const stepsChanged = next.steps_done !== job.steps_done || next.status !== job.status;
+    job = next;
+    bar.set(job);
+    badge.replaceChildren(statusBadge(job.status));
+    error.hidden = !job.error;
+    error.textContent = job.error || "";
+    factBox.replaceChildren(facts(job));
+    actions.replaceChildren(...jobActions(job, canEdit, message, (changed) => {
+      update(changed);
+      if (!FINAL.has(changed.status)) stop = watchJob(changed.id, update);
+    }));
+    if (stepsChanged) scheduleRefresh();
+  }
+
+  root.append(
+    h("p", { class: "crumbs" }, h("a", { href: "/jobs" }, "Jobs"), " / ", job.id.slice(0, 8),
+      job.parent_id ? [" (run of ", h("a", { href: `/jobs/${job.parent_id}` }, job.parent_id.slice(0, 8)), ")"] : ""),
+    h("h1", {}, `Job ${job.id.slice(0, 8)} `, badge),
+    h("div", { class: "inline" }, bar, actions),
+    message,
+    error,
+    factBox,
+    h("details", {}, h("summary", {}, "Configuration"), h("pre", {}, JSON.stringify(job.config, null, 2))),
+    curves,
+    pngs,
+    files,
+  );
+  let stop = FINAL.has(job.status) ? () => {} : watchJob(job.id, update);
+  update(job);
+  lastRefresh = Date.now();
+  await refreshResults();
+  window.addEventListener("pagehide", () => stop());
+}

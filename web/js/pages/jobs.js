@@ -1,0 +1,148 @@
+// Jobs: submit (staff), a list with live progress, cancel and retry.
+
+import { all, get, post } from "../api.js";
+import { fmtDateTime, h, messageBox, statusBadge } from "../dom.js";
+import { FINAL, progressBar, watchJob } from "../live.js";
+import { jobForm } from "./jobform.js";
+
+const PAGE = 50;
+const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
+const KINDS = ["guided_ppo", "reproduce", "reproduce_run", "eeg_calibration"];
+
+/** One line saying what a job runs. */
+export function jobSummary(job) {
+  const c = job.config || {};
+  if (job.kind === "guided_ppo" || job.kind === "reproduce_run") {
+    const acc = c.accuracy !== undefined && c.accuracy !== null ? ` C=${c.accuracy}` : "";
+    const steps = c.total_steps ?? c.ppo_overrides?.total_steps;
+    return `${String(c.task || "").toUpperCase()} ${c.method || ""}${acc} seed ${c.seed ?? 0}` +
+      (steps ? `, ${Number(steps).toLocaleString("en")} steps` : "");
+  }
+  if (job.kind === "reproduce") {
+    const tasks = (c.tasks || []).map((t) => t.toUpperCase()).join("+");
+    return `${tasks} ${(c.methods || []).join(", ")}; ${c.seeds ?? "?"} seed(s)`;
+  }
+  if (job.kind === "eeg_calibration") return `recording #${c.recording_id}, seed ${c.seed ?? 0}`;
+  return "";
+}
+
+/** Cancel / Retry buttons for a job (staff), reporting in ``message``. */
+export function jobActions(job, canEdit, message, onChange) {
+  if (!canEdit) return [];
+  const buttons = [];
+  if (!FINAL.has(job.status)) {
+    const cancel = h("button", { type: "button", class: "btn small danger" }, "Cancel");
+    cancel.addEventListener("click", async () => {
+      try {
+        onChange(await post(`/api/v1/jobs/${job.id}/cancel`));
+        message.show(`Cancel requested for job ${job.id.slice(0, 8)}.`);
+      } catch (err) {
+        message.error(err);
+      }
+    });
+    buttons.push(cancel);
+  } else if ((job.status === "failed" || job.status === "cancelled") && !job.parent_id) {
+    const retry = h("button", { type: "button", class: "btn small" }, "Retry");
+    retry.addEventListener("click", async () => {
+      try {
+        onChange(await post(`/api/v1/jobs/${job.id}/retry`));
+        message.show(`Job ${job.id.slice(0, 8)} queued again.`);
+      } catch (err) {
+        message.error(err);
+      }
+    });
+    buttons.push(retry);
+  }
+  return buttons;
+}
+
+export async function jobsPage(root, { canEdit, query }) {
+  document.title = "Jobs · Brain-guided RL platform";
+  const status = h("select", { id: "filter-status", name: "status" },
+    h("option", { value: "" }, "any"), STATUSES.map((s) => h("option", { value: s, selected: query.get("status") === s }, s)));
+  const kind = h("select", { id: "filter-kind", name: "kind" },
+    h("option", { value: "" }, "any"), KINDS.map((k) => h("option", { value: k, selected: query.get("kind") === k }, k)));
+  const message = messageBox();
+  const tbody = h("tbody");
+  const caption = h("caption");
+  const watchers = new Map();
+  let offset = 0;
+  const pager = h("div", { class: "pager" });
+
+  function row(job) {
+    const bar = progressBar(job);
+    const badge = h("td", {}, statusBadge(job.status));
+    const steps = h("td", { class: "num" }, job.steps_done.toLocaleString("en"));
+    const actions = h("td");
+    const tr = h("tr", { "data-job": job.id },
+      h("td", {}, h("a", { href: `/jobs/${job.id}` }, job.id.slice(0, 8))),
+      h("td", {}, job.kind, job.parent_id ? h("span", { class: "muted small" }, " run of ",
+        h("a", { href: `/jobs/${job.parent_id}` }, job.parent_id.slice(0, 8))) : ""),
+      h("td", {}, jobSummary(job)),
+      badge,
+      h("td", {}, bar),
+      steps,
+      h("td", {}, fmtDateTime(job.created_at)),
+      actions);
+    const update = (j) => {
+      bar.set(j);
+      badge.replaceChildren(statusBadge(j.status));
+      steps.textContent = j.steps_done.toLocaleString("en");
+      actions.replaceChildren(...jobActions(j, canEdit, message, (changed) => {
+        update(changed);
+        watch(changed, update);
+      }));
+    };
+    update(job);
+    watch(job, update);
+    return tr;
+  }
+
+  function watch(job, update) {
+    if (FINAL.has(job.status) || watchers.has(job.id)) return;
+    watchers.set(job.id, watchJob(job.id, (j) => {
+      update(j);
+      if (FINAL.has(j.status)) watchers.delete(j.id);
+    }));
+  }
+
+  async function load() {
+    for (const stop of watchers.values()) stop();
+    watchers.clear();
+    const page = await get("/api/v1/jobs", { status: status.value, kind: kind.value, limit: PAGE, offset });
+    caption.textContent = `${page.total} job(s)`;
+    tbody.replaceChildren(...page.items.map(row));
+    const prev = h("button", { type: "button", class: "btn small", disabled: offset === 0 }, "Newer");
+    const next = h("button", { type: "button", class: "btn small", disabled: offset + PAGE >= page.total }, "Older");
+    prev.addEventListener("click", () => { offset = Math.max(0, offset - PAGE); load(); });
+    next.addEventListener("click", () => { offset += PAGE; load(); });
+    pager.replaceChildren(...(page.total > PAGE ? [prev, " ", next] : []));
+  }
+  status.addEventListener("change", () => { offset = 0; load(); });
+  kind.addEventListener("change", () => { offset = 0; load(); });
+
+  const list = h("section", { class: "wide scroll-x" },
+    h("div", { class: "inline" },
+      h("label", { for: "filter-status" }, "Status"), status,
+      h("label", { for: "filter-kind" }, "Kind"), kind),
+    message,
+    h("table", { class: "grid", id: "jobs-table" }, caption,
+      h("thead", {}, h("tr", {}, ["Job", "Kind", "What", "Status", "Progress", "Steps", "Submitted", ""]
+        .map((label) => h("th", { scope: "col" }, label)))),
+      tbody),
+    pager);
+  let form = null;
+  if (canEdit) {
+    const hfModels = await all("/api/v1/hf-models");
+    form = h("aside", {}, jobForm(hfModels, (job) => {
+      offset = 0;
+      status.value = "";
+      kind.value = "";
+      load();
+      message.show(`Job ${job.id.slice(0, 8)} submitted.`);
+    }));
+  }
+  root.append(h("h1", {}, "Jobs"), h("div", { class: "columns" }, list, form));
+  await load();
+  window.addEventListener("pagehide", () => { for (const stop of watchers.values()) stop(); });
+}
