@@ -40,6 +40,7 @@ from services.api.settings import ApiSettings
 from services.core.artifacts import ArtifactStore
 from services.core.db.migrate import upgrade_database
 from services.core.db.session import make_engine, make_session_factory
+from services.core.logging import configure_logging
 from services.core.queue import make_celery
 from services.core.settings import load_settings
 from services.core.web import create_service_app
@@ -71,6 +72,7 @@ ROUTERS = (
 def create_app(settings: ApiSettings | None = None) -> FastAPI:
     """Build the api; ``settings`` default to the environment's ``BGRL_*`` variables."""
     settings = settings if settings is not None else load_settings(ApiSettings)
+    configure_logging(settings.log_level, json_lines=settings.log_json)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
