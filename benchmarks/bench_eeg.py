@@ -12,11 +12,18 @@ All data here is SYNTHETIC (virtual subject, :mod:`services.eeg.virtual_subject`
 * Offline preprocessing speed of a 64 ch 2048 Hz recording, as a multiple of real time.
   Peer: ``mne.io.Raw.filter(1, 40)`` + ``Raw.resample(128)`` on the same data.
 * Classifier training time on 600 epochs; peer: the 600 x 1.5 s calibration session.
+* Peak memory (RSS) of ``bgrl subject simulate``, ``bgrl eeg calibrate`` and the EEG
+  service's reading, validation and preprocessing of a recording, each in its own child
+  process (``os.wait4`` reports the child's ``ru_maxrss``), for a ``minutes`` long
+  64-channel 2048 Hz recording.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import tempfile
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -62,7 +69,7 @@ def _sweep_subject(
     n_actions: int,
     error_rate: float,
     check_linearity: bool,
-    max_epochs: int,
+    max_passes: int,
 ) -> list[dict[str, Any]]:
     """Calibrate one virtual subject (``seed``) at every quality level.
 
@@ -93,7 +100,7 @@ def _sweep_subject(
         t0 = time.perf_counter()
         X = (e0.X + np.float32(q) * delta).astype(np.float32)
         epochs = EpochSet(X, e0.y, e0.ch_names, e0.params, e0.sfreq_in, synthetic=True)
-        config = TrainingConfig(max_epochs=max_epochs)
+        config = TrainingConfig(max_passes=max_passes)
         m = train_classifier(epochs, seed=seed, config=config).metrics
         rows.append(
             {
@@ -105,7 +112,7 @@ def _sweep_subject(
                 "roc_auc": m["roc_auc"],
                 "n_epochs": m["n_epochs"],
                 "n_test": m["n_test"],
-                "best_training_epoch": m["best_training_epoch"],
+                "best_pass": m["best_pass"],
                 "seconds": time.perf_counter() - t0,
                 "linearity_check_max_rel_diff": linearity,
             }
@@ -119,7 +126,7 @@ def quality_sweep(
     n_seeds: int = 5,
     n_actions: int = 600,
     error_rate: float = 0.3,
-    max_epochs: int = 150,
+    max_passes: int = 150,
     jobs: int = 1,
     partial_path: Path | None = None,
 ) -> dict[str, Any]:
@@ -137,7 +144,7 @@ def quality_sweep(
     # Two tasks per subject (each half of the levels) balance the work over the workers.
     halves = [list(levels[: (len(levels) + 1) // 2]), list(levels[(len(levels) + 1) // 2 :])]
     tasks = [
-        (s, half, n_actions, error_rate, s == 0 and k == 0, max_epochs)
+        (s, half, n_actions, error_rate, s == 0 and k == 0, max_passes)
         for s in range(n_seeds)
         for k, half in enumerate(h for h in halves if h)
     ]
@@ -170,7 +177,7 @@ def quality_sweep(
         "n_actions": n_actions,
         "error_rate": error_rate,
         "n_seeds": n_seeds,
-        "max_epochs": max_epochs,
+        "max_passes": max_passes,
         "linearity_check_max_rel_diff": next(
             (
                 r["linearity_check_max_rel_diff"]
@@ -218,10 +225,10 @@ def bench_training(n_actions: int = 600, seed: int = 0) -> tuple[dict[str, Any],
     m = result.metrics
     figures = {
         "n_epochs": m["n_epochs"],
-        "training_epochs_run": m["training_epochs_run"],
+        "passes_run": m["passes_run"],
         "train_seconds": seconds,
         "train_cpu_seconds": cpu,
-        "seconds_per_training_epoch": seconds / m["training_epochs_run"],
+        "seconds_per_pass": seconds / m["passes_run"],
         "peer_session_seconds": session_s,
         "session_over_train_ratio": session_s / seconds,
         "test_accuracy": m["test_accuracy"],
@@ -406,6 +413,83 @@ def bench_latency(
     }
 
 
+# ----------------------------------------------------------------------------- memory
+
+MEMORY_LIMIT_MB = 1500.0
+"""Peak RSS each EEG step must stay under for a 20-minute 64-channel 2048 Hz recording."""
+
+_SERVICE_READ = """
+import sys
+from services.eeg.io import action_events, file_sha256, read_recording
+from services.eeg.preprocessing import epochs_from_raw
+raw = read_recording(sys.argv[1])  # upload: validate, count the actions, hash
+events = action_events(raw)
+file_sha256(sys.argv[1])
+epochs = epochs_from_raw(read_recording(sys.argv[1]))  # job: the epochs it trains on
+print(len(events), epochs.X.shape)
+"""
+
+
+def peak_rss_mb(command: list[str]) -> tuple[float, float]:
+    """Run ``command`` in a child process; (its peak RSS in MB, wall seconds).
+
+    ``os.wait4`` returns the rusage of that child alone (``ru_maxrss`` in KiB on Linux).
+    Raises ``RuntimeError`` with the child's stderr tail if it fails.
+    """
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile() as err:
+        child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err)
+        _, status, usage = os.wait4(child.pid, 0)
+        child.returncode = os.waitstatus_to_exitcode(status)
+        if child.returncode != 0:
+            err.seek(0)
+            tail = err.read().decode(errors="replace")[-2000:]
+            raise RuntimeError(f"{command[:4]} failed ({child.returncode}):\n{tail}")
+    return usage.ru_maxrss / 1024.0, time.perf_counter() - t0
+
+
+def bench_memory(minutes: float = 20.0, max_passes: int = 20, seed: int = 0) -> dict[str, Any]:
+    """Peak RSS of simulate, calibrate and the service's reading of a ``minutes`` recording.
+
+    Each step runs as the user runs it, in a fresh child process: ``bgrl subject simulate
+    --actions N`` (N actions of 1.5 s fill ``minutes``), ``bgrl eeg calibrate`` on that
+    file (``--max-passes`` bounds the training time; memory does not grow with passes),
+    and the EEG service's path (``read_recording`` + ``action_events`` + sha256 at upload,
+    ``read_recording`` + ``epochs_from_raw`` in the job).
+    """
+    n_actions = round(minutes * 60 / ACTION_PERIOD_S) - 2
+    bgrl = [sys.executable, "-m", "services.cli.main"]
+    with tempfile.TemporaryDirectory(prefix="bgrl-bench-memory-") as tmp:
+        recording = str(Path(tmp) / "subject.bdf")
+        steps = {
+            "simulate": [
+                *bgrl,
+                *("subject", "simulate", "--actions", str(n_actions), "--seed", str(seed)),
+                *("--out", recording),
+            ],
+            "calibrate": [
+                *bgrl,
+                *("eeg", "calibrate", recording, "--out", str(Path(tmp) / "classifier")),
+                *("--max-passes", str(max_passes), "--seed", str(seed)),
+            ],
+            "service_read_and_preprocess": [sys.executable, "-c", _SERVICE_READ, recording],
+        }
+        figures: dict[str, Any] = {}
+        for step, command in steps.items():
+            peak, seconds = peak_rss_mb(command)
+            figures[step] = {"peak_rss_mb": peak, "wall_seconds": seconds}
+        figures["recording_mb"] = Path(recording).stat().st_size / 2**20
+    return {
+        "minutes": minutes,
+        "n_actions": n_actions,
+        "n_channels": 64,
+        "sfreq": 2048.0,
+        "max_passes": max_passes,
+        "limit_mb": MEMORY_LIMIT_MB,
+        **figures,
+    }
+
+
 def run_benchmark(
     n_actions: int = 500, speed: float = 3.0, offline_minutes: float = 20.0
 ) -> dict[str, Any]:
@@ -413,12 +497,16 @@ def run_benchmark(
     import torch
 
     torch.set_num_threads(1)
+    memory = bench_memory(offline_minutes)
     training, classifier = bench_training()
     latency = bench_latency(classifier, n_actions=n_actions, speed=speed)
     offline = bench_offline_speed(offline_minutes)
     return {
         "synthetic": True,
         "summary": {
+            "peak_rss_mb_simulate": memory["simulate"]["peak_rss_mb"],
+            "peak_rss_mb_calibrate": memory["calibrate"]["peak_rss_mb"],
+            "peak_rss_mb_service_read": memory["service_read_and_preprocess"]["peak_rss_mb"],
             "decision_latency_p50_ms": latency["ours"]["p50_ms"],
             "decision_latency_p99_ms": latency["ours"]["p99_ms"],
             "mne_peer_latency_p50_ms": latency["mne_peer"]["p50_ms"],
@@ -428,6 +516,7 @@ def run_benchmark(
             "train_seconds_600_epochs": training["train_seconds"],
             "train_cpu_seconds_600_epochs": training["train_cpu_seconds"],
         },
+        "memory": memory,
         "latency": latency,
         "offline_preprocessing": offline,
         "training": training,

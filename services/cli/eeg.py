@@ -18,14 +18,20 @@ def calibrate_command(
     ],
     out: Annotated[Path, typer.Option(help="Folder for the classifier, metrics and report.")],
     seed: Annotated[int, typer.Option(help="Seed of the split, initialisation and batches.")] = 0,
-    max_epochs: Annotated[int, typer.Option(min=1, help="Upper bound on training epochs.")] = 300,
+    max_passes: Annotated[
+        int,
+        typer.Option(min=1, help="Upper bound on training passes (early stopping may end sooner)."),
+    ] = 300,
     report: Annotated[bool, typer.Option(help="Write report.png / report.html.")] = True,
     onnx: Annotated[bool, typer.Option(help="Also export model.onnx.")] = True,
 ) -> None:
     """Train and evaluate the ErrP classifier on RECORDING; writes OUT/metrics.json."""
+    import torch
+
     from services.eeg.calibration import TrainingConfig, calibrate
     from services.eeg.io import RecordingError, read_recording
 
+    torch.set_num_threads(1)  # this process only: one core, bit-reproducible runs
     try:
         raw = read_recording(recording)
     except (RecordingError, FileNotFoundError) as exc:
@@ -35,7 +41,7 @@ def calibrate_command(
             raw,
             seed=seed,
             out_dir=out,
-            config=TrainingConfig(max_epochs=max_epochs),
+            config=TrainingConfig(max_passes=max_passes),
             report=report,
             onnx=onnx,
             progress=True,
@@ -68,7 +74,7 @@ def quality_sweep_command(
     seeds: Annotated[int, typer.Option(min=1, help="Subjects (seeds) per quality level.")] = 5,
     actions: Annotated[int, typer.Option(min=60, help="Actions per calibration session.")] = 600,
     error_rate: Annotated[float, typer.Option(min=0.05, max=0.95)] = 0.3,
-    max_epochs: Annotated[int, typer.Option(min=1, help="Training epochs cap per run.")] = 150,
+    max_passes: Annotated[int, typer.Option(min=1, help="Training passes cap per run.")] = 150,
     jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
 ) -> None:
     """Simulate and calibrate virtual subjects per quality level; table of test accuracy."""
@@ -80,7 +86,7 @@ def quality_sweep_command(
         n_seeds=seeds,
         n_actions=actions,
         error_rate=error_rate,
-        max_epochs=max_epochs,
+        max_passes=max_passes,
         jobs=jobs,
         partial_path=out / "quality_sweep.partial.json",
     )
@@ -94,13 +100,29 @@ def bench_eeg(
     out: Annotated[Path, typer.Option(help="Folder for eeg.json.")] = Path("benchmarks/results"),
     actions: Annotated[int, typer.Option(min=10, help="Actions in the live LSL replay.")] = 500,
     speed: Annotated[float, typer.Option(min=0.5, help="Replay speed (x real time).")] = 3.0,
-    minutes: Annotated[float, typer.Option(min=0.5, help="Offline recording length.")] = 20.0,
+    minutes: Annotated[
+        float, typer.Option(min=0.5, help="Recording length for the offline and memory figures.")
+    ] = 20.0,
+    memory_only: Annotated[
+        bool,
+        typer.Option(
+            "--memory-only", help="Only the peak-memory figures (writes eeg_memory.json)."
+        ),
+    ] = False,
 ) -> None:
-    """Decision latency (live LSL replay), offline preprocessing speed, training time."""
-    from benchmarks.bench_eeg import run_benchmark
+    """Peak memory of simulate / calibrate / service reading, decision latency (live LSL
+    replay), offline preprocessing speed, training time."""
+    from benchmarks.bench_eeg import bench_memory, run_benchmark
 
-    result = run_benchmark(n_actions=actions, speed=speed, offline_minutes=minutes)
     out.mkdir(parents=True, exist_ok=True)
+    if memory_only:
+        memory = bench_memory(minutes)
+        path = out / "eeg_memory.json"
+        path.write_text(json.dumps(memory, indent=2))
+        typer.echo(json.dumps(memory, indent=2))
+        typer.echo(f"wrote {path}")
+        return
+    result = run_benchmark(n_actions=actions, speed=speed, offline_minutes=minutes)
     path = out / "eeg.json"
     path.write_text(json.dumps(result, indent=2))
     typer.echo(json.dumps(result["summary"], indent=2))

@@ -61,7 +61,7 @@ def simulate_command(
 ) -> None:
     """Write a virtual subject's calibration recording (SYNTHETIC) as a 24-bit BDF file."""
     from services.eeg.io import file_sha256, write_bdf
-    from services.eeg.virtual_subject import simulate_recording
+    from services.eeg.virtual_subject import SyntheticRecording
 
     if task not in ("sssg", "vssg"):
         raise typer.BadParameter(f"task must be sssg or vssg, got {task!r}", param_hint="--task")
@@ -70,12 +70,13 @@ def simulate_command(
     task_name = cast(Literal["sssg", "vssg"], task)
     labels = random_policy_labels(actions, seed=seed, task=task_name, progress=True)
     with tqdm(total=2, desc="EEG", unit="stage") as bar:
-        raw = simulate_recording(labels.tolist(), quality=quality, seed=seed)
+        recording = SyntheticRecording(labels.tolist(), quality=quality, seed=seed)
         bar.update()
-        path = write_bdf(raw, out)
+        path = write_bdf(recording, out)  # generated and written block by block
         bar.update()
     error_fraction = float(np.mean(~labels))
-    typer.echo(f"wrote {path} (SYNTHETIC, {raw.times[-1]:.0f} s, {actions} actions)")
+    duration_s = (recording.n_times - 1) / recording.info["sfreq"]
+    typer.echo(f"wrote {path} (SYNTHETIC, {duration_s:.0f} s, {actions} actions)")
     typer.echo(f"sha256 {file_sha256(path)}")
     typer.echo(f"error fraction {error_fraction:.3f}")
 

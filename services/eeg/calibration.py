@@ -1,16 +1,28 @@
 """ErrP calibration: train and evaluate EEGNet on a labelled recording (paper stage 1).
 
-Stratified, seeded 80/12/8 train/validation/test split; class-weighted cross-entropy
-(errors are the minority class); Adam; early stopping on the validation loss (the weights
-of the best validation epoch are kept); test accuracy, balanced accuracy, ROC AUC and the
-confusion matrix. ``calibrate(..., out_dir=DIR)`` writes the classifier, ``metrics.json``,
-``history.json`` and the calibration report.
+Stratified, seeded 80/12/8 train/validation/test split of the epochs (EEG trials);
+class-weighted cross-entropy (errors are the minority class); Adam; early stopping on the
+validation loss (the weights of the best training pass are kept); test accuracy, balanced
+accuracy, ROC AUC and the confusion matrix. ``calibrate(..., out_dir=DIR)`` writes the
+classifier, ``metrics.json``, ``history.json`` and the calibration report.
+
+Words: an *epoch* is one EEG trial (the window after an action); a *pass* is one sweep of
+training over the training epochs.
+
+Safe in a long-running, multi-threaded process: all randomness comes from local
+generators seeded with ``seed`` (numpy ``Generator``, ``torch.Generator`` for weights,
+dropout and minibatch order), so neither torch's global generator nor its thread count is
+touched; the results equal those of seeding the global generator with ``seed``.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,6 +44,10 @@ METRICS_FILE = "metrics.json"
 HISTORY_FILE = "history.json"
 
 
+class CalibrationCancelled(Exception):  # noqa: N818 (the name callers catch)
+    """``should_stop()`` returned True: calibration stopped between two training passes."""
+
+
 @dataclass(frozen=True)
 class TrainingConfig:
     """Hyperparameters of calibration training."""
@@ -42,7 +58,7 @@ class TrainingConfig:
     """Adam L2 penalty."""
     batch_size: int = 32
     """Minibatch size."""
-    max_epochs: int = 300
+    max_passes: int = 300
     """Upper bound on training passes over the training split."""
     patience: int = 40
     """Stop after this many passes without a lower validation loss."""
@@ -68,7 +84,7 @@ class CalibrationResult:
     Attributes
     ----------
     classifier : ErrPClassifier
-        The trained classifier (weights of the best validation epoch).
+        The trained classifier (weights of the pass with the lowest validation loss).
     metrics : dict
         Test metrics and run facts (also in ``metrics.json``).
     history : dict of list
@@ -182,6 +198,19 @@ def _run_pass(
     return total / max(1, len(y)), proba
 
 
+def _new_model(
+    n_chans: int, n_times: int, config: TrainingConfig, generator: torch.Generator
+) -> EEGNet:
+    """EEGNet initialised from ``generator`` (built on the meta device: no global draws)."""
+    with torch.device("meta"):
+        model = EEGNet(
+            n_chans, 2, n_times, kernel_length=config.kernel_length, drop_prob=config.drop_prob
+        )
+    model = model.to_empty(device="cpu")
+    model.reset_parameters(generator)
+    return model
+
+
 def train_classifier(
     epochs: EpochSet,
     *,
@@ -189,6 +218,7 @@ def train_classifier(
     config: TrainingConfig | None = None,
     split: Split | None = None,
     progress: bool = False,
+    should_stop: Callable[[], bool] | None = None,
 ) -> CalibrationResult:
     """Train EEGNet on ``epochs`` and evaluate it on the held-out test split.
 
@@ -204,6 +234,9 @@ def train_classifier(
         Use these indices instead of :func:`stratified_split`.
     progress : bool
         Show a tqdm bar over training passes.
+    should_stop : callable | None
+        Called before every training pass; when it returns True,
+        :class:`CalibrationCancelled` is raised.
 
     Returns
     -------
@@ -217,36 +250,37 @@ def train_classifier(
     if len(epochs) < 30:
         raise ValueError(f"calibration needs at least 30 epochs, got {len(epochs)}")
     split = split or stratified_split(y_all, seed=seed)
-    previous_threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        torch.manual_seed(seed)
-        generator = torch.Generator().manual_seed(seed)
-        train_X = epochs.X[split.train]
-        input_scale = 1.0 / float(train_X.std())
-        X = torch.from_numpy(np.ascontiguousarray(epochs.X * input_scale, dtype=np.float32))
-        y = torch.from_numpy(y_all.astype(np.int64))
-        n_chans, n_times = epochs.X.shape[1:]
-        model = EEGNet(
-            n_chans, 2, n_times, kernel_length=config.kernel_length, drop_prob=config.drop_prob
-        )
-        counts = np.bincount(y_all[split.train], minlength=2).astype(np.float64)
-        weights = torch.tensor(counts.sum() / (2.0 * np.maximum(counts, 1.0)), dtype=torch.float32)
-        loss_fn = nn.CrossEntropyLoss(weight=weights)
-        optimizer = torch.optim.Adam(
-            model.parameters(), lr=config.lr, weight_decay=config.weight_decay
-        )
-        history: dict[str, list[float]] = {"train_loss": [], "val_loss": [], "val_accuracy": []}
-        best_loss, best_epoch, best_state = np.inf, -1, None
-        passes = range(config.max_epochs)
-        if progress:
-            from tqdm import tqdm
+    # One stream for weights and dropout, one for minibatch order: what seeding torch's
+    # global generator and a batch generator with ``seed`` gave, without global state.
+    weights_rng = torch.Generator().manual_seed(seed)
+    batch_rng = torch.Generator().manual_seed(seed)
+    train_X = epochs.X[split.train]
+    input_scale = 1.0 / float(train_X.std())
+    X = torch.from_numpy(np.ascontiguousarray(epochs.X * input_scale, dtype=np.float32))
+    y = torch.from_numpy(y_all.astype(np.int64))
+    n_chans, n_times = epochs.X.shape[1:]
+    model = _new_model(n_chans, n_times, config, weights_rng)
+    model.set_dropout_generator(weights_rng)
+    counts = np.bincount(y_all[split.train], minlength=2).astype(np.float64)
+    weights = torch.tensor(counts.sum() / (2.0 * np.maximum(counts, 1.0)), dtype=torch.float32)
+    loss_fn = nn.CrossEntropyLoss(weight=weights)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    history: dict[str, list[float]] = {"train_loss": [], "val_loss": [], "val_accuracy": []}
+    best_loss, best_pass, best_state = np.inf, -1, None
+    passes = range(config.max_passes)
+    if progress:
+        from tqdm import tqdm
 
-            passes = tqdm(passes, desc="training", unit="epoch")
-        t0 = time.perf_counter()
-        Xtr, ytr = X[split.train], y[split.train]
-        Xva, yva = X[split.val], y[split.val]
-        for epoch in passes:
+        passes = tqdm(passes, desc="training", unit="pass")
+    t0 = time.perf_counter()
+    Xtr, ytr = X[split.train], y[split.train]
+    Xva, yva = X[split.val], y[split.val]
+    try:
+        for n_pass in passes:
+            if should_stop is not None and should_stop():
+                raise CalibrationCancelled(
+                    f"calibration cancelled after {n_pass} of at most {config.max_passes} passes"
+                )
             train_loss, _ = _run_pass(
                 model,
                 Xtr,
@@ -254,7 +288,7 @@ def train_classifier(
                 loss_fn,
                 optimizer=optimizer,
                 batch_size=config.batch_size,
-                generator=generator,
+                generator=batch_rng,
             )
             val_loss, val_proba = _run_pass(model, Xva, yva, loss_fn)
             val_acc = float(((val_proba >= 0.5) == yva.numpy().astype(bool)).mean())
@@ -262,16 +296,18 @@ def train_classifier(
             history["val_loss"].append(val_loss)
             history["val_accuracy"].append(val_acc)
             if val_loss < best_loss:
-                best_loss, best_epoch = val_loss, epoch
+                best_loss, best_pass = val_loss, n_pass
                 best_state = {k: v.clone() for k, v in model.state_dict().items()}
-            elif epoch - best_epoch >= config.patience:
+            elif n_pass - best_pass >= config.patience:
                 break
-        train_seconds = time.perf_counter() - t0
-        assert best_state is not None
-        model.load_state_dict(best_state)
-        _, test_proba = _run_pass(model, X[split.test], y[split.test], loss_fn)
     finally:
-        torch.set_num_threads(previous_threads)
+        model.set_dropout_generator(None)
+        if progress:
+            passes.close()
+    train_seconds = time.perf_counter() - t0
+    assert best_state is not None
+    model.load_state_dict(best_state)
+    _, test_proba = _run_pass(model, X[split.test], y[split.test], loss_fn)
     metrics = classification_metrics(y_all[split.test], test_proba)
     metrics.update(
         {
@@ -281,8 +317,8 @@ def train_classifier(
             "n_val": int(split.val.size),
             "n_test": int(split.test.size),
             "error_fraction": float(y_all.mean()),
-            "best_training_epoch": int(best_epoch),
-            "training_epochs_run": len(history["train_loss"]),
+            "best_pass": int(best_pass),
+            "passes_run": len(history["train_loss"]),
             "best_val_loss": float(best_loss),
             "train_seconds": train_seconds,
             "seed": seed,
@@ -319,18 +355,22 @@ def calibrate(
     report: bool = True,
     onnx: bool = False,
     progress: bool = False,
+    should_stop: Callable[[], bool] | None = None,
 ) -> CalibrationResult:
     """Preprocess (if given a recording), train, evaluate and save an ErrP classifier.
 
     Parameters
     ----------
     data : mne.io.BaseRaw | EpochSet
-        A labelled calibration recording (Status codes 1/2) or epochs made from one.
+        A labelled calibration recording (Status codes 1/2) or epochs made from one. A
+        recording may be read lazily: it is preprocessed in chunks.
     seed : int
-        Seeds the split, initialisation and minibatch order.
+        Seeds the split, initialisation, dropout and minibatch order.
     out_dir : str | Path | None
         If given, write the classifier, ``metrics.json``, ``history.json`` and (with
-        ``report``) ``report.png``/``report.html`` there.
+        ``report``) ``report.png``/``report.html`` there. The files are written to a
+        temporary sibling folder and moved in at the end (``metrics.json`` last); on any
+        failure or cancellation that folder is removed and ``out_dir`` is left as it was.
     config : TrainingConfig | None
         Training hyperparameters.
     params : PreprocessingParams | None
@@ -341,29 +381,51 @@ def calibrate(
         Also export ``model.onnx`` (a few seconds).
     progress : bool
         Show progress bars.
+    should_stop : callable | None
+        Polled before preprocessing and before every training pass (e.g. a job's cancel
+        flag); True raises :class:`CalibrationCancelled`.
 
     Returns
     -------
     CalibrationResult
+
+    Raises
+    ------
+    CalibrationCancelled
+        When ``should_stop()`` returned True.
     """
+    if should_stop is not None and should_stop():
+        raise CalibrationCancelled("calibration cancelled before it started")
     if isinstance(data, EpochSet):
         epochs = data
     else:
         epochs = epochs_from_raw(data, params, progress=progress)
-    result = train_classifier(epochs, seed=seed, config=config, progress=progress)
+    result = train_classifier(
+        epochs, seed=seed, config=config, progress=progress, should_stop=should_stop
+    )
     if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        result.classifier.save(out)
+        result.out_dir = _write_outputs(result, Path(out_dir), report=report, onnx=onnx)
+    return result
+
+
+def _write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: bool) -> Path:
+    """Write the artefacts to a temporary sibling of ``out`` and move them in."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
+    try:
+        result.classifier.save(staging)
         if onnx:
-            result.classifier.export_onnx(out)
-        (out / HISTORY_FILE).write_text(json.dumps(result.history))
+            result.classifier.export_onnx(staging)
+        (staging / HISTORY_FILE).write_text(json.dumps(result.history))
         if report:
             from services.eeg.report import write_report
 
-            write_report(result, out)
-        tmp = out / (METRICS_FILE + ".tmp")
-        tmp.write_text(json.dumps(result.metrics, indent=2))
-        tmp.replace(out / METRICS_FILE)
-        result.out_dir = out
-    return result
+            write_report(result, staging)
+        (staging / METRICS_FILE).write_text(json.dumps(result.metrics, indent=2))
+        out.mkdir(exist_ok=True)
+        names = sorted(p.name for p in staging.iterdir() if p.name != METRICS_FILE)
+        for name in [*names, METRICS_FILE]:
+            os.replace(staging / name, out / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out

@@ -15,6 +15,7 @@ On disk (``save(dir)``)::
 from __future__ import annotations
 
 import json
+import logging
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,6 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from services.core.files import write_bytes_atomic
 from services.eeg.eegnet import EEGNet, count_parameters
 from services.eeg.preprocessing import PreprocessingParams
 
@@ -32,6 +34,24 @@ STATE_FILE = "model.pt"
 TORCHSCRIPT_FILE = "model.torchscript.pt"
 ONNX_FILE = "model.onnx"
 FORMAT_VERSION = 1
+
+# Library notices that say nothing about the classifier, filtered where they arise (only
+# these messages): torch 2.13 deprecates TorchScript, which is still the portable format
+# asked for (libtorch loads it without Python); the ONNX exporter warns about a pytree API
+# it uses itself, and logs that torchvision (not used here) is missing.
+warnings.filterwarnings(
+    "ignore", message=r"`torch\.jit\.script` is deprecated", category=DeprecationWarning
+)
+warnings.filterwarnings(
+    "ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated", category=FutureWarning
+)
+
+
+def _not_torchvision_notice(record: logging.LogRecord) -> bool:
+    return "torchvision is not installed" not in record.getMessage()
+
+
+logging.getLogger("torch.onnx._internal.exporter._registration").addFilter(_not_torchvision_notice)
 
 
 class ErrorProbability(nn.Module):
@@ -173,14 +193,8 @@ class ErrPClassifier:
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         torch.save(self.model.state_dict(), directory / STATE_FILE)
-        with warnings.catch_warnings():
-            # torch 2.13 deprecates TorchScript; it is still the portable format asked for
-            # (C++/libtorch loadable, no Python needed) and exports in milliseconds.
-            warnings.simplefilter("ignore", DeprecationWarning)
-            torch.jit.script(self._proba).save(str(directory / TORCHSCRIPT_FILE))
-        tmp = directory / (CONFIG_FILE + ".tmp")
-        tmp.write_text(json.dumps(self.to_config(), indent=2))
-        tmp.replace(directory / CONFIG_FILE)
+        torch.jit.script(self._proba).save(str(directory / TORCHSCRIPT_FILE))
+        write_bytes_atomic(directory / CONFIG_FILE, json.dumps(self.to_config(), indent=2).encode())
         return directory
 
     def export_onnx(self, directory: str | Path) -> Path:
@@ -193,17 +207,15 @@ class ErrPClassifier:
         path.parent.mkdir(parents=True, exist_ok=True)
         example = torch.zeros((2, *self.epoch_shape), dtype=torch.float32)
         batch = torch.export.Dim("batch", min=1)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            program = torch.onnx.export(
-                self._proba.eval(),
-                (example,),
-                input_names=["epochs"],
-                output_names=["p_error"],
-                dynamic_shapes={"x": {0: batch}},
-                dynamo=True,
-                verbose=False,
-            )
+        program = torch.onnx.export(
+            self._proba.eval(),
+            (example,),
+            input_names=["epochs"],
+            output_names=["p_error"],
+            dynamic_shapes={"x": {0: batch}},
+            dynamo=True,
+            verbose=False,
+        )
         program.save(str(path))
         return path
 

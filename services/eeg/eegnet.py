@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -9,6 +11,30 @@ SPATIAL_MAX_NORM = 1.0
 """Max L2 norm of each depthwise spatial kernel (Lawhern et al.)."""
 DENSE_MAX_NORM = 0.25
 """Max L2 norm of each row of the dense classifier (Lawhern et al.)."""
+
+
+class GeneratorDropout(nn.Dropout):
+    """``nn.Dropout`` that draws its masks from :attr:`generator` (a local ``torch.Generator``).
+
+    With ``generator`` None it is ``nn.Dropout``, drawing from torch's global generator. The
+    mask is computed as torch's CPU dropout computes it (``bernoulli_(1 - p)``, divided by
+    ``1 - p``), so a generator seeded like the global one gives the same masks.
+    """
+
+    def __init__(self, p: float = 0.5) -> None:
+        super().__init__(p)
+        self.generator: torch.Generator | None = None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.training or self.p == 0.0:
+            return x
+        if torch.jit.is_scripting():  # TorchScript has no generator: global draws
+            return nn.functional.dropout(x, self.p, True)
+        if self.p >= 1.0:
+            return x * 0.0
+        noise = torch.empty_like(x).bernoulli_(1.0 - self.p, generator=self.generator)
+        noise.div_(1.0 - self.p)
+        return x * noise
 
 
 class EEGNet(nn.Module):
@@ -106,7 +132,7 @@ class EEGNet(nn.Module):
         self.bnorm_1 = nn.BatchNorm2d(F1 * D)
         self.elu_1 = nn.ELU()
         self.pool_1 = nn.AvgPool2d((1, pool1))
-        self.drop_1 = nn.Dropout(drop_prob)
+        self.drop_1 = GeneratorDropout(drop_prob)
         self.conv_separable_depth = nn.Conv2d(
             F1 * D, F1 * D, (1, separable_kernel_length), groups=F1 * D, bias=False
         )
@@ -114,7 +140,7 @@ class EEGNet(nn.Module):
         self.bnorm_2 = nn.BatchNorm2d(F2)
         self.elu_2 = nn.ELU()
         self.pool_2 = nn.AvgPool2d((1, pool2))
-        self.drop_2 = nn.Dropout(drop_prob)
+        self.drop_2 = GeneratorDropout(drop_prob)
         self.final_layer = nn.Linear(self.n_features, n_outputs)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -125,6 +151,31 @@ class EEGNet(nn.Module):
         x = self.conv_separable_point(self.conv_separable_depth(x))
         x = self.drop_2(self.pool_2(self.elu_2(self.bnorm_2(x))))
         return self.final_layer(torch.flatten(x, 1))
+
+    @torch.no_grad()
+    def reset_parameters(self, generator: torch.Generator | None = None) -> None:
+        """(Re)initialise every layer as torch's constructors do, drawing from ``generator``.
+
+        Convolutions and the dense layer get ``kaiming_uniform_(a=sqrt(5))`` weights (and
+        the dense bias ``U(+-1/sqrt(fan_in))``) in construction order, batch norms ones and
+        zeros; so a generator seeded with ``s`` gives the weights that ``torch.manual_seed(s)``
+        followed by the constructor gives, without touching the global generator.
+        """
+        for module in self.modules():
+            if isinstance(module, nn.Conv2d | nn.Linear):
+                nn.init.kaiming_uniform_(module.weight, a=math.sqrt(5), generator=generator)
+                if module.bias is not None:
+                    fan_in, _ = nn.init._calculate_fan_in_and_fan_out(module.weight)
+                    bound = 1.0 / math.sqrt(fan_in) if fan_in > 0 else 0.0
+                    nn.init.uniform_(module.bias, -bound, bound, generator=generator)
+            elif isinstance(module, nn.BatchNorm2d):
+                module.reset_parameters()
+
+    def set_dropout_generator(self, generator: torch.Generator | None) -> None:
+        """Draw dropout masks from ``generator`` (None: torch's global generator)."""
+        for module in self.modules():
+            if isinstance(module, GeneratorDropout):
+                module.generator = generator
 
     @torch.no_grad()
     def apply_max_norm(self) -> None:

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Literal
 import edfio
 import mne
 import numpy as np
+from mne.io.edf.edf import RawBDF, RawEDF
 
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
 from services.eeg.virtual_subject import STIM_CHANNEL, SYNTHETIC_TAG, eeg_channel_names
@@ -428,10 +429,10 @@ def _read_any(path: Path, fmt: RecordingFormat, shown: str, preload: bool) -> mn
     if fmt != "fif":
         _check_edf_layout(path, fmt, shown)
     try:
-        if fmt == "bdf":
-            raw = mne.io.read_raw_bdf(path, preload=preload, verbose="error")
+        if fmt == "bdf":  # the classes, not read_raw_*: those insist on the suffix
+            raw = RawBDF(path, preload=preload, verbose="error")
         elif fmt == "edf":
-            raw = mne.io.read_raw_edf(path, preload=preload, verbose="error")
+            raw = RawEDF(path, preload=preload, verbose="error")
         else:
             raw = mne.io.read_raw_fif(path, preload=preload, verbose="error")
     except Exception as exc:

@@ -98,12 +98,12 @@ def draw_report(result: CalibrationResult) -> Figure:
     passes = np.arange(1, len(history["train_loss"]) + 1)
     ax.plot(passes, history["train_loss"], label="train loss")
     ax.plot(passes, history["val_loss"], label="validation loss")
-    ax.axvline(metrics["best_training_epoch"] + 1, color="k", ls="--", lw=0.8, label="kept")
-    ax.set(xlabel="training epoch", ylabel="weighted cross-entropy", title="Training curves")
+    ax.axvline(metrics["best_pass"] + 1, color="k", ls="--", lw=0.8, label="kept")
+    ax.set(xlabel="training pass", ylabel="weighted cross-entropy", title="Training curves")
     ax.legend(fontsize=8)
     ax = axes[1, 1]
     ax.plot(passes, history["val_accuracy"], color="C2")
-    ax.set(xlabel="training epoch", ylabel="accuracy", title="Validation accuracy", ylim=(0, 1))
+    ax.set(xlabel="training pass", ylabel="accuracy", title="Validation accuracy", ylim=(0, 1))
 
     ax = axes[1, 2]
     cm = np.asarray(metrics["confusion_matrix"])
@@ -139,7 +139,8 @@ def write_report(result: CalibrationResult, out_dir: str | Path) -> tuple[Path, 
         "n_test",
         "error_fraction",
         "n_params",
-        "best_training_epoch",
+        "best_pass",
+        "passes_run",
         "train_seconds",
         "seed",
     )

@@ -71,7 +71,7 @@ def test_calibration_on_virtual_subject_beats_chance() -> None:
     labels = np.random.default_rng(5).random(300) >= 0.4
     epochs = epochs_from_raw(simulate_recording(labels, quality=1.0, seed=5))
     split = stratified_split(epochs.y, seed=5, fractions=(0.6, 0.15, 0.25))
-    result = train_classifier(epochs, seed=5, split=split, config=TrainingConfig(max_epochs=60))
+    result = train_classifier(epochs, seed=5, split=split, config=TrainingConfig(max_passes=60))
     m = result.metrics
     assert m["n_test"] == 75
     assert m["roc_auc"] > 0.7, m
@@ -80,7 +80,7 @@ def test_calibration_on_virtual_subject_beats_chance() -> None:
 
 def test_save_load_round_trip_and_torchscript(tmp_path) -> None:
     epochs = _toy_epochs()
-    result = calibrate(epochs, seed=1, out_dir=tmp_path, config=TrainingConfig(max_epochs=4))
+    result = calibrate(epochs, seed=1, out_dir=tmp_path, config=TrainingConfig(max_passes=4))
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     for key in ("test_accuracy", "balanced_accuracy", "roc_auc", "n_epochs", "n_params"):
         assert key in metrics
@@ -107,7 +107,7 @@ def test_onnx_export_matches_torch(tmp_path) -> None:
         epochs,
         seed=2,
         out_dir=tmp_path,
-        config=TrainingConfig(max_epochs=2),
+        config=TrainingConfig(max_passes=2),
         report=False,
         onnx=True,
     )
@@ -122,7 +122,7 @@ def test_onnx_export_matches_torch(tmp_path) -> None:
 def test_mismatched_data_is_refused() -> None:
     epochs = _toy_epochs(60)
     split = Split(np.arange(40), np.arange(40, 50), np.arange(50, 60))
-    clf = train_classifier(epochs, split=split, config=TrainingConfig(max_epochs=1)).classifier
+    clf = train_classifier(epochs, split=split, config=TrainingConfig(max_passes=1)).classifier
     clf.check_compatible(CH_NAMES, 2048.0)
     with pytest.raises(ValueError, match="missing \\['Cz'\\]"):
         clf.check_compatible([c for c in CH_NAMES if c != "Cz"], 2048.0)

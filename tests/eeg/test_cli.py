@@ -20,7 +20,7 @@ def test_cli_calibrate_tiny_bdf(tmp_path) -> None:
     path = write_bdf(simulate_recording(labels, quality=1.0, seed=2), tmp_path / "tiny.bdf")
     out = tmp_path / "model"
     result = runner.invoke(
-        app, ["eeg", "calibrate", str(path), "--out", str(out), "--seed", "1", "--max-epochs", "3"]
+        app, ["eeg", "calibrate", str(path), "--out", str(out), "--seed", "1", "--max-passes", "3"]
     )
     assert result.exit_code == 0, result.output
     assert "SYNTHETIC" in result.output

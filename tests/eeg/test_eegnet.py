@@ -47,3 +47,30 @@ def test_scriptable_and_rebuildable_from_hparams() -> None:
     clone = EEGNet(**model.hparams).eval()
     clone.load_state_dict(model.state_dict())
     torch.testing.assert_close(clone(x), model(x))
+
+
+def test_reset_parameters_from_a_generator_equals_global_seeding() -> None:
+    """Seeded init without the global generator gives torch's own initial weights."""
+    torch.manual_seed(7)
+    reference = EEGNet(64, 2, 103)
+    state = torch.random.get_rng_state()
+    model = EEGNet(64, 2, 103)
+    model.reset_parameters(torch.Generator().manual_seed(7))
+    for (name, a), b in zip(reference.state_dict().items(), model.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, msg=name)
+    assert not torch.equal(torch.random.get_rng_state(), state)  # the constructor drew
+    model.reset_parameters(torch.Generator().manual_seed(7))
+    torch.testing.assert_close(model.final_layer.bias, reference.final_layer.bias)
+
+
+def test_generator_dropout_matches_torch_dropout_and_leaves_global_rng() -> None:
+    x = torch.randn(4, 8, 1, 18)
+    torch.manual_seed(3)
+    expected = torch.nn.functional.dropout(x, p=0.25, training=True)
+    model = EEGNet(16, 2, 103).train()
+    model.set_dropout_generator(torch.Generator().manual_seed(3))
+    state = torch.random.get_rng_state()
+    torch.testing.assert_close(model.drop_1(x), expected, rtol=0, atol=0)
+    assert torch.equal(torch.random.get_rng_state(), state)
+    model.eval()
+    assert torch.equal(model.drop_1(x), x)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import datetime
 import hashlib
+import logging
 
 import mne
 import numpy as np
@@ -11,12 +13,15 @@ import pytest
 from services.eeg.io import (
     RecordingError,
     action_events,
+    detect_format,
     file_sha256,
+    format_mismatch,
     is_synthetic,
     read_recording,
+    validate_recording,
     write_bdf,
 )
-from services.eeg.virtual_subject import STIM_CHANNEL, simulate_recording
+from services.eeg.virtual_subject import STIM_CHANNEL, SyntheticRecording, simulate_recording
 
 SFREQ = 512.0
 LABELS = [True, False, False, True, False, False, True, False]
@@ -87,7 +92,7 @@ def test_validation_errors_name_the_problem(raw, tmp_path):
     with pytest.raises(RecordingError, match="unsupported format"):
         read_recording(tmp_path / "notes.txt")
     (tmp_path / "junk.bdf").write_bytes(b"not a bdf file at all" * 20)
-    with pytest.raises(RecordingError, match="not a readable BDF"):
+    with pytest.raises(RecordingError, match=r"junk\.bdf: not a readable BDF, EDF or FIF file"):
         read_recording(tmp_path / "junk.bdf")
 
     with pytest.raises(RecordingError, match="sampling rate 128 Hz"):
@@ -138,3 +143,97 @@ def test_cli_subject_simulate_writes_a_valid_synthetic_bdf(tmp_path):
     np.testing.assert_allclose(np.diff(events[:, 0]) / recording.info["sfreq"], 1.5)
     bad = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "subject.edf")])
     assert bad.exit_code != 0 and not (tmp_path / "subject.edf").exists()
+
+
+MEAS_DATE = datetime.datetime(2026, 11, 1, 12, 30, 5, tzinfo=datetime.UTC)
+
+
+def test_format_comes_from_the_header_not_the_name(raw, tmp_path, caplog):
+    """A BDF named .edf is read as BDF (it used to yield fake actions) and the mismatch is told."""
+    bdf = write_bdf(raw, tmp_path / "rec.bdf")
+    misnamed = bdf.rename(tmp_path / "rec.edf")
+    assert detect_format(misnamed) == "bdf"
+    with caplog.at_level(logging.WARNING, logger="services.eeg.io"):
+        back = read_recording(misnamed)
+    note = "rec.edf: the file's header says BDF, not EDF; it is read as BDF"
+    assert caplog.messages == [note]
+    assert format_mismatch("rec.edf", "bdf") == note
+    assert format_mismatch("rec.bdf", "bdf") is None
+    np.testing.assert_array_equal(action_events(back), action_events(raw))
+    fif = tmp_path / "rec_raw.fif"
+    raw.save(fif, verbose="error")
+    assert detect_format(fif) == "fif"
+    assert detect_format(fif.rename(tmp_path / "rec.bdf")) == "fif"
+    assert len(action_events(read_recording(tmp_path / "rec.bdf"))) == len(LABELS)
+
+
+def test_truncated_bdf_is_refused_with_the_reason(raw, tmp_path):
+    path = write_bdf(raw, tmp_path / "rec.bdf")
+    data = path.read_bytes()
+    header = 256 * (len(raw.ch_names) + 1)
+    record = len(raw.ch_names) * int(SFREQ) * 3  # 1 s records of 24-bit samples
+    assert len(data) == header + 16 * record
+    cut = tmp_path / "cut.bdf"
+    cut.write_bytes(data[: header + 5 * record + record // 2])
+    with pytest.raises(RecordingError) as info:
+        read_recording(cut)
+    assert str(info.value) == (
+        "cut.bdf: truncated: the header declares 16 data records (16 s) but the file holds "
+        f"5 complete records (5 s); {10 * record + record // 2} bytes are missing (was the "
+        "copy or upload cut short?)"
+    )
+    cut.write_bytes(data + b"\0" * 10)
+    with pytest.raises(RecordingError, match="10 bytes follow the 16 data records"):
+        read_recording(cut)
+
+
+def test_error_messages_name_the_file_never_its_folder(raw, tmp_path):
+    """A broken FIF's message used to show the server's path; it names the upload only."""
+    good = tmp_path / "good_raw.fif"
+    raw.save(good, verbose="error")
+    stored = tmp_path / "store" / ".upload-x1y2.fif"
+    stored.parent.mkdir()
+    stored.write_bytes(good.read_bytes()[:36] + b"\0" * 64)  # a FIF file-id tag, then junk
+    with pytest.raises(RecordingError) as info:
+        read_recording(stored, name="my session.fif")
+    message = str(info.value)
+    assert message == (
+        "my session.fif: not a readable FIF file (file my session.fif does not have a "
+        "directory pointer)"
+    )
+    assert str(tmp_path) not in message and "upload" not in message
+    with pytest.raises(RecordingError, match=r"^gone\.bdf: no such file$"):
+        read_recording(tmp_path / "nowhere" / "x.bdf", name="/client/dir/gone.bdf")
+
+
+def test_generator_blocks_equal_the_recording_and_the_previous_generator(tmp_path):
+    """Block-wise generation gives the samples the one-shot generator gave (pinned hash)."""
+    labels = (np.random.default_rng(0).random(90) < 0.7).tolist()
+    recording = SyntheticRecording(labels, quality=0.7, seed=3)
+    assert recording.n_times == 284672  # two generation blocks of 2**18 samples
+    blocks = [block for _, block in recording.iter_chunks()]
+    assert [b.dtype for b in blocks] == [np.float32, np.float32]
+    data = np.concatenate(blocks, axis=1)
+    assert hashlib.sha256(data.tobytes()).hexdigest() == (
+        "6b57b1a74caf64a1f9a7de96fcf1ed39acb655711eeab7ee5fc04980e49bfebc"
+    )
+    # The chunked BDF writer gives the bytes edfio's whole-array writer gave.
+    recording.info.set_meas_date(MEAS_DATE)
+    raw = recording.to_raw()
+    np.testing.assert_array_equal(raw.get_data(), data)  # a second pass: the same samples
+    written = write_bdf(recording, tmp_path / "generated.bdf")
+    assert file_sha256(written) == (
+        "57372e8095dfac0859ff96fdbc64f9da0a437c2ddb3ce321a44c5814fd95f7b8"
+    )
+
+
+def test_flat_check_is_exact_under_a_large_dc_offset(raw):
+    """Chunked validation keeps a 30 mV offset from hiding (or faking) a flat channel."""
+    shifted = raw.copy()
+    rng = np.random.default_rng(0)
+    k = shifted.ch_names.index("Cz")
+    shifted._data[k] = 0.03 + 2e-9 * rng.standard_normal(shifted.n_times)
+    validate_recording(shifted)  # 2 nV noise on 30 mV: not flat
+    shifted._data[k] = 0.03 + 0.5e-9 * rng.standard_normal(shifted.n_times)
+    with pytest.raises(RecordingError, match=r"flat channels \(std < 1 nV\): Cz"):
+        validate_recording(shifted, name="x")
