@@ -8,7 +8,10 @@ worker died, never runs a job twice at once.
 
 Brokers: ``BGRL_BROKER_URL`` (Redis in a deployment, e.g. ``redis://127.0.0.1:6379/0``), or
 by default kombu's filesystem transport under ``<data_dir>/broker``, which needs no server and
-works between processes of one host. Neither is trusted to keep an unacknowledged message
+works between processes of one host. Its messages are written atomically here
+(:class:`AtomicFilesystemTransport`): kombu's own writer creates the file before it writes
+it, and a worker polling at that instant takes the empty file, loses the message and dies.
+Neither broker is trusted to keep an unacknowledged message
 when a worker is killed (the filesystem transport holds it in the dead process's memory,
 Redis gives it back only after ``visibility_timeout``): the reaper of expired leases covers
 both. Results are not stored in Celery (no result backend): they are written to the job row.
@@ -16,10 +19,16 @@ both. Results are not stored in Celery (no result backend): they are written to 
 
 from __future__ import annotations
 
+import os
+import uuid
 from pathlib import Path
+from time import monotonic
 from typing import TYPE_CHECKING, Any
 
 from celery import Celery
+from kombu.transport import TRANSPORT_ALIASES, filesystem
+from kombu.utils.encoding import str_to_bytes
+from kombu.utils.json import dumps
 
 if TYPE_CHECKING:
     from services.core.platform import PlatformSettings
@@ -44,19 +53,49 @@ FILESYSTEM_POLL_S = 0.2
 """How often a worker on the embedded filesystem broker looks for new messages."""
 
 
+EMBEDDED_SCHEME = "bgrl-filesystem"
+"""Transport alias of the embedded broker (kombu's filesystem transport, atomic writes)."""
+
+
+class _AtomicFilesystemChannel(filesystem.Channel):
+    """kombu's filesystem channel, but a message appears in the queue folder only complete:
+    it is written under a name no reader matches, then renamed into place."""
+
+    def _put(self, queue: str, payload: Any, **kwargs: Any) -> None:
+        name = f"{round(monotonic() * 1000)}_{uuid.uuid4()}.{queue}.msg"
+        folder = Path(self.data_folder_out)
+        tmp = folder / f"incoming-{uuid.uuid4().hex}.part"
+        try:
+            with tmp.open("wb") as handle:
+                handle.write(str_to_bytes(dumps(payload)))
+            os.replace(tmp, folder / name)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise filesystem.ChannelError(f"cannot add a message to {folder}") from exc
+
+
+class AtomicFilesystemTransport(filesystem.Transport):
+    """The embedded broker's transport (see :class:`_AtomicFilesystemChannel`)."""
+
+    Channel = _AtomicFilesystemChannel
+
+
+TRANSPORT_ALIASES[EMBEDDED_SCHEME] = f"{__name__}:AtomicFilesystemTransport"
+
+
 def embedded_broker_dir(settings: PlatformSettings) -> Path:
     """Folder of the embedded filesystem broker: ``<data_dir>/broker`` (absolute)."""
     return (settings.data_dir / "broker").resolve()
 
 
 def broker_url(settings: PlatformSettings) -> str:
-    """``BGRL_BROKER_URL``, or ``filesystem://`` (the embedded broker)."""
-    return settings.broker_url or "filesystem://"
+    """``BGRL_BROKER_URL``, or the embedded filesystem broker's URL."""
+    return settings.broker_url or f"{EMBEDDED_SCHEME}://"
 
 
 def uses_embedded_broker(settings: PlatformSettings) -> bool:
     """True when jobs go through the filesystem broker under the data folder."""
-    return broker_url(settings).startswith("filesystem:")
+    return broker_url(settings).startswith((f"{EMBEDDED_SCHEME}:", "filesystem:"))
 
 
 def _transport_options(settings: PlatformSettings) -> dict[str, Any]:

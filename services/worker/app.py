@@ -8,6 +8,7 @@ jobs whose lease expired (their worker died) and parents whose child jobs are al
 
 from __future__ import annotations
 
+import importlib
 import logging
 import threading
 from typing import Any
@@ -19,20 +20,26 @@ from celery.signals import worker_ready, worker_shutdown
 from services.core.db import jobs as job_rows
 from services.core.queue import TASK_NAMES, enqueue_job, make_celery
 from services.core.settings import load_settings
-from services.worker.calibration import eeg_calibration
-from services.worker.reproduce import reproduce
 from services.worker.runtime import Handler, Runtime, run_job
 from services.worker.settings import WorkerSettings
-from services.worker.training import guided_ppo, reproduce_run
 
 logger = logging.getLogger(__name__)
 
-HANDLERS: dict[str, Handler] = {
-    "guided_ppo": guided_ppo,
-    "reproduce": reproduce,
-    "reproduce_run": reproduce_run,
-    "eeg_calibration": eeg_calibration,
+HANDLERS: dict[str, str] = {
+    "guided_ppo": "services.worker.training:guided_ppo",
+    "reproduce": "services.worker.reproduce:reproduce",
+    "reproduce_run": "services.worker.training:reproduce_run",
+    "eeg_calibration": "services.worker.calibration:eeg_calibration",
 }
+"""Handler of each job kind, imported on first use (a worker that only trains never loads
+the EEG pipeline, which takes seconds to import)."""
+
+
+def load_handler(kind: str) -> Handler:
+    """The handler function of a job kind."""
+    module, _, name = HANDLERS[kind].partition(":")
+    handler: Handler = getattr(importlib.import_module(module), name)
+    return handler
 
 
 def create_runtime(settings: WorkerSettings | None = None) -> Runtime:
@@ -40,14 +47,14 @@ def create_runtime(settings: WorkerSettings | None = None) -> Runtime:
     settings = settings or load_settings(WorkerSettings)
     celery = make_celery(settings)
     runtime = Runtime(settings=settings, celery=celery)
-    for kind, handler in HANDLERS.items():
-        _register(celery, runtime, kind, handler)
+    for kind in HANDLERS:
+        _register(celery, runtime, kind)
     return runtime
 
 
-def _register(celery: Celery, runtime: Runtime, kind: str, handler: Handler) -> None:
+def _register(celery: Celery, runtime: Runtime, kind: str) -> None:
     def task(job_id: str) -> str:
-        return run_job(runtime, job_id, handler)
+        return run_job(runtime, job_id, load_handler(kind))
 
     task.__name__ = task.__qualname__ = kind
     task.__doc__ = f"Run the {kind} job with this id (idempotent by job id)."

@@ -39,7 +39,7 @@ def eeg_calibration(context: JobContext) -> JobOutcome:
         raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
     recording_id = _int(config, "recording_id", None, 1)
     seed = _int(config, "seed", 0, 0)
-    max_passes = _int(config, "max_passes", TrainingConfig().max_epochs, 1)
+    max_passes = _int(config, "max_passes", TrainingConfig().max_passes, 1)
     with context.runtime.sessions() as session:
         row = session.execute(
             select(Recording, Artifact.relpath, LabSession.subject_id)
@@ -62,7 +62,7 @@ def eeg_calibration(context: JobContext) -> JobOutcome:
                 raw,
                 seed=seed,
                 out_dir=out,
-                config=TrainingConfig(max_epochs=max_passes),
+                config=TrainingConfig(max_passes=max_passes),
                 report=bool(config.get("report", True)),
                 onnx=bool(config.get("onnx", True)),
             )

@@ -23,6 +23,9 @@ import torch
 from services.learner.ppo import Callback
 from services.learner.runs import RunRecord, run_one
 from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec
+from services.sim.maps import DEFAULT_MAP_PATH, load_map
+from services.sim.oracle import Oracle
+from services.sim.settings import SimSettings
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome
 
 PROGRESS_EVERY_S = 1.0
@@ -36,7 +39,13 @@ GUIDED_PPO_FIELDS = frozenset(
 
 
 class JobProgress(Callback):
-    """Writes steps done, progress and the SPL curve to the job row; stops on request."""
+    """Writes steps done, progress and the SPL curve to the job row.
+
+    On cancel (or a lost lease) it raises :class:`JobStoppedError` at the next step, which
+    leaves training at once: returning False would finish the rollout, the update and the
+    policy export first (seconds), and the job is not kept anyway. The latest periodic
+    checkpoint stays in the store.
+    """
 
     def __init__(self, context: JobContext, total_steps: int, curve: list[list[float]]) -> None:
         self.context = context
@@ -45,7 +54,8 @@ class JobProgress(Callback):
         self.last_write = 0.0
 
     def on_step(self, global_step: int, info: dict[str, Any]) -> bool:
-        return not self.context.stopped
+        self.context.check_stop()
+        return True
 
     def on_update(self, global_step: int, metrics: dict[str, float]) -> bool:
         now = time.monotonic()
@@ -54,7 +64,7 @@ class JobProgress(Callback):
             self.context.update(
                 steps_done=global_step, progress=min(global_step / self.total_steps, 0.99)
             )
-        return not self.context.stopped
+        return True
 
     def on_eval(self, global_step: int, spl: float) -> bool:
         self.curve.append([int(global_step), float(spl)])
@@ -63,7 +73,7 @@ class JobProgress(Callback):
             progress=min(global_step / self.total_steps, 0.99),
             curve=list(self.curve),
         )
-        return not self.context.stopped
+        return True
 
 
 def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
@@ -117,15 +127,26 @@ def weights_sha256(model_path: Path) -> str:
     return digest.hexdigest()
 
 
+def warm_oracle(spec: RunSpec, data_dir: Path) -> None:
+    """Load the map's oracle lattice into this process from the disk cache (or build and
+    cache it there): the environments of the run then find it in memory instead of
+    rebuilding it (seconds) in every worker process."""
+    cache_dir = SimSettings(data_dir=data_dir).oracle_cache_dir
+    nav_map = load_map(spec.map_path if spec.map_path is not None else DEFAULT_MAP_PATH)
+    Oracle.for_map(nav_map, cache_dir)
+
+
 def train_spec(context: JobContext, spec: RunSpec, checkpoint_every: int) -> JobOutcome:
     """Run ``spec`` for the job, resuming from its checkpoint if one exists."""
     total_steps = spec.ppo_config().total_steps
+    warm_oracle(spec, context.runtime.settings.data_dir)
     checkpoint = context.job_dir("checkpoint") / "checkpoint.pt"
     curve: list[list[float]] = []
     if checkpoint.exists():
         step, curve = checkpoint_progress(checkpoint)
         context.update(resumed_from_step=step, steps_done=step, curve=curve)
     context.watch_checkpoint(checkpoint)
+    context.check_stop()
     with tempfile.TemporaryDirectory(prefix="bgrl-job-") as work_dir:
         model_path = Path(work_dir) / "policy.pt"
         record: RunRecord = run_one(

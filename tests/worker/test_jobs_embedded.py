@@ -1,0 +1,159 @@
+"""Jobs end to end through real ``bgrl worker`` processes on the embedded platform (SQLite and
+the filesystem broker): lifecycle, duplicate delivery, bad config, retries, cancel,
+reproduction fan-out, and a worker SIGKILLed mid-job. The tests share two workers and run
+in file order (the SIGKILL test is last)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+
+import pytest
+import torch
+
+from services.core.artifacts import sha256_file
+from services.core.db.models import Artifact, Job
+from services.core.queue import enqueue_job
+from tests.worker.conftest import TINY_PPO, Platform
+
+pytestmark = pytest.mark.slow
+
+GUIDED = {"task": "SSSG", "method": "rl_sparse", "seed": 3, "ppo": TINY_PPO}
+
+
+@pytest.fixture(scope="module")
+def workers(fs_platform: Platform) -> list:
+    return [fs_platform.start_worker("w1"), fs_platform.start_worker("w2")]
+
+
+def artifact(platform: Platform, artifact_id: str) -> Artifact:
+    with platform.sessions() as session:
+        row = session.get(Artifact, artifact_id)
+        assert row is not None
+        return row
+
+
+def test_guided_ppo_lifecycle_and_duplicate_delivery(fs_platform: Platform, workers: list) -> None:
+    job_id = fs_platform.submit("guided_ppo", {**GUIDED, "total_steps": 1024})
+    enqueue_job(fs_platform.celery, job_id, "guided_ppo")  # a duplicate message
+    job = fs_platform.wait(job_id, {"succeeded", "failed"}, timeout=90)
+    assert job.status == "succeeded", job.error
+    assert job.attempts == 1  # the duplicate found the job leased or finished: never run twice
+    assert job.progress == 1.0
+    assert job.steps_done == 1024
+    assert [step for step, _ in job.curve] == [0, 256, 512, 768, 1024]
+    assert job.result["curve"] == job.curve
+    assert job.result["seed"] == 3 and job.result["method"] == "rl_sparse"
+    assert job.lease_owner is None and job.finished_at is not None
+    model = artifact(fs_platform, job.model_artifact_id)
+    path = fs_platform.settings.resolved_artifact_dir / model.relpath
+    assert model.kind == "model" and model.sha256 == sha256_file(path)
+    policy = torch.jit.load(str(path))
+    assert policy(torch.zeros(1, 13)).shape == (1, 3)  # normalisation + actor, raw observations
+    checkpoint = artifact(fs_platform, job.checkpoint_artifact_id)
+    assert checkpoint.kind == "checkpoint" and checkpoint.relpath.endswith("checkpoint.pt")
+
+
+def test_bad_config_fails_at_once_naming_the_field(fs_platform: Platform, workers: list) -> None:
+    job_id = fs_platform.submit("guided_ppo", {**GUIDED, "total_steps": 512, "max_epoch": 3})
+    job = fs_platform.wait(job_id, {"failed", "succeeded"})
+    assert job.status == "failed"
+    assert job.attempts == 1
+    assert job.error == "unknown config field(s) ['max_epoch']"
+
+
+def test_failed_attempts_are_bounded_then_retry_succeeds(
+    fs_platform: Platform, workers: list
+) -> None:
+    config = {**GUIDED, "total_steps": 512}
+    with fs_platform.sessions() as session:
+        job = Job(kind="guided_ppo", config=config, max_attempts=2)
+        session.add(job)
+        session.commit()
+        job_id = job.id
+    checkpoint = fs_platform.settings.resolved_artifact_dir / f"checkpoint/job-{job_id}"
+    checkpoint.mkdir(parents=True)
+    (checkpoint / "checkpoint.pt").write_bytes(b"not a checkpoint")  # every attempt fails
+    enqueue_job(fs_platform.celery, job_id, "guided_ppo")
+    job = fs_platform.wait(job_id, {"failed", "succeeded"})
+    assert job.status == "failed"
+    assert job.attempts == 2  # retried once, then given up
+    assert job.error.startswith("UnpicklingError")
+    assert "Traceback" in job.traceback
+
+    (checkpoint / "checkpoint.pt").unlink()
+    fs_platform.set(job_id, status="queued", attempts=0, error=None, traceback=None)  # the api
+    enqueue_job(fs_platform.celery, job_id, "guided_ppo")
+    job = fs_platform.wait(job_id, {"failed", "succeeded"})
+    assert job.status == "succeeded", job.error
+    assert job.attempts == 1 and job.error is None
+
+
+def test_cancel_stops_a_running_job_within_5_s(fs_platform: Platform, workers: list) -> None:
+    job_id = fs_platform.submit("guided_ppo", {**GUIDED, "total_steps": 200_000})
+    fs_platform.wait(job_id, lambda job: job.status == "running" and job.steps_done > 0)
+    asked = time.monotonic()
+    fs_platform.set(job_id, cancel_requested=True)  # what POST /jobs/{id}/cancel does
+    job = fs_platform.wait(job_id, {"cancelled", "failed", "succeeded"}, timeout=10, poll=0.05)
+    took = time.monotonic() - asked
+    assert job.status == "cancelled"
+    assert took < 5.0, f"cancel took {took:.1f} s"
+    assert job.lease_owner is None and job.steps_done < 200_000
+
+
+def test_reproduce_fans_out_and_writes_the_reproduction(
+    fs_platform: Platform, workers: list
+) -> None:
+    config = {
+        "seeds": 1,
+        "first_seed": 2,
+        "tasks": "sssg",
+        "methods": ["rl_sparse", "rl_rich"],
+        "ppo": {**TINY_PPO, "total_steps": 512},
+    }
+    job_id = fs_platform.submit("reproduce", config)
+    job = fs_platform.wait(job_id, {"succeeded", "failed"}, timeout=120)
+    assert job.status == "succeeded", job.error
+    assert job.result["runs"] == 2 and job.result["succeeded"] == 2
+    assert job.result["failed"] == []
+    names = set(job.result["artifacts"])
+    assert {"results.json", "results.csv", "summary.md", "summary.json"} <= names
+    assert any(name.endswith(".png") for name in names)
+    results = artifact(fs_platform, job.result["artifacts"]["results.json"])
+    data = json.loads((fs_platform.settings.resolved_artifact_dir / results.relpath).read_text())
+    assert sorted(run["method"] for run in data["runs"]) == ["rl_rich", "rl_sparse"]
+    assert data["config"]["job"]["id"] == job_id
+    assert data["failed"] == []
+
+
+def test_sigkill_mid_job_resumes_from_checkpoint_with_the_same_result(
+    fs_platform: Platform, workers: list
+) -> None:
+    config = {**GUIDED, "seed": 5, "total_steps": 2048, "checkpoint_every": 2}
+    reference = fs_platform.submit("guided_ppo", config)
+    victim = fs_platform.submit("guided_ppo", config)
+
+    def checkpointed(job) -> bool:
+        return job.checkpoint_artifact_id is not None and job.steps_done >= 768
+
+    job = fs_platform.wait(victim, checkpointed, timeout=90, poll=0.05)
+    owner = job.lease_owner
+    assert owner is not None
+    killed = next(p for p in workers if owner.endswith(f"-{p.pid}"))
+    os.kill(killed.pid, signal.SIGKILL)
+    killed.wait()
+    assert fs_platform.job(victim).status == "running"  # the row still says so: lease pending
+
+    replacement = fs_platform.start_worker("w3")
+    workers.append(replacement)
+    done = fs_platform.wait(victim, {"succeeded", "failed"}, timeout=120)
+    ref = fs_platform.wait(reference, {"succeeded", "failed"}, timeout=120)
+    assert done.status == ref.status == "succeeded", (done.error, ref.error)
+    assert done.attempts == 2
+    assert done.resumed_from_step is not None and 0 < done.resumed_from_step < 2048
+    assert done.resumed_from_step % 256 == 0  # a checkpoint every 2 updates of 128 steps
+    for key in ("curve", "final_spl", "n_episodes", "training_episodes", "weights_sha256"):
+        assert done.result[key] == ref.result[key], key
+    assert done.curve == ref.curve
