@@ -33,16 +33,24 @@ mock-up only learned with 1/100). Time-limit truncation is bootstrapped with
 Determinism and resume. All randomness comes from ``config.seed`` through one
 ``numpy.random.SeedSequence`` (:mod:`services.learner.seeding`): torch init (under a forked
 RNG), a numpy Generator for sampling and minibatches, and the training reset seeds are
-separate child streams, disjoint from the evaluation starts.
-Checkpoints are written at update boundaries; resuming re-seeds the env and replays the
-current episode's actions (the env is deterministic), so a resumed run ends identically.
+separate child streams, disjoint from the evaluation starts. Checkpoints
+(:mod:`services.learner.checkpoint`) are written at update boundaries; a resumed run ends
+exactly as an uninterrupted one.
+
+Speed. The actor and critic are evaluated together (:class:`~services.learner.networks.TwinMLP`)
+and optimised by :class:`~services.learner.optimizer.FlatAdam` (clip + Adam on one flat
+buffer); the tests check both against a plain ``nn.Linear`` / ``torch.optim.Adam`` /
+``Categorical`` PPO to a tolerance.
+
+Reading order: :class:`PPOConfig`, :func:`hf_epsilon`, :class:`ActorCritic`,
+:func:`compute_advantages`, :func:`ppo_loss`, then :func:`train` (1. rollout with the
+behaviour policy, 2. advantages and returns, 3. minibatch updates).
 """
 
 from __future__ import annotations
 
-import json
 import time
-import warnings
+from contextlib import closing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -52,13 +60,15 @@ import numpy as np
 import torch
 from torch import nn
 
+from services.learner.checkpoint import Checkpoint, RunState, load_checkpoint, save_checkpoint
 from services.learner.evaluation import evaluate_spl
 from services.learner.feedback import HFPolicy
-from services.learner.networks import FlatAdam, ObsNormalizer, TwinMLP
-from services.learner.seeding import RunSeeds, Stream, TrainingResets, evaluation_reset_seeds
+from services.learner.networks import ObsNormalizer, TwinMLP
+from services.learner.optimizer import FlatAdam
+from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
+from services.learner.training import Callback, TrainResult
 
 HFTreatment = Literal["authors", "truncated_is"]
-CHECKPOINT_VERSION = 2
 
 
 @dataclass
@@ -181,24 +191,6 @@ class ActorCritic(nn.Module):
         return out[0], out[1, :, 0]
 
 
-class PolicyExport(nn.Module):
-    """What TorchScript export contains: normalisation + actor. ``forward`` gives logits."""
-
-    def __init__(self, agent: ActorCritic) -> None:
-        super().__init__()
-        self.agent = agent
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        """Action logits for raw (unnormalised) observations, one or a batch."""
-        logits, _ = self.agent(obs)
-        return logits
-
-    @torch.jit.export
-    def act(self, obs: torch.Tensor) -> torch.Tensor:
-        """Greedy action(s)."""
-        return torch.argmax(self.forward(obs), dim=-1)
-
-
 def compute_advantages(
     rewards: np.ndarray,
     values: np.ndarray,
@@ -291,113 +283,41 @@ def ppo_loss(
     return loss, stats
 
 
-class Callback:
-    """Progress hooks; each returns False to stop training (SB3 style)."""
-
-    def on_step(self, global_step: int, info: dict[str, Any]) -> bool:
-        """After every env step."""
-        return True
-
-    def on_update(self, global_step: int, metrics: dict[str, float]) -> bool:
-        """After every PPO update (metrics named like CleanRL's)."""
-        return True
-
-    def on_eval(self, global_step: int, spl: float) -> bool:
-        """After every SPL evaluation."""
-        return True
-
-
 @dataclass
-class TrainResult:
-    """Outcome of :func:`train`."""
+class Rollout:
+    """The storage of one rollout of ``n_steps`` (CleanRL's buffers), reused every update."""
 
-    config: PPOConfig
-    agent: ActorCritic
-    curve: list[tuple[int, float]]
-    """``(env_steps, SPL of the greedy pi_RL)`` at every evaluation."""
-    metrics: list[dict[str, float]]
-    """One CleanRL-named metrics dict per update."""
-    global_step: int
-    n_episodes: int
-    n_hf_episodes: int
-    episodes: list[tuple[int, int, bool, bool, bool]]
-    """Per finished training episode: (env step at its end, length, success, collision,
-    followed pi_HF)."""
-    stopped_early: bool
-    wall_seconds: float
+    obs: np.ndarray
+    actions: np.ndarray
+    pi_logp: np.ndarray
+    """log pi_RL(a_t|s_t) of the policy that collected the rollout."""
+    mu_logp: np.ndarray
+    """log mu(a_t|s_t) of the behaviour policy (0 for greedy pi_HF steps, pi_logp for RL)."""
+    is_hf: np.ndarray
+    rewards: np.ndarray
+    """Scaled reward, plus gamma * V(s_T) where a time limit cut the episode."""
+    values: np.ndarray
+    ends: np.ndarray
 
-    @property
-    def final_spl(self) -> float:
-        """SPL at the last evaluation."""
-        return self.curve[-1][1]
-
-    def act(self, obs: np.ndarray) -> int:
-        """Greedy action of the trained policy."""
-        with torch.no_grad():
-            logits, _ = self.agent(torch.as_tensor(np.asarray(obs, dtype=np.float32)))
-        return int(torch.argmax(logits))
-
-    def export_torchscript(self, path: str | Path) -> Path:
-        """Save normalisation + actor as TorchScript (``torch.jit.load`` needs no project)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with warnings.catch_warnings():  # TorchScript is deprecated but still the format
-            warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit.load reads anywhere
-            scripted = torch.jit.script(PolicyExport(self.agent).eval())
-        meta = {"config": asdict(self.config), "final_spl": self.final_spl}
-        scripted.save(str(path), _extra_files={"bgrl_meta.json": json.dumps(meta)})
-        return path
+    @classmethod
+    def empty(cls, n_steps: int, n_obs: int) -> Rollout:
+        """Zeroed buffers."""
+        return cls(
+            obs=np.zeros((n_steps, n_obs), dtype=np.float32),
+            actions=np.zeros(n_steps, dtype=np.int64),
+            pi_logp=np.zeros(n_steps, dtype=np.float32),
+            mu_logp=np.zeros(n_steps, dtype=np.float32),
+            is_hf=np.zeros(n_steps, dtype=bool),
+            rewards=np.zeros(n_steps, dtype=np.float64),
+            values=np.zeros(n_steps, dtype=np.float64),
+            ends=np.zeros(n_steps, dtype=np.float64),
+        )
 
 
-@dataclass
-class _RunState:
-    """Everything that changes during training (what a checkpoint holds besides weights)."""
-
-    global_step: int = 0
-    n_updates: int = 0
-    n_episodes: int = 0
-    n_hf_episodes: int = 0
-    episode_seed: int = 0
-    episode_actions: list[int] = field(default_factory=list)
-    episode_is_hf: bool = False
-    episode_return: float = 0.0
-    episodes: list[tuple[int, int, bool, bool, bool]] = field(default_factory=list)
-    curve: list[tuple[int, float]] = field(default_factory=list)
-    metrics: list[dict[str, float]] = field(default_factory=list)
-
-
-def _save_checkpoint(
-    path: Path,
-    agent: ActorCritic,
-    optimizer: FlatAdam,
-    rng: np.random.Generator,
-    resets: TrainingResets,
-    state: _RunState,
-    config: PPOConfig,
-    hf_policy: HFPolicy | None,
-) -> None:
-    payload = {
-        "version": CHECKPOINT_VERSION,
-        "config": asdict(config),
-        "agent": agent.state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "rng": rng.bit_generator.state,
-        "resets": resets.state,
-        "state": asdict(state),
-        "hf_model": None if hf_policy is None else hf_policy.model.state_dict(),
-    }
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)  # atomic: never a half-written checkpoint
-
-
-def _load_checkpoint(path: Path, config: PPOConfig) -> dict[str, Any]:
-    payload = torch.load(path, weights_only=False)
-    if payload.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: unsupported checkpoint version {payload.get('version')}")
-    if PPOConfig.from_dict(payload["config"]) != config:
-        raise ValueError(f"{path}: checkpoint was written with a different PPOConfig")
-    return payload
+def _sample(probs: np.ndarray, rng: np.random.Generator) -> int:
+    """Inverse-CDF draw from a categorical distribution (float64 probabilities)."""
+    cdf = np.cumsum(probs)
+    return int(min(np.searchsorted(cdf, rng.random() * cdf[-1]), len(cdf) - 1))
 
 
 def train(
@@ -417,7 +337,8 @@ def train(
     callback : Callback, optional
         Progress hooks; any hook returning False stops training after that point.
     hf_policy : HFPolicy, optional
-        pi_HF (used greedily) for guided exploration; None gives plain PPO.
+        pi_HF for guided exploration (greedy, or sampled with ``hf_guide_sampling``); None
+        gives plain PPO.
     checkpoint_path : path, optional
         Where to write a checkpoint every ``checkpoint_every`` updates (and at the end).
         If the file exists, training resumes from it.
@@ -430,216 +351,208 @@ def train(
     """
     start_time = time.perf_counter()
     callback = callback or Callback()
-    env = gym.make(config.env_id, **config.env_kwargs)
-    eval_env = gym.make(config.env_id, **config.env_kwargs)
-    n_actions = int(env.action_space.n)
-    seeds = RunSeeds(config.seed)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seeds.int_seed(Stream.TORCH_INIT))
-        agent = ActorCritic(
-            ObsNormalizer.from_space(env.observation_space), n_actions, config.hidden_sizes
-        )
-    optimizer = FlatAdam(agent.parameters(), lr=config.learning_rate, eps=config.adam_eps)
-    rng = seeds.generator(Stream.ACTIONS)
-    resets = seeds.training_resets()
-    state = _RunState()
-    checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
+    with (
+        closing(gym.make(config.env_id, **config.env_kwargs)) as env,
+        closing(gym.make(config.env_id, **config.env_kwargs)) as eval_env,
+    ):
+        # ---- setup: networks, optimiser and the run's random streams ------------------------
+        n_actions = int(env.action_space.n)
+        seeds = RunSeeds(config.seed)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seeds.int_seed(Stream.TORCH_INIT))
+            agent = ActorCritic(
+                ObsNormalizer.from_space(env.observation_space), n_actions, config.hidden_sizes
+            )
+        optimizer = FlatAdam(agent.parameters(), lr=config.learning_rate, eps=config.adam_eps)
+        rng = seeds.generator(Stream.ACTIONS)
+        resets = seeds.training_resets()
+        state = RunState()
+        checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
 
-    if checkpoint is not None and checkpoint.exists():
-        payload = _load_checkpoint(checkpoint, config)
-        agent.load_state_dict(payload["agent"])
-        optimizer.load_state_dict(payload["optimizer"])
-        rng.bit_generator.state = payload["rng"]
-        resets.state = payload["resets"]
-        state = _RunState(**payload["state"])
-        state.curve = [tuple(point) for point in state.curve]
-        state.episodes = [tuple(e) for e in state.episodes]
-        if hf_policy is not None and payload["hf_model"] is not None:
-            hf_policy.model.load_state_dict(payload["hf_model"])
-        obs, _ = env.reset(seed=state.episode_seed)
-        for action in state.episode_actions:  # replay the current episode
-            obs, *_ = env.step(action)
-    else:
-        state.episode_seed = resets.next()
-        obs, _ = env.reset(seed=state.episode_seed)
-        state.episode_is_hf = hf_policy is not None and rng.random() < hf_epsilon(0, config)
+        def save() -> None:
+            assert checkpoint is not None
+            hf_model = None if hf_policy is None else hf_policy.model.state_dict()
+            save_checkpoint(
+                checkpoint,
+                Checkpoint(
+                    config=asdict(config),
+                    agent=agent.state_dict(),
+                    optimizer=optimizer.state_dict(),
+                    rng=rng.bit_generator.state,
+                    resets=resets.state,
+                    state=state,
+                    hf_model=hf_model,
+                ),
+            )
 
-    def greedy(o: np.ndarray) -> int:
-        with torch.inference_mode():
-            logits, _ = agent(torch.as_tensor(o))
-        return int(torch.argmax(logits))
+        if checkpoint is not None and checkpoint.exists():
+            restored = load_checkpoint(checkpoint, asdict(config))
+            agent.load_state_dict(restored.agent)
+            optimizer.load_state_dict(restored.optimizer)
+            rng.bit_generator.state = restored.rng
+            resets.state = restored.resets
+            state = restored.state
+            if hf_policy is not None and restored.hf_model is not None:
+                hf_policy.model.load_state_dict(restored.hf_model)
+            obs, _ = env.reset(seed=state.episode_seed)
+            for action in state.episode_actions:  # replay the episode in progress
+                obs, *_ = env.step(action)
+        else:
+            state.episode_seed = resets.next()
+            obs, _ = env.reset(seed=state.episode_seed)
+            state.episode_is_hf = hf_policy is not None and rng.random() < hf_epsilon(0, config)
 
-    def evaluate() -> bool:
-        spl = evaluate_spl(eval_env, greedy, config.eval_seeds)
-        state.curve.append((state.global_step, spl))
-        return callback.on_eval(state.global_step, spl)
-
-    keep_going = True
-    if not state.curve:
-        keep_going = evaluate()
-    n_obs = env.observation_space.shape[0]
-    buf_obs = np.zeros((config.n_steps, n_obs), dtype=np.float32)
-    buf_actions = np.zeros(config.n_steps, dtype=np.int64)
-    buf_pi_logp = np.zeros(config.n_steps, dtype=np.float32)
-    buf_mu_logp = np.zeros(config.n_steps, dtype=np.float32)
-    buf_is_hf = np.zeros(config.n_steps, dtype=bool)
-    buf_rewards = np.zeros(config.n_steps, dtype=np.float64)
-    buf_values = np.zeros(config.n_steps, dtype=np.float64)
-    buf_ends = np.zeros(config.n_steps, dtype=np.float64)
-    last_returns: list[float] = []
-
-    while keep_going and state.global_step < config.total_steps:
-        rollout_start = time.perf_counter()
-        # ---- 1. collect a rollout of n_steps with the behaviour policy ----------------------
-        for t in range(config.n_steps):
-            obs_tensor = torch.as_tensor(obs)
+        def greedy(o: np.ndarray) -> int:
             with torch.inference_mode():
-                logits, value = agent(obs_tensor)
-                log_probs = torch.log_softmax(logits, dim=-1).numpy()
-            if state.episode_is_hf:
-                if config.hf_guide_sampling:
+                logits, _ = agent(torch.as_tensor(o))
+            return int(torch.argmax(logits))
+
+        def evaluate() -> bool:
+            spl = evaluate_spl(eval_env, greedy, config.eval_seeds)
+            state.curve.append((state.global_step, spl))
+            return callback.on_eval(state.global_step, spl)
+
+        keep_going = evaluate() if not state.curve else True
+        rollout = Rollout.empty(config.n_steps, env.observation_space.shape[0])
+        truncated_is = config.hf_treatment == "truncated_is"
+        last_returns: list[float] = []
+
+        while keep_going and state.global_step < config.total_steps:
+            # ---- 1. collect n_steps with the behaviour policy (pi_HF or pi_RL per episode) --
+            rollout_start = time.perf_counter()
+            for t in range(config.n_steps):
+                with torch.inference_mode():
+                    logits, value = agent(torch.as_tensor(obs))
+                    log_probs = torch.log_softmax(logits, dim=-1).numpy()
+                if not state.episode_is_hf:
+                    action = _sample(np.exp(log_probs.astype(np.float64)), rng)
+                    mu_logp = float(log_probs[action])
+                elif config.hf_guide_sampling:
                     hf_probs = hf_policy.sampling_probs(obs).astype(np.float64)
-                    cdf = np.cumsum(hf_probs)
-                    action = int(min(np.searchsorted(cdf, rng.random() * cdf[-1]), n_actions - 1))
+                    action = _sample(hf_probs, rng)
                     mu_logp = float(np.log(hf_probs[action]))
                 else:
                     action = hf_policy.act(obs)  # greedy pi_HF: mu(a|s) = 1
                     mu_logp = 0.0
-            else:
-                cdf = np.cumsum(np.exp(log_probs.astype(np.float64)))
-                action = int(min(np.searchsorted(cdf, rng.random() * cdf[-1]), n_actions - 1))
-                mu_logp = float(log_probs[action])
-            next_obs, reward, terminated, truncated, info = env.step(action)
-            reward = float(reward) * config.reward_scale
-            if truncated and not terminated:  # time limit: bootstrap the cut-off tail
-                with torch.inference_mode():
-                    _, tail_value = agent(torch.as_tensor(next_obs))
-                reward += config.gamma * float(tail_value)
-            buf_obs[t] = obs
-            buf_actions[t] = action
-            buf_pi_logp[t] = log_probs[action]
-            buf_mu_logp[t] = mu_logp
-            buf_is_hf[t] = state.episode_is_hf
-            buf_rewards[t] = reward
-            buf_values[t] = float(value)
-            buf_ends[t] = float(terminated or truncated)
-            state.global_step += 1
-            state.episode_actions.append(action)
-            state.episode_return += float(reward)
-            obs = next_obs
-            if terminated or truncated:
-                last_returns.append(state.episode_return)
-                state.episodes.append(
-                    (
-                        state.global_step,
-                        len(state.episode_actions),
-                        bool(info.get("is_success", False)),
-                        bool(info.get("collision", False)),
-                        state.episode_is_hf,
+                next_obs, reward, terminated, truncated, info = env.step(action)
+                reward = float(reward) * config.reward_scale
+                if truncated and not terminated:  # time limit: bootstrap the cut-off tail
+                    with torch.inference_mode():
+                        _, tail_value = agent(torch.as_tensor(next_obs))
+                    reward += config.gamma * float(tail_value)
+                rollout.obs[t] = obs
+                rollout.actions[t] = action
+                rollout.pi_logp[t] = log_probs[action]
+                rollout.mu_logp[t] = mu_logp
+                rollout.is_hf[t] = state.episode_is_hf
+                rollout.rewards[t] = reward
+                rollout.values[t] = float(value)
+                rollout.ends[t] = float(terminated or truncated)
+                state.global_step += 1
+                state.episode_actions.append(action)
+                state.episode_return += float(reward)
+                obs = next_obs
+                if terminated or truncated:
+                    last_returns.append(state.episode_return)
+                    state.episodes.append(
+                        (
+                            state.global_step,
+                            len(state.episode_actions),
+                            bool(info.get("is_success", False)),
+                            bool(info.get("collision", False)),
+                            state.episode_is_hf,
+                        )
                     )
+                    state.n_episodes += 1
+                    state.n_hf_episodes += int(state.episode_is_hf)
+                    state.episode_seed = resets.next()
+                    state.episode_actions = []
+                    state.episode_return = 0.0
+                    obs, _ = env.reset(seed=state.episode_seed)
+                    state.episode_is_hf = hf_policy is not None and rng.random() < hf_epsilon(
+                        state.global_step, config
+                    )
+                keep_going &= callback.on_step(state.global_step, info)
+                if state.global_step % config.eval_every == 0:
+                    keep_going &= evaluate()
+            rollout_seconds = time.perf_counter() - rollout_start
+
+            # ---- 2. advantages: GAE (authors) or trace-cut GAE + rho weights (truncated_is) -
+            with torch.inference_mode():
+                _, next_value = agent(torch.as_tensor(obs))
+            if truncated_is:
+                ratio_to_mu = np.exp(rollout.pi_logp.astype(np.float64) - rollout.mu_logp)
+                traces = np.minimum(1.0, ratio_to_mu)
+                weights = np.minimum(config.is_clip, ratio_to_mu)
+            else:
+                traces = None
+                weights = np.ones(config.n_steps)
+            advantages = compute_advantages(
+                rollout.rewards,
+                rollout.values,
+                rollout.ends,
+                float(next_value),
+                config.gamma,
+                config.gae_lambda,
+                traces,
+            )
+            returns = rollout.values + weights * advantages
+
+            # ---- 3. n_epochs of minibatch updates --------------------------------------------
+            # Every epoch's permutation is drawn first (the same draws as one per epoch), then
+            # each minibatch is gathered, and its advantages normalised, by one op per rollout.
+            update_start = time.perf_counter()
+            order = np.concatenate(
+                [rng.permutation(config.n_steps) for _ in range(config.n_epochs)]
+            )
+            index = torch.from_numpy(order).view(-1, config.minibatch_size)
+            mb_adv = torch.from_numpy(advantages.astype(np.float32))[index]
+            if config.norm_adv and config.minibatch_size > 1:
+                mb_adv = (mb_adv - mb_adv.mean(1, keepdim=True)) / (
+                    mb_adv.std(1, keepdim=True) + 1e-8
                 )
-                state.n_episodes += 1
-                state.n_hf_episodes += int(state.episode_is_hf)
-                state.episode_seed = resets.next()
-                state.episode_actions = []
-                state.episode_return = 0.0
-                obs, _ = env.reset(seed=state.episode_seed)
-                state.episode_is_hf = hf_policy is not None and rng.random() < hf_epsilon(
-                    state.global_step, config
+            minibatches = zip(  # the arguments of ppo_loss, one row per minibatch
+                torch.from_numpy(rollout.obs)[index],
+                torch.from_numpy(rollout.actions)[index],
+                torch.from_numpy(rollout.pi_logp)[index],
+                mb_adv,
+                torch.from_numpy(returns.astype(np.float32))[index],
+                torch.from_numpy(weights.astype(np.float32))[index]
+                if truncated_is
+                else [None] * len(index),  # all weights 1: skip the multiplication
+                strict=True,
+            )
+            n_minibatches = config.n_steps // config.minibatch_size  # per epoch
+            stats_sum: dict[str, float] = {}  # loss statistics of the last epoch
+            for i, minibatch in enumerate(minibatches):
+                last_epoch = i >= len(index) - n_minibatches
+                loss, stats = ppo_loss(agent, *minibatch, config, with_stats=last_epoch)
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.clip_grad_norm_(config.max_grad_norm)
+                optimizer.step()
+                for key, val in stats.items():
+                    stats_sum[key] = stats_sum.get(key, 0.0) + val
+            state.n_updates += 1
+            metrics = {key: val / n_minibatches for key, val in stats_sum.items()}
+            metrics.update(
+                _update_metrics(
+                    config, state, rollout, returns, last_returns, hf_policy is not None
                 )
-            keep_going &= callback.on_step(state.global_step, info)
-            if state.global_step % config.eval_every == 0:
-                keep_going &= evaluate()
-        rollout_seconds = time.perf_counter() - rollout_start
+            )
+            metrics["charts/SPS"] = config.n_steps / max(time.perf_counter() - rollout_start, 1e-9)
+            metrics["charts/rollout_seconds"] = rollout_seconds
+            metrics["charts/update_seconds"] = time.perf_counter() - update_start
+            last_returns = []
+            state.metrics.append(metrics)
+            keep_going &= callback.on_update(state.global_step, metrics)
+            if checkpoint is not None and (
+                state.n_updates % checkpoint_every == 0 or not keep_going
+            ):
+                save()
 
-        # ---- 2. advantages: GAE (authors) or trace-cut GAE + rho weights (truncated_is) -----
-        with torch.inference_mode():
-            _, next_value = agent(torch.as_tensor(obs))
-        if config.hf_treatment == "truncated_is":
-            ratio_to_mu = np.exp(buf_pi_logp.astype(np.float64) - buf_mu_logp)
-            traces = np.minimum(1.0, ratio_to_mu)
-            weights = np.minimum(config.is_clip, ratio_to_mu)
-        else:
-            traces = None
-            weights = np.ones(config.n_steps)
-        advantages = compute_advantages(
-            buf_rewards,
-            buf_values,
-            buf_ends,
-            float(next_value),
-            config.gamma,
-            config.gae_lambda,
-            traces,
-        )
-        returns = buf_values + weights * advantages
-
-        # ---- 3. n_epochs of minibatch updates ------------------------------------------------
-        # All epochs' permutations are drawn first (the same draws as one per epoch), then every
-        # minibatch is gathered, and its advantages normalised, by one op per rollout.
-        update_start = time.perf_counter()
-        order = np.concatenate([rng.permutation(config.n_steps) for _ in range(config.n_epochs)])
-        index = torch.from_numpy(order).view(-1, config.minibatch_size)
-        mb_adv = torch.from_numpy(advantages.astype(np.float32))[index]
-        if config.norm_adv and config.minibatch_size > 1:
-            mb_adv = (mb_adv - mb_adv.mean(1, keepdim=True)) / (mb_adv.std(1, keepdim=True) + 1e-8)
-        minibatches = zip(  # the arguments of ppo_loss, one row per minibatch
-            torch.from_numpy(buf_obs)[index],
-            torch.from_numpy(buf_actions)[index],
-            torch.from_numpy(buf_pi_logp)[index],
-            mb_adv,
-            torch.from_numpy(returns.astype(np.float32))[index],
-            torch.from_numpy(weights.astype(np.float32))[index]
-            if config.hf_treatment == "truncated_is"
-            else [None] * len(index),  # all weights 1: skip the multiplication
-            strict=True,
-        )
-        n_minibatches = config.n_steps // config.minibatch_size  # per epoch
-        stats_sum: dict[str, float] = {}  # loss statistics of the last epoch
-        for i, minibatch in enumerate(minibatches):
-            last_epoch = i >= len(index) - n_minibatches
-            loss, stats = ppo_loss(agent, *minibatch, config, with_stats=last_epoch)
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.clip_grad_norm_(config.max_grad_norm)
-            optimizer.step()
-            for key, val in stats.items():
-                stats_sum[key] = stats_sum.get(key, 0.0) + val
-        state.n_updates += 1
-        var_returns = float(np.var(returns))
-        metrics = {key: val / n_minibatches for key, val in stats_sum.items()}
-        metrics.update(
-            {
-                "global_step": float(state.global_step),
-                "losses/explained_variance": (
-                    float("nan")
-                    if var_returns == 0
-                    else 1.0 - float(np.var(returns - buf_values)) / var_returns
-                ),
-                "charts/SPS": config.n_steps / max(time.perf_counter() - rollout_start, 1e-9),
-                "charts/rollout_seconds": rollout_seconds,
-                "charts/update_seconds": time.perf_counter() - update_start,
-                "charts/eps_hf": hf_epsilon(state.global_step, config)
-                if hf_policy is not None
-                else 0.0,
-                "charts/hf_step_fraction": float(np.mean(buf_is_hf))
-                if hf_policy is not None
-                else 0.0,
-                "charts/episodic_return": float(np.mean(last_returns))
-                if last_returns
-                else float("nan"),
-                "charts/learning_rate": config.learning_rate,
-            }
-        )
-        last_returns = []
-        state.metrics.append(metrics)
-        keep_going &= callback.on_update(state.global_step, metrics)
-        if checkpoint is not None and (state.n_updates % checkpoint_every == 0 or not keep_going):
-            _save_checkpoint(checkpoint, agent, optimizer, rng, resets, state, config, hf_policy)
-
-    if checkpoint is not None:
-        _save_checkpoint(checkpoint, agent, optimizer, rng, resets, state, config, hf_policy)
-    env.close()
-    eval_env.close()
+        if checkpoint is not None:
+            save()
     return TrainResult(
         config=config,
         agent=agent,
@@ -652,3 +565,24 @@ def train(
         stopped_early=state.global_step < config.total_steps,
         wall_seconds=time.perf_counter() - start_time,
     )
+
+
+def _update_metrics(
+    config: PPOConfig,
+    state: RunState,
+    rollout: Rollout,
+    returns: np.ndarray,
+    last_returns: list[float],
+    guided: bool,
+) -> dict[str, float]:
+    """CleanRL-named metrics of an update besides the loss statistics."""
+    var_returns = float(np.var(returns))
+    explained = 1.0 - float(np.var(returns - rollout.values)) / var_returns if var_returns else None
+    return {
+        "global_step": float(state.global_step),
+        "losses/explained_variance": float("nan") if explained is None else explained,
+        "charts/eps_hf": hf_epsilon(state.global_step, config) if guided else 0.0,
+        "charts/hf_step_fraction": float(np.mean(rollout.is_hf)) if guided else 0.0,
+        "charts/episodic_return": float(np.mean(last_returns)) if last_returns else float("nan"),
+        "charts/learning_rate": config.learning_rate,
+    }

@@ -1,0 +1,80 @@
+"""Checkpoints of a PPO run: weights, optimiser, generators and run state, written atomically.
+
+A checkpoint is written at an update boundary; :func:`services.learner.ppo.train` resumes
+from it by restoring everything here, re-seeding the env with the current episode's reset
+seed and replaying that episode's actions (the env is deterministic), so a resumed run ends
+exactly as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from services.core.files import write_bytes_atomic
+
+CHECKPOINT_VERSION = 2
+"""2: the training reset seeds are a stream of their own (``resets``)."""
+
+
+@dataclass
+class RunState:
+    """Everything that changes during training besides weights, optimiser and generators."""
+
+    global_step: int = 0
+    n_updates: int = 0
+    n_episodes: int = 0
+    n_hf_episodes: int = 0
+    episode_seed: int = 0
+    """Reset seed of the episode in progress."""
+    episode_actions: list[int] = field(default_factory=list)
+    """Actions taken so far in the episode in progress (replayed on resume)."""
+    episode_is_hf: bool = False
+    episode_return: float = 0.0
+    episodes: list[tuple[int, int, bool, bool, bool]] = field(default_factory=list)
+    """Per finished episode: (env step at its end, length, success, collision, followed pi_HF)."""
+    curve: list[tuple[int, float]] = field(default_factory=list)
+    metrics: list[dict[str, float]] = field(default_factory=list)
+
+
+@dataclass
+class Checkpoint:
+    """What a checkpoint file holds."""
+
+    config: dict[str, Any]
+    """``asdict(PPOConfig)``: a checkpoint only resumes the run it was written by."""
+    agent: dict[str, torch.Tensor]
+    optimizer: dict[str, Any]
+    rng: dict[str, Any]
+    """State of the actions generator."""
+    resets: dict[str, Any]
+    """State of the training-reset generator."""
+    state: RunState
+    hf_model: dict[str, torch.Tensor] | None
+    """Fhat's weights (pi_HF), when the run is guided."""
+
+
+def save_checkpoint(path: Path, checkpoint: Checkpoint) -> None:
+    """Write ``checkpoint`` to ``path`` atomically (never a half-written file)."""
+    payload = {"version": CHECKPOINT_VERSION, **asdict(checkpoint)}
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    write_bytes_atomic(path, buffer.getvalue())
+
+
+def load_checkpoint(path: Path, config: dict[str, Any]) -> Checkpoint:
+    """Read a checkpoint written for ``config`` (``asdict(PPOConfig)``); ValueError if not."""
+    payload = torch.load(path, weights_only=False)
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: unsupported checkpoint version {payload.get('version')}")
+    if payload["config"] != config:
+        raise ValueError(f"{path}: checkpoint was written with a different PPOConfig")
+    state = RunState(**payload["state"])
+    state.curve = [(int(step), float(spl)) for step, spl in state.curve]
+    state.episodes = [tuple(e) for e in state.episodes]  # type: ignore[misc]
+    del payload["version"]
+    return Checkpoint(**{**payload, "state": state})
