@@ -31,6 +31,7 @@ import numpy as np
 from mne_lsl.lsl import StreamInlet, local_clock, resolve_streams
 from mne_lsl.player import PlayerLSL
 from mne_lsl.stream import StreamLSL
+from pydantic import ValidationError
 
 from services.core.markers import MARKER_STREAM_NAME, MARKER_STREAM_TYPE, ActionMarker
 from services.eeg.live import LiveIngest
@@ -251,6 +252,14 @@ class MarkerInlet:
         for sample, timestamp in zip(samples, timestamps, strict=True):
             try:
                 pulled.markers.append(ActionMarker.from_lsl(sample[0]))
+            except ValidationError as exc:
+                problems = "; ".join(
+                    f"{'.'.join(str(p) for p in err['loc']) or 'marker'}: {err['msg']}"
+                    for err in exc.errors()
+                )
+                pulled.rejected.append(
+                    RejectedMarker(float(timestamp), f"invalid action marker: {problems}")
+                )
             except (ValueError, IndexError) as exc:
                 pulled.rejected.append(RejectedMarker(float(timestamp), str(exc)))
         return pulled

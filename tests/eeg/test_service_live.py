@@ -123,7 +123,7 @@ def test_markers_with_non_finite_numbers_are_a_422_naming_the_field(client, fiel
 def test_action_marker_refuses_nan_so_it_can_always_be_broadcast():
     with pytest.raises(ValueError, match="timestamp"):
         ActionMarker(**{**MARKER, "timestamp": float("nan")})
-    with pytest.raises(ValueError, match=r"invalid action marker: timestamp: .*finite"):
+    with pytest.raises(ValueError, match=r"timestamp\n  Input should be a finite number"):
         ActionMarker.from_lsl(json.dumps({**MARKER, "timestamp": float("nan")}))
 
 
