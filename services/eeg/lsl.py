@@ -89,7 +89,12 @@ def replay(
         source_id=source_id,
         annotations=False,
     )
-    return player.start()
+    try:
+        return player.start()
+    except BaseException:
+        with suppress(Exception):  # release whatever start() had opened
+            player.stop()
+        raise
 
 
 class LslEegIngest:
