@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 from celery import Celery
-from fastapi import Depends, Query
+from fastapi import Depends, Path, Query
 from fastapi.security import OAuth2PasswordBearer
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
@@ -15,6 +15,7 @@ from starlette.requests import HTTPConnection
 
 from services.api.errors import ForbiddenError, UnauthorizedError
 from services.api.ratelimit import LoginLimiter
+from services.api.schemas.common import MAX_ROW_ID
 from services.api.security import API_TOKEN_PREFIX, decode_access_token, hash_api_token
 from services.api.settings import ApiSettings
 from services.core.artifacts import ArtifactStore
@@ -130,3 +131,5 @@ CurrentUser = Annotated[User, Depends(get_current_user)]
 StaffUser = Annotated[User, Depends(require_staff)]
 AdminUser = Annotated[User, Depends(require_admin)]
 PageDep = Annotated[PageParams, Depends(get_page)]
+RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID)]
+"""An integer id in a path."""

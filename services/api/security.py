@@ -38,6 +38,16 @@ def verify_password(password_hash: str, password: str) -> bool:
         return False
 
 
+_dummy_hashes: dict[int, str] = {}
+
+
+def verify_nobody(password: str) -> bool:
+    """Spend the time of a real verification (unknown account), so timing tells nothing."""
+    dummy = _dummy_hashes.setdefault(id(_hasher), _hasher.hash("not-a-password"))
+    verify_password(dummy, password)
+    return False
+
+
 def generate_password() -> str:
     """A random password for a generated account (20 URL-safe characters)."""
     return secrets.token_urlsafe(15)

@@ -13,14 +13,12 @@ from sqlalchemy import select
 from services.api.deps import DbDep, LimiterDep, SettingsDep
 from services.api.errors import TooManyRequestsError, UnauthorizedError
 from services.api.schemas.auth import AccessToken
-from services.api.security import create_access_token, hash_password, verify_password
+from services.api.security import create_access_token, verify_nobody, verify_password
 from services.core.db.base import utcnow
 from services.core.db.models import User
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/v1/auth", tags=["auth"])
-
-_DUMMY_HASH = hash_password("timing-equaliser-not-a-password")
 
 
 @router.post(
@@ -47,7 +45,10 @@ def login(
             f"too many failed logins; try again in {wait} s", retry_after_s=wait, field="username"
         )
     user = db.scalar(select(User).where(User.email == email))
-    valid = verify_password(user.password_hash if user else _DUMMY_HASH, form.password)
+    if user is None:
+        valid = verify_nobody(form.password)
+    else:
+        valid = verify_password(user.password_hash, form.password)
     if user is None or not valid or not user.active:
         limiter.failed(key)
         log.info("failed login for %s from %s", email, client)

@@ -9,10 +9,10 @@ from fastapi.responses import FileResponse
 from sqlalchemy import select
 
 from services.api.crud import get_or_404, paginate
-from services.api.deps import DbDep, PageDep, StoreDep, get_current_user
+from services.api.deps import DbDep, PageDep, RowId, StoreDep, get_current_user
 from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
 from services.api.schemas.classifiers import ClassifierPublic
-from services.api.schemas.common import Page
+from services.api.schemas.common import MAX_ROW_ID, Page
 from services.core.db.models import Artifact, Classifier
 from services.core.errors import NotFoundError
 
@@ -26,7 +26,7 @@ SUFFIXES = {"onnx": ".onnx", "torchscript": ".pt"}
 
 @router.get("")
 def list_classifiers(
-    db: DbDep, page: PageDep, subject_id: Annotated[int | None, Query(ge=1)] = None
+    db: DbDep, page: PageDep, subject_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None
 ) -> Page[ClassifierPublic]:
     """Classifiers, newest first (optionally of one subject)."""
     query = select(Classifier).order_by(Classifier.id.desc())
@@ -36,7 +36,7 @@ def list_classifiers(
 
 
 @router.get("/{classifier_id}")
-def read(classifier_id: int, db: DbDep) -> ClassifierPublic:
+def read(classifier_id: RowId, db: DbDep) -> ClassifierPublic:
     """One classifier and its metrics."""
     return ClassifierPublic.model_validate(
         get_or_404(db, Classifier, classifier_id, "classifier_id")
@@ -45,7 +45,7 @@ def read(classifier_id: int, db: DbDep) -> ClassifierPublic:
 
 @router.get("/{classifier_id}/download", response_class=FileResponse, responses=CHECKSUM_RESPONSE)
 def download(
-    classifier_id: int,
+    classifier_id: RowId,
     db: DbDep,
     store: StoreDep,
     model_format: Annotated[ModelFormat, Query(alias="format")] = "onnx",

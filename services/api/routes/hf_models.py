@@ -9,7 +9,7 @@ from fastapi.responses import FileResponse
 from sqlalchemy import select
 
 from services.api.crud import get_or_404, paginate
-from services.api.deps import DbDep, PageDep, StoreDep, get_current_user
+from services.api.deps import DbDep, PageDep, RowId, StoreDep, get_current_user
 from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
 from services.api.schemas.common import Page
 from services.api.schemas.hf_models import HFModelPublic
@@ -36,14 +36,14 @@ def list_hf_models(
 
 
 @router.get("/{hf_model_id}")
-def read(hf_model_id: int, db: DbDep) -> HFModelPublic:
+def read(hf_model_id: RowId, db: DbDep) -> HFModelPublic:
     """One human-feedback policy and its metrics."""
     return HFModelPublic.model_validate(get_or_404(db, HFModel, hf_model_id, "hf_model_id"))
 
 
 @router.get("/{hf_model_id}/download", response_class=FileResponse, responses=CHECKSUM_RESPONSE)
 def download(
-    hf_model_id: int,
+    hf_model_id: RowId,
     db: DbDep,
     store: StoreDep,
     model_format: Annotated[ModelFormat, Query(alias="format")] = "torchscript",

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 from typing import Annotated, Any, Literal
 
+from celery import Celery
 from fastapi import APIRouter, Depends, Query, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
@@ -26,7 +28,7 @@ from services.api.deps import (
 )
 from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
 from services.api.plots import curve_png
-from services.api.schemas.common import Page
+from services.api.schemas.common import MAX_ROW_ID, Page
 from services.api.schemas.jobs import (
     CONFIG_MODELS,
     CurvePublic,
@@ -40,6 +42,7 @@ from services.core.db.models import JOB_FINAL_STATUSES, Artifact, HFModel, Job, 
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.queue import enqueue_job
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"], dependencies=[Depends(get_current_user)])
 
 
@@ -77,6 +80,14 @@ def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[st
     return values
 
 
+def _enqueue(celery: Celery, job: Job) -> None:
+    """Send the job to the workers; a broker outage leaves it queued for the reaper."""
+    try:
+        enqueue_job(celery, job.id, job.kind)
+    except Exception as exc:  # the row is committed: the workers' reaper re-sends it
+        log.warning("job %s committed but not enqueued (%s: %s)", job.id, type(exc).__name__, exc)
+
+
 @router.post("", status_code=status.HTTP_201_CREATED)
 def submit(
     body: JobCreate, user: StaffUser, db: DbDep, celery: CeleryDep, settings: SettingsDep
@@ -94,7 +105,7 @@ def submit(
     db.flush()
     audit.record(db, user, "job.submit", "job", job.id, kind=job.kind)
     db.commit()
-    enqueue_job(celery, job.id, job.kind)
+    _enqueue(celery, job)
     return JobPublic.model_validate(job)
 
 
@@ -104,7 +115,7 @@ def list_jobs(
     page: PageDep,
     status_: Annotated[JobStatus | None, Query(alias="status")] = None,
     kind: Annotated[JobKind | Literal["reproduce_run"] | None, Query()] = None,
-    submitter_id: Annotated[int | None, Query(ge=1)] = None,
+    submitter_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
     parent_id: Annotated[str | None, Query(max_length=32)] = None,
 ) -> Page[JobPublic]:
     """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs)."""
@@ -174,7 +185,7 @@ def retry(job_id: str, user: StaffUser, db: DbDep, celery: CeleryDep) -> JobPubl
     job.lease_expires_at = None
     audit.record(db, user, "job.retry", "job", job.id)
     db.commit()
-    enqueue_job(celery, job.id, job.kind)
+    _enqueue(celery, job)
     return JobPublic.model_validate(job)
 
 

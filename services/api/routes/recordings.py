@@ -15,6 +15,7 @@ from services.api.deps import (
     AdminUser,
     DbDep,
     PageDep,
+    RowId,
     SettingsDep,
     StaffUser,
     StoreDep,
@@ -22,7 +23,7 @@ from services.api.deps import (
 )
 from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
 from services.api.eeg_client import validate_recording
-from services.api.schemas.common import Page
+from services.api.schemas.common import MAX_ROW_ID, Page
 from services.api.schemas.recordings import RecordingPublic, ValidationStatus
 from services.api.uploads import receive_recording
 from services.core.artifacts import ArtifactStore, StoredFile
@@ -113,7 +114,7 @@ def _register(
     },
 )
 async def upload(
-    session_id: int,
+    session_id: RowId,
     request: Request,
     user: StaffUser,
     settings: SettingsDep,
@@ -151,8 +152,8 @@ async def upload(
 def list_recordings(
     db: DbDep,
     page: PageDep,
-    session_id: Annotated[int | None, Query(ge=1)] = None,
-    subject_id: Annotated[int | None, Query(ge=1)] = None,
+    session_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
+    subject_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
     validation_status: Annotated[ValidationStatus | None, Query()] = None,
 ) -> Page[RecordingPublic]:
     """Recordings, newest first, by session, subject or validation status."""
@@ -169,7 +170,7 @@ def list_recordings(
 
 
 @router.get("/api/v1/recordings/{recording_id}")
-def read(recording_id: int, db: DbDep) -> RecordingPublic:
+def read(recording_id: RowId, db: DbDep) -> RecordingPublic:
     """One recording."""
     return RecordingPublic.model_validate(get_or_404(db, Recording, recording_id, "recording_id"))
 
@@ -179,7 +180,7 @@ def read(recording_id: int, db: DbDep) -> RecordingPublic:
     response_class=FileResponse,
     responses=CHECKSUM_RESPONSE,
 )
-def download(recording_id: int, db: DbDep, store: StoreDep) -> FileResponse:
+def download(recording_id: RowId, db: DbDep, store: StoreDep) -> FileResponse:
     """The recording's file, with its SHA-256 in ``X-Checksum-Sha256``."""
     recording = get_or_404(db, Recording, recording_id, "recording_id")
     artifact = get_or_404(db, Artifact, recording.artifact_id, "recording_id")
@@ -188,7 +189,7 @@ def download(recording_id: int, db: DbDep, store: StoreDep) -> FileResponse:
 
 @router.post("/api/v1/recordings/{recording_id}/validate")
 def revalidate(
-    recording_id: int, request: Request, user: StaffUser, db: DbDep, store: StoreDep
+    recording_id: RowId, request: Request, user: StaffUser, db: DbDep, store: StoreDep
 ) -> RecordingPublic:
     """Ask the EEG pipeline again (e.g. after it was unreachable) (staff)."""
     recording = get_or_404(db, Recording, recording_id, "recording_id")
@@ -206,7 +207,7 @@ def revalidate(
 
 
 @router.delete("/api/v1/recordings/{recording_id}", status_code=status.HTTP_204_NO_CONTENT)
-def delete(recording_id: int, admin: AdminUser, db: DbDep, store: StoreDep) -> None:
+def delete(recording_id: RowId, admin: AdminUser, db: DbDep, store: StoreDep) -> None:
     """Delete a recording and its file (admin, audited)."""
     recording = get_or_404(db, Recording, recording_id, "recording_id")
     artifact = db.get(Artifact, recording.artifact_id)

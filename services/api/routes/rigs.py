@@ -8,7 +8,7 @@ from sqlalchemy.exc import IntegrityError
 
 from services.api import audit
 from services.api.crud import apply_update, get_or_404, paginate
-from services.api.deps import AdminUser, DbDep, PageDep, get_current_user
+from services.api.deps import AdminUser, DbDep, PageDep, RowId, get_current_user
 from services.api.schemas.common import Page
 from services.api.schemas.rigs import RigCreate, RigPublic, RigUpdate
 from services.core.db.models import LabSession, Rig
@@ -47,13 +47,13 @@ def list_rigs(db: DbDep, page: PageDep) -> Page[RigPublic]:
 
 
 @router.get("/{rig_id}")
-def read(rig_id: int, db: DbDep) -> RigPublic:
+def read(rig_id: RowId, db: DbDep) -> RigPublic:
     """One rig."""
     return RigPublic.model_validate(get_or_404(db, Rig, rig_id, "rig_id"))
 
 
 @router.patch("/{rig_id}")
-def update(rig_id: int, body: RigUpdate, admin: AdminUser, db: DbDep) -> RigPublic:
+def update(rig_id: RowId, body: RigUpdate, admin: AdminUser, db: DbDep) -> RigPublic:
     """Change a rig (admin)."""
     rig = get_or_404(db, Rig, rig_id, "rig_id")
     changes = apply_update(rig, body)
@@ -63,7 +63,7 @@ def update(rig_id: int, body: RigUpdate, admin: AdminUser, db: DbDep) -> RigPubl
 
 
 @router.delete("/{rig_id}", status_code=status.HTTP_204_NO_CONTENT)
-def delete(rig_id: int, admin: AdminUser, db: DbDep) -> None:
+def delete(rig_id: RowId, admin: AdminUser, db: DbDep) -> None:
     """Remove a rig no session uses (admin); otherwise 409 (deactivate it instead)."""
     rig = get_or_404(db, Rig, rig_id, "rig_id")
     used = db.scalar(select(LabSession.id).where(LabSession.rig_id == rig_id).limit(1))

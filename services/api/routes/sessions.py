@@ -12,8 +12,8 @@ from sqlalchemy.orm import Session
 
 from services.api import audit
 from services.api.crud import get_or_404, paginate
-from services.api.deps import DbDep, PageDep, StaffUser, get_current_user
-from services.api.schemas.common import Page
+from services.api.deps import DbDep, PageDep, RowId, StaffUser, get_current_user
+from services.api.schemas.common import MAX_ROW_ID, Page
 from services.api.schemas.sessions import (
     SessionCreate,
     SessionPublic,
@@ -135,8 +135,8 @@ def list_sessions(
         str | None, Query(pattern=r"^\d{4}-W\d{2}$", description="ISO week, e.g. 2026-W49.")
     ] = None,
     tz: Annotated[str, Query(max_length=64, description="Time zone of day/week.")] = "UTC",
-    subject_id: Annotated[int | None, Query(ge=1)] = None,
-    rig_id: Annotated[int | None, Query(ge=1)] = None,
+    subject_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
+    rig_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
     status: Annotated[SessionStatus | None, Query()] = None,
 ) -> Page[SessionPublic]:
     """Sessions in time order, by day or ISO week, subject, rig or status."""
@@ -158,13 +158,13 @@ def list_sessions(
 
 
 @router.get("/{session_id}")
-def read(session_id: int, db: DbDep) -> SessionPublic:
+def read(session_id: RowId, db: DbDep) -> SessionPublic:
     """One session."""
     return SessionPublic.model_validate(get_or_404(db, LabSession, session_id, "session_id"))
 
 
 @router.patch("/{session_id}")
-def update(session_id: int, body: SessionUpdate, user: StaffUser, db: DbDep) -> SessionPublic:
+def update(session_id: RowId, body: SessionUpdate, user: StaffUser, db: DbDep) -> SessionPublic:
     """Reschedule or edit a session, or move its status along (staff)."""
     session = get_or_404(db, LabSession, session_id, "session_id")
     changes = body.model_dump(exclude_unset=True)
@@ -196,7 +196,7 @@ def update(session_id: int, body: SessionUpdate, user: StaffUser, db: DbDep) -> 
 
 
 @router.post("/{session_id}/cancel")
-def cancel(session_id: int, user: StaffUser, db: DbDep) -> SessionPublic:
+def cancel(session_id: RowId, user: StaffUser, db: DbDep) -> SessionPublic:
     """Cancel a scheduled session (staff); its slot is free again."""
     session = get_or_404(db, LabSession, session_id, "session_id")
     if session.status != "scheduled":

@@ -10,7 +10,7 @@ from sqlalchemy.exc import IntegrityError
 
 from services.api import audit
 from services.api.crud import apply_update, get_or_404, paginate
-from services.api.deps import DbDep, PageDep, StaffUser, StoreDep, get_current_user
+from services.api.deps import DbDep, PageDep, RowId, StaffUser, StoreDep, get_current_user
 from services.api.errors import ForbiddenError
 from services.api.schemas.common import Page
 from services.api.schemas.subjects import SubjectCreate, SubjectPublic, SubjectUpdate
@@ -59,13 +59,13 @@ def list_subjects(
 
 
 @router.get("/{subject_id}")
-def read(subject_id: int, db: DbDep) -> SubjectPublic:
+def read(subject_id: RowId, db: DbDep) -> SubjectPublic:
     """One subject."""
     return SubjectPublic.model_validate(get_or_404(db, Subject, subject_id, "subject_id"))
 
 
 @router.patch("/{subject_id}")
-def update(subject_id: int, body: SubjectUpdate, user: StaffUser, db: DbDep) -> SubjectPublic:
+def update(subject_id: RowId, body: SubjectUpdate, user: StaffUser, db: DbDep) -> SubjectPublic:
     """Change a subject's code or notes (staff)."""
     subject = get_or_404(db, Subject, subject_id, "subject_id")
     changes = apply_update(subject, body)
@@ -77,7 +77,7 @@ def update(subject_id: int, body: SubjectUpdate, user: StaffUser, db: DbDep) -> 
 
 @router.delete("/{subject_id}", status_code=status.HTTP_204_NO_CONTENT)
 def delete(
-    subject_id: int,
+    subject_id: RowId,
     user: StaffUser,
     db: DbDep,
     store: StoreDep,

@@ -9,7 +9,7 @@ from sqlalchemy import select
 
 from services.api import audit
 from services.api.crud import get_or_404, paginate
-from services.api.deps import CurrentUser, DbDep, PageDep, get_current_user
+from services.api.deps import CurrentUser, DbDep, PageDep, RowId, get_current_user
 from services.api.schemas.auth import ApiTokenCreate, ApiTokenCreated, ApiTokenPublic
 from services.api.schemas.common import Page
 from services.api.security import SHOWN_PREFIX_CHARS, hash_api_token, new_api_token
@@ -53,7 +53,7 @@ def list_tokens(user: CurrentUser, db: DbDep, page: PageDep) -> Page[ApiTokenPub
 
 
 @router.delete("/{token_id}", status_code=status.HTTP_204_NO_CONTENT)
-def revoke(token_id: int, user: CurrentUser, db: DbDep) -> None:
+def revoke(token_id: RowId, user: CurrentUser, db: DbDep) -> None:
     """Revoke one of your API tokens (admins: anyone's); it stops working at once."""
     row = get_or_404(db, ApiToken, token_id, "token_id")
     if row.user_id != user.id and user.role != "admin":

@@ -8,7 +8,7 @@ from sqlalchemy import select
 from services.api import audit
 from services.api.accounts import active_admin_count, create_user
 from services.api.crud import get_or_404, paginate
-from services.api.deps import AdminUser, CurrentUser, DbDep, PageDep, get_current_user
+from services.api.deps import AdminUser, CurrentUser, DbDep, PageDep, RowId, get_current_user
 from services.api.errors import UnauthorizedError
 from services.api.schemas.common import Page
 from services.api.schemas.users import PasswordChange, UserCreate, UserPublic, UserUpdate
@@ -51,13 +51,13 @@ def list_users(_: AdminUser, db: DbDep, page: PageDep) -> Page[UserPublic]:
 
 
 @router.get("/{user_id}")
-def read(user_id: int, _: AdminUser, db: DbDep) -> UserPublic:
+def read(user_id: RowId, _: AdminUser, db: DbDep) -> UserPublic:
     """One account (admin)."""
     return UserPublic.model_validate(get_or_404(db, User, user_id, "user_id"))
 
 
 @router.patch("/{user_id}")
-def update(user_id: int, body: UserUpdate, admin: AdminUser, db: DbDep) -> UserPublic:
+def update(user_id: RowId, body: UserUpdate, admin: AdminUser, db: DbDep) -> UserPublic:
     """Change an account's role, active flag or password (admin); the last admin stays."""
     user = get_or_404(db, User, user_id, "user_id")
     demoted = body.role is not None and body.role != "admin"

@@ -8,6 +8,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 ItemT = TypeVar("ItemT")
 
+MAX_ROW_ID = 2**31 - 1
+"""Largest integer id accepted (bigger ones cannot exist and would overflow the database)."""
+
 
 class PublicModel(BaseModel):
     """A response built from a database row."""

@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from services.api.schemas.common import PublicModel
+from services.api.schemas.common import MAX_ROW_ID, PublicModel
 from services.core.db.models import JOB_STATUSES
 from services.core.schemas import StrictRequest
 
@@ -99,7 +99,10 @@ class GuidedPPOConfig(StrictRequest):
     hf_treatment: Treatment = "authors"
     ppo: PPOOverrides = Field(default_factory=PPOOverrides)
     hf_model_id: int | None = Field(
-        None, ge=1, description="A stored pi_HF to guide with (hf_sparse) instead of training one."
+        None,
+        ge=1,
+        le=MAX_ROW_ID,
+        description="A stored pi_HF to guide with (hf_sparse) instead of training one.",
     )
     n_labels: int = Field(
         1000, ge=1, le=1_000_000, description="Feedback labels pi_HF is trained on (hf_sparse)."
@@ -174,7 +177,7 @@ class ReproduceConfig(StrictRequest):
 class EEGCalibrationConfig(StrictRequest):
     """Train an ErrP classifier on a stored, valid recording."""
 
-    recording_id: int = Field(ge=1)
+    recording_id: int = Field(ge=1, le=MAX_ROW_ID)
     seed: int = Field(0, ge=0, le=2**31 - 1)
     max_passes: int | None = Field(
         None, ge=1, le=10_000, description="Training passes (default: the pipeline's)."

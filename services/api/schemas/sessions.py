@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, AwareDatetime, Field
 
-from services.api.schemas.common import PublicModel
+from services.api.schemas.common import MAX_ROW_ID, PublicModel
 from services.core.schemas import StrictRequest
 
 SessionKind = Literal["calibration", "test", "online", "rl"]
@@ -20,12 +20,14 @@ UtcDatetime = Annotated[AwareDatetime, AfterValidator(lambda value: value.astime
 class SessionCreate(StrictRequest):
     """A session to schedule; it may not overlap another of the same subject or rig."""
 
-    subject_id: int = Field(ge=1)
+    subject_id: int = Field(ge=1, le=MAX_ROW_ID)
     kind: SessionKind
     scheduled_at: UtcDatetime = Field(description="Start, with a timezone (ISO 8601).")
-    rig_id: int | None = Field(None, ge=1)
+    rig_id: int | None = Field(None, ge=1, le=MAX_ROW_ID)
     duration_minutes: int = Field(60, ge=1, le=MAX_DURATION_MINUTES)
-    operator_id: int | None = Field(None, ge=1, description="User running it (default: you).")
+    operator_id: int | None = Field(
+        None, ge=1, le=MAX_ROW_ID, description="User running it (default: you)."
+    )
     notes: str = Field("", max_length=10_000)
 
 
@@ -37,9 +39,9 @@ class SessionUpdate(StrictRequest):
 
     kind: SessionKind | None = None
     scheduled_at: UtcDatetime | None = None
-    rig_id: int | None = Field(None, ge=1)
+    rig_id: int | None = Field(None, ge=1, le=MAX_ROW_ID)
     duration_minutes: int | None = Field(None, ge=1, le=MAX_DURATION_MINUTES)
-    operator_id: int | None = Field(None, ge=1)
+    operator_id: int | None = Field(None, ge=1, le=MAX_ROW_ID)
     notes: str | None = Field(None, max_length=10_000)
     status: Literal["running", "completed", "failed"] | None = None
 
