@@ -29,9 +29,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pybullet
 import pybullet_data
 
+from services.sim.bullet import pybullet
 from services.sim.env import RAY_ANGLES_RAD, RAY_HEIGHT_M, RAY_LENGTH_M, BrainNavEnv
 from services.sim.imaging import encode_image
 from services.sim.maps import DEFAULT_MAP_PATH, FOOTPRINT_RADIUS_M, NavMap, load_map
@@ -263,7 +263,7 @@ def bench_service_step(*, steps: int, seed: int, progress: Progress) -> dict[str
         direct_s = (time.perf_counter() - start) / steps
     finally:
         env.close()
-    app = create_app(SimSettings(lsl_markers=False))
+    app = create_app(SimSettings(lsl_markers=False, log_level="WARNING"))  # no per-request log
     with TestClient(app) as client:
         session_id = client.post("/sessions", json={"seed": seed}).json()["id"]
         start = time.perf_counter()

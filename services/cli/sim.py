@@ -14,6 +14,18 @@ from tqdm import tqdm
 sim_app = typer.Typer(help="The navigation simulator: map images, marker stream, checks.")
 
 
+def _oracle_cache_dir() -> Path:
+    """``$BGRL_DATA_DIR/sim/oracle`` from the sim's settings (a bad setting: one line)."""
+    from services.core.settings import SettingsError, load_settings
+    from services.sim.settings import SimSettings
+
+    try:
+        return load_settings(SimSettings).oracle_cache_dir
+    except SettingsError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
 @sim_app.command("map-png")
 def map_png(
     out: Annotated[Path, typer.Option(help="PNG file to write.")],
@@ -31,7 +43,7 @@ def map_png(
     from services.sim.maps import MapError
 
     try:
-        env = BrainNavEnv(map_path=map_path)
+        env = BrainNavEnv(map_path=map_path, oracle_cache_dir=_oracle_cache_dir())
     except MapError as exc:
         raise typer.BadParameter(str(exc), param_hint="--map") from None
     try:
@@ -71,7 +83,12 @@ def random_success(
         raise typer.BadParameter(f"must be sssg or vssg, got {task!r}", param_hint="--task")
     try:
         result = random_policy_success_rate(
-            task, episodes=episodes, seed=seed, map_path=map_path, progress=True
+            task,
+            episodes=episodes,
+            seed=seed,
+            map_path=map_path,
+            progress=True,
+            oracle_cache_dir=_oracle_cache_dir(),
         )
     except MapError as exc:
         raise typer.BadParameter(str(exc), param_hint="--map") from None

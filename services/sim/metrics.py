@@ -63,11 +63,13 @@ def random_policy_success_rate(
     seed: int = 0,
     map_path: str | Path | None = None,
     progress: bool = False,
+    oracle_cache_dir: str | Path | None = None,
 ) -> RandomPolicyResult:
     """Run a uniformly random policy through the real env for 120-step episodes.
 
     The paper's premise is that random exploration rarely finds the sparse reward; the
-    default map aims at about 0.1 % (see ``docs/sim.md``).
+    default map aims at about 0.1 % (see ``docs/sim.md``). ``oracle_cache_dir``: see
+    :class:`services.sim.env.BrainNavEnv`.
     """
     return _walker_success_rate(
         lambda obs, rng: int(rng.integers(N_ACTIONS)),
@@ -77,6 +79,7 @@ def random_policy_success_rate(
         map_path=map_path,
         description="random episodes",
         progress=progress,
+        oracle_cache_dir=oracle_cache_dir,
     )
 
 
@@ -90,6 +93,7 @@ def wall_averse_policy_success_rate(
     min_clearance: float = 1.0,
     central_rays: int = 4,
     progress: bool = False,
+    oracle_cache_dir: str | Path | None = None,
 ) -> RandomPolicyResult:
     """Like :func:`random_policy_success_rate`, for a random walker that avoids walls.
 
@@ -122,6 +126,7 @@ def wall_averse_policy_success_rate(
         map_path=map_path,
         description="wall-averse episodes",
         progress=progress,
+        oracle_cache_dir=oracle_cache_dir,
     )
 
 
@@ -134,6 +139,7 @@ def _walker_success_rate(
     map_path: str | Path | None,
     description: str,
     progress: bool,
+    oracle_cache_dir: str | Path | None,
 ) -> RandomPolicyResult:
     """Run ``policy(obs, rng)`` through the real env for 120-step episodes, reset seeds
     ``seed, seed + 1, ...``, and count successes and collisions."""
@@ -143,7 +149,11 @@ def _walker_success_rate(
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     rng = np.random.default_rng(seed)
-    env = BrainNavEnv(task=task, map_path=map_path)  # type: ignore[arg-type]
+    env = BrainNavEnv(
+        task=task,  # type: ignore[arg-type]
+        map_path=map_path,
+        oracle_cache_dir=oracle_cache_dir,
+    )
     successes = collisions = 0
     try:
         for episode in tqdm(range(episodes), desc=description, disable=not progress):
