@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import pybullet_data
 
+from services.sim import bullet
 from services.sim.bullet import pybullet
 from services.sim.env import RAY_ANGLES_RAD, RAY_HEIGHT_M, RAY_LENGTH_M, BrainNavEnv
 from services.sim.imaging import encode_image
@@ -105,7 +106,11 @@ def bench_env_vs_raycast(
     """Env steps/s against raw 10-ray ``rayTestBatch`` calls/s, interleaved rounds."""
     rng = np.random.default_rng(seed)
     env = BrainNavEnv(task="sssg", reward_mode="sparse")
-    cid = _raycast_world(nav_map)
+    try:
+        cid = _raycast_world(nav_map)
+    except BaseException:
+        env.close()
+        raise
     try:
         per_round = max(1, steps // rounds)
         poses = _run_env(env, _random_actions(rng, per_round), seed)  # warm-up + ray poses
@@ -133,7 +138,7 @@ def bench_env_vs_raycast(
             progress(f"env vs rays {r + 1}/{rounds}")
     finally:
         env.close()
-        pybullet.disconnect(physicsClientId=cid)
+        bullet.disconnect(cid)
     env_rate = statistics.median(env_rates)
     ray_rate = statistics.median(ray_rates)
     ratio = env_rate / ray_rate
