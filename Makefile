@@ -1,4 +1,4 @@
-# Quick start: `make run` (start the services) and `make test` (lint + tests).
+# Quick start: `make run` (= bgrl up: the whole platform) and `make test` (lint + tests).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 run: install
-	$(VENV)/bin/bgrl serve
+	$(VENV)/bin/bgrl up
 
 lint: install
 	$(VENV)/bin/ruff check services benchmarks tests

@@ -1,26 +1,50 @@
-"""``bgrl serve``: start the platform's HTTP services on embedded defaults."""
+"""``bgrl up`` (alias ``bgrl serve``): the whole platform on one machine, one command.
+
+Creates the data folder, brings the database to the current schema, then starts the api
+(8000), sim (8001) and EEG (8002) services as uvicorn processes and ``BGRL_WORKERS`` job
+workers. Every value comes from the services' settings (``BGRL_PORT``, ``BGRL_SIM_HOST``,
+``BGRL_EEG_PORT``...), validated before anything starts: a bad one is one line naming the
+variable. A worker that dies is restarted; if an HTTP service dies, everything stops. Ctrl-C
+or SIGTERM stops every process within 10 s (workers hand their running job back to the
+queue); the data folder keeps the database, broker and artifacts for the next start.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import importlib
 import importlib.util
+import logging
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
+
+from services.core.settings import BaseServiceSettings, SettingsError, load_settings
+
+logger = logging.getLogger("bgrl.up")
+
+STOP_TIMEOUT_S = 7.0
+"""Seconds a child gets to stop after SIGTERM before it is killed (all stop within 10 s)."""
+WORKER_RESTART_DELAY_S = 2.0
+"""A worker that died is restarted after this pause (no busy loop if it dies at start)."""
 
 
 @dataclass(frozen=True)
 class ServiceSpec:
-    """One HTTP service the platform can start."""
+    """One HTTP service of the platform."""
 
     name: str
     asgi_app: str
-    default_port: int
+    settings_class: str
+    """``module:Class`` of the service's settings (its host, port and the rest)."""
 
     @property
     def module(self) -> str:
@@ -30,49 +54,166 @@ class ServiceSpec:
         """True when the service's module exists in this installation."""
         return importlib.util.find_spec(self.module) is not None
 
+    def load_settings(self) -> BaseServiceSettings:
+        """The service's settings from the environment (SettingsError: one line)."""
+        module, _, name = self.settings_class.partition(":")
+        cls = getattr(importlib.import_module(module), name)
+        return load_settings(cls)
+
 
 SERVICES = (
-    ServiceSpec("sim", "services.sim.app:app", 8001),
-    ServiceSpec("eeg", "services.eeg.app:app", 8002),
+    ServiceSpec("api", "services.api.app:app", "services.api.settings:ApiSettings"),
+    ServiceSpec("sim", "services.sim.app:app", "services.sim.settings:SimSettings"),
+    ServiceSpec("eeg", "services.eeg.app:app", "services.eeg.settings:EEGSettings"),
 )
 
 
-def serve(
-    host: Annotated[str, typer.Option(help="Interface every service binds to.")] = "127.0.0.1",
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    """Linux: the child gets SIGTERM if ``bgrl up`` itself is killed (nothing orphaned)."""
+    with contextlib.suppress(OSError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+class Child:
+    """A child process of ``bgrl up`` (in its own process group, so only we signal it)."""
+
+    def __init__(self, name: str, cmd: list[str]) -> None:
+        self.name = name
+        self.cmd = cmd
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        preexec = _die_with_parent if sys.platform.startswith("linux") else None
+        self.proc = subprocess.Popen(self.cmd, start_new_session=True, preexec_fn=preexec)
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def terminate(self) -> None:
+        if self.alive():
+            assert self.proc is not None
+            self.proc.send_signal(signal.SIGTERM)
+
+    def wait_or_kill(self, deadline: float) -> None:
+        if self.proc is None:
+            return
+        try:
+            self.proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
+        except subprocess.TimeoutExpired:
+            logger.warning("%s did not stop in time; killing it", self.name)
+            self.proc.kill()
+            self.proc.wait()
+
+
+def _fail(message: str) -> typer.Exit:
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(2)
+
+
+def up(
     only: Annotated[
-        list[str] | None, typer.Option(help="Start only these services (repeatable).")
+        list[str] | None,
+        typer.Option(help="Start only these services: api, sim, eeg, worker (repeatable)."),
     ] = None,
 ) -> None:
-    """Start every available service as its own uvicorn process and wait; Ctrl-C stops all."""
-    specs = [s for s in SERVICES if s.available() and (not only or s.name in only)]
-    if not specs:
-        raise typer.BadParameter(f"no service to start (known: {[s.name for s in SERVICES]})")
-    procs: list[tuple[ServiceSpec, subprocess.Popen[bytes]]] = []
-    for spec in specs:
-        port = int(os.environ.get(f"BGRL_{spec.name.upper()}_PORT", spec.default_port))
-        cmd = [sys.executable, "-m", "uvicorn", spec.asgi_app, "--host", host, "--port", str(port)]
-        procs.append((spec, subprocess.Popen(cmd)))
-        typer.echo(f"{spec.name:>8}: http://{host}:{port}  (docs: http://{host}:{port}/docs)")
+    """Start the platform: api, sim and EEG services and the job workers; Ctrl-C stops all."""
+    from services.core.logging import configure_logging
+    from services.core.platform import PlatformSettings
+
+    known = {s.name for s in SERVICES} | {"worker"}
+    if only and set(only) - known:
+        raise _fail(f"--only: unknown {sorted(set(only) - known)}; known: {sorted(known)}")
     try:
-        while all(p.poll() is None for _, p in procs):
-            time.sleep(0.5)
-        for spec, p in procs:
-            if p.poll() is not None:
-                typer.echo(f"service {spec.name} exited with code {p.returncode}", err=True)
-        raise typer.Exit(1)
-    except KeyboardInterrupt:
-        typer.echo("stopping")
+        platform = load_settings(PlatformSettings)
+        specs = [s for s in SERVICES if s.available() and (not only or s.name in only)]
+        service_settings = [(spec, spec.load_settings()) for spec in specs]
+        n_workers = platform.workers if not only or "worker" in only else 0
+        if n_workers:
+            from services.worker.settings import WorkerSettings
+
+            load_settings(WorkerSettings)
+    except SettingsError as exc:
+        raise _fail(str(exc)) from None
+    configure_logging(platform.log_level, json_lines=platform.log_json)
+
+    data_dir = platform.ensure_data_dir().resolve()
+    from services.core.db.migrate import upgrade_database
+
+    upgrade_database(platform.resolved_database_url)
+    typer.echo(f"data folder {data_dir} (database, broker, artifacts); schema up to date")
+
+    uvicorn = [sys.executable, "-m", "uvicorn"]
+    services = [
+        Child(spec.name, [*uvicorn, spec.asgi_app, "--host", s.host, "--port", str(s.port)])
+        for spec, s in service_settings
+    ]
+    worker_cmd = [sys.executable, "-m", "services.cli.main", "worker", "--no-migrate"]
+    workers = [
+        Child(f"worker-{i + 1}", [*worker_cmd, "--name", f"local{i + 1}"]) for i in range(n_workers)
+    ]
+    if not services and not workers:
+        raise _fail("nothing to start")
+
+    stop = threading.Event()
+
+    def request_stop(signum: int, _frame: Any) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    exit_code = 0
+    try:
+        for child in [*services, *workers]:
+            child.start()
+        for spec, settings in service_settings:
+            url = f"http://{settings.host}:{settings.port}"
+            typer.echo(f"{spec.name:>8}: {url}  (docs: {url}/docs)")
+        if workers:
+            typer.echo(f"{'workers':>8}: {len(workers)} (BGRL_WORKERS)")
+        typer.echo("Ctrl-C stops everything.")
+        exit_code = _supervise(services, workers, stop)
     finally:
-        for _, p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for _, p in procs:
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        for child in [*workers, *services]:
+            child.terminate()
+        for child in [*workers, *services]:
+            child.wait_or_kill(deadline)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        typer.echo("stopped")
+    # Leave at once: nothing is left to clean up, and finalising the interpreter can take
+    # seconds on a busy machine (Ctrl-C and SIGTERM must stop everything within 10 s).
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(exit_code)
+
+
+def _supervise(services: list[Child], workers: list[Child], stop: threading.Event) -> int:
+    """Wait for a stop request; restart dead workers; return 1 if an HTTP service died."""
+    restart_at: dict[str, float] = {}
+    while not stop.wait(0.5):
+        for child in services:
+            if not child.alive():
+                assert child.proc is not None
+                typer.echo(
+                    f"service {child.name} exited with code {child.proc.returncode}", err=True
+                )
+                return 1
+        for child in workers:
+            if child.alive():
+                continue
+            due = restart_at.setdefault(child.name, time.monotonic() + WORKER_RESTART_DELAY_S)
+            if time.monotonic() >= due:
+                assert child.proc is not None
+                typer.echo(
+                    f"{child.name} exited with code {child.proc.returncode}; restarting it",
+                    err=True,
+                )
+                del restart_at[child.name]
+                child.start()
+    return 0
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``serve`` to the ``bgrl`` command."""
-    app.command("serve")(serve)
+    """Add ``up`` and its alias ``serve`` to the ``bgrl`` command."""
+    app.command("up")(up)
+    app.command("serve", help="Alias of `bgrl up`.")(up)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import logging
+import os
+import sys
 from typing import Annotated
 
 import typer
@@ -42,18 +45,28 @@ def worker(
         f"artifacts {settings.resolved_artifact_dir}",
         err=True,
     )
-    celery.worker_main(
-        [
-            "worker",
-            f"--hostname={settings.owner_name}@%h",
-            f"--loglevel={settings.log_level}",
-            f"--queues={JOB_QUEUE}",
-            "--pool=solo",
-            "--concurrency=1",
-            "--without-gossip",
-            "--without-mingle",
-        ]
-    )
+    code: int | str | None = 0
+    try:
+        celery.worker_main(
+            [
+                "worker",
+                f"--hostname={settings.owner_name}@%h",
+                f"--loglevel={settings.log_level}",
+                f"--queues={JOB_QUEUE}",
+                "--pool=solo",
+                "--concurrency=1",
+                "--without-gossip",
+                "--without-mingle",
+            ]
+        )
+    except SystemExit as exc:
+        code = exc.code
+    # Leave at once: finalising the interpreter (torch, pybullet) takes seconds on a busy
+    # machine, and `bgrl up` must stop everything within 10 s.
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code if isinstance(code, int) else 1)
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

@@ -48,7 +48,7 @@ class BaseServiceSettings(BaseSettings):
     host: str = Field("127.0.0.1", description="Interface the HTTP server binds to.")
     port: int = Field(8000, ge=1, le=65535, description="TCP port of the HTTP server.")
     data_dir: Path = Field(
-        Path("var"),
+        Path("data"),
         validation_alias=AliasChoices("BGRL_DATA_DIR"),
         description="Platform-wide folder for kept files (recordings, models, caches); each "
         "service uses its own subfolder. Read from BGRL_DATA_DIR.",

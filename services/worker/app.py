@@ -15,12 +15,12 @@ from typing import Any
 
 import torch
 from celery import Celery
-from celery.signals import worker_ready, worker_shutdown
+from celery.signals import worker_ready, worker_shutdown, worker_shutting_down
 
 from services.core.db import jobs as job_rows
 from services.core.queue import TASK_NAMES, enqueue_job, make_celery
 from services.core.settings import load_settings
-from services.worker.runtime import Handler, Runtime, run_job
+from services.worker.runtime import SHUTDOWN, Handler, Runtime, run_job
 from services.worker.settings import WorkerSettings
 
 logger = logging.getLogger(__name__)
@@ -112,6 +112,13 @@ def _start_reaper(**_: Any) -> None:
     if runtime is not None and _reaper is None:
         _reaper = Reaper(runtime)
         _reaper.start()
+
+
+@worker_shutting_down.connect
+def _hand_back_running_job(**_: Any) -> None:
+    """Ctrl-C / SIGTERM: the running job stops at its next step and goes back to the queue
+    (it resumes from its checkpoint on the next worker) instead of holding the stop."""
+    SHUTDOWN.set()
 
 
 @worker_shutdown.connect

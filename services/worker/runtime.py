@@ -35,6 +35,9 @@ logger = logging.getLogger(__name__)
 MAX_BEAT_S = 1.0
 """Heartbeats (and cancel checks) are at most this far apart, so cancel acts within 5 s."""
 
+SHUTDOWN = threading.Event()
+"""Set when this worker is asked to stop: the running job is handed back to the queue."""
+
 
 class JobConfigError(ValueError):
     """The job's config is invalid: the job fails at once, without retries."""
@@ -180,14 +183,20 @@ class JobContext:
     keeper: LeaseKeeper
 
     @property
+    def stop_reason(self) -> str | None:
+        """Why the job must stop: ``cancelled``, ``lease lost``, ``shutdown``; None: go on."""
+        return self.keeper.stop_reason or ("shutdown" if SHUTDOWN.is_set() else None)
+
+    @property
     def stopped(self) -> bool:
-        """True once the job must stop (cancel requested or lease lost)."""
-        return self.keeper.stop_reason is not None
+        """True once the job must stop."""
+        return self.stop_reason is not None
 
     def check_stop(self) -> None:
         """Raise :class:`JobStoppedError` if the job must stop."""
-        if self.keeper.stop_reason is not None:
-            raise JobStoppedError(self.keeper.stop_reason)
+        reason = self.stop_reason
+        if reason is not None:
+            raise JobStoppedError(reason)
 
     def update(self, **values: Any) -> None:
         """Write columns of the job row (under the lease)."""
@@ -266,8 +275,8 @@ def run_job(runtime: Runtime, job_id: str, handler: Handler) -> str:
         return "failed"
     except Exception as exc:
         keeper.finish()
-        if keeper.stop_reason is not None:  # the error came from being stopped
-            return _end_stopped(context, keeper.stop_reason)
+        if context.stop_reason is not None:  # the error came from being stopped
+            return _end_stopped(context, context.stop_reason)
         logger.exception("job %s: attempt failed", job_id)
         with runtime.sessions() as session:
             status = job_rows.release_for_retry(
@@ -310,6 +319,13 @@ def _end_stopped(context: JobContext, reason: str) -> str:
     if reason == "lease lost":
         logger.warning("job %s: lease lost; another worker owns it now", context.job_id)
         return "lease lost"
+    if reason == "shutdown":
+        with runtime.sessions() as session:
+            handed_back = job_rows.hand_back(session, context.job_id, runtime.owner)
+        if handed_back:
+            enqueue_job(runtime.celery, context.job_id, context.kind)
+            logger.info("job %s: handed back to the queue (worker stopping)", context.job_id)
+        return "handed back"
     with runtime.sessions() as session:
         job_rows.finish_job(session, context.job_id, runtime.owner, "cancelled")
     logger.info("job %s: cancelled", context.job_id)

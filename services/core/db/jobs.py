@@ -218,6 +218,19 @@ def release_for_retry(
     return "queued" if done else None
 
 
+def hand_back(session: Session, job_id: str, owner: str) -> bool:
+    """A worker shutting down returns its job to the queue; the attempt does not count."""
+    return update_job(
+        session,
+        job_id,
+        owner,
+        status="queued",
+        lease_owner=None,
+        lease_expires_at=None,
+        attempts=Job.attempts - 1,  # >= 0: the caller claimed it
+    )
+
+
 def wait_for_children(session: Session, job_id: str, owner: str, **values: Any) -> bool:
     """Release a parent job's lease while its child jobs run (status stays ``running``)."""
     return update_job(
