@@ -107,7 +107,7 @@ def test_classify_refuses_microvolts_and_nan_epochs(client):
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("timestamp", "NaN"), ("timestamp", "Infinity"), ("step", "1e400"), ("step", "NaN")],
+    [("timestamp", "NaN"), ("timestamp", "Infinity"), ("timestamp", "1e400"), ("step", "1e400")],
 )
 def test_markers_with_non_finite_numbers_are_a_422_naming_the_field(client, field, value):
     text = json.dumps({**MARKER, field: "@"}).replace('"@"', value)
