@@ -24,6 +24,17 @@ from services.eeg.virtual_subject import eeg_channel_names, simulate_recording
 CH_NAMES = eeg_channel_names()
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """One intra-op thread, as the CLI and the services run training (the test process's
+    setting, restored after): OpenMP threads spin, so two threads on a loaded 2-core
+    machine train several times slower than one."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def _toy_epochs(n: int = 120, seed: int = 0) -> EpochSet:
     """Test data (not EEG): white noise with a fixed pattern added to class-1 epochs."""
     rng = np.random.default_rng(seed)
@@ -139,3 +150,57 @@ def test_mismatched_data_is_refused() -> None:
 def test_load_refuses_missing_classifier(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"classifier\.json"):
         ErrPClassifier.load(tmp_path)
+
+
+def test_calibration_leaves_process_state_alone_and_is_repeatable(tmp_path) -> None:
+    """No global seed, no thread count: the global RNGs and torch's threads are untouched."""
+    epochs = _toy_epochs(60)
+    threads = torch.get_num_threads()
+    torch_state = torch.random.get_rng_state()
+    numpy_state = np.random.get_state()[1].copy()
+    config = TrainingConfig(max_passes=3)
+    first = calibrate(epochs, seed=3, out_dir=tmp_path / "a", config=config, report=False)
+    assert torch.get_num_threads() == threads
+    assert torch.equal(torch.random.get_rng_state(), torch_state)
+    np.testing.assert_array_equal(np.random.get_state()[1], numpy_state)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]  # no staging folder left
+    torch.manual_seed(12345)  # whatever the global generator holds does not matter
+    second = train_classifier(epochs, seed=3, config=config)
+    assert second.history == first.history
+    np.testing.assert_array_equal(second.test_proba, first.test_proba)
+    assert first.metrics["passes_run"] == 3 and first.metrics["training_config"]["max_passes"] == 3
+
+
+def test_concurrent_calibrations_give_their_sequential_results() -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    epochs = _toy_epochs(60)
+    config = TrainingConfig(max_passes=3)
+    alone = [train_classifier(epochs, seed=s, config=config).history for s in (1, 2)]
+    with ThreadPoolExecutor(2) as pool:
+        together = list(pool.map(lambda s: train_classifier(epochs, seed=s, config=config), (1, 2)))
+    for result, history in zip(together, alone, strict=True):
+        np.testing.assert_allclose(result.history["val_loss"], history["val_loss"], rtol=1e-5)
+
+
+def test_should_stop_cancels_between_passes_and_leaves_nothing(tmp_path) -> None:
+    from services.eeg.calibration import CalibrationCancelled
+
+    calls = []
+
+    def stop_on_third_call() -> bool:
+        calls.append(1)
+        return len(calls) == 3
+
+    out = tmp_path / "model"
+    with pytest.raises(CalibrationCancelled, match=r"^calibration cancelled after 1 of at most 50"):
+        calibrate(
+            _toy_epochs(60),
+            out_dir=out,
+            config=TrainingConfig(max_passes=50),
+            should_stop=stop_on_third_call,
+        )
+    assert len(calls) == 3  # once before preprocessing, then before passes 0 and 1
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(CalibrationCancelled, match="before it started"):
+        calibrate(_toy_epochs(60), should_stop=lambda: True)
