@@ -13,9 +13,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
+from torch import nn
 
 from services.core.files import write_bytes_atomic
+from services.learner.feedback import HFPolicy
+from services.learner.optimizer import FlatAdam
+from services.learner.seeding import TrainingResets
 
 CHECKPOINT_VERSION = 2
 """2: the training reset seeds are a stream of their own (``resets``)."""
@@ -56,6 +61,45 @@ class Checkpoint:
     state: RunState
     hf_model: dict[str, torch.Tensor] | None
     """Fhat's weights (pi_HF), when the run is guided."""
+
+    @classmethod
+    def capture(
+        cls,
+        config: dict[str, Any],
+        agent: nn.Module,
+        optimizer: FlatAdam,
+        rng: np.random.Generator,
+        resets: TrainingResets,
+        state: RunState,
+        hf_policy: HFPolicy | None,
+    ) -> Checkpoint:
+        """Everything a run needs to continue exactly (``config`` is ``asdict(PPOConfig)``)."""
+        return cls(
+            config=config,
+            agent=agent.state_dict(),
+            optimizer=optimizer.state_dict(),
+            rng=rng.bit_generator.state,
+            resets=resets.state,
+            state=state,
+            hf_model=None if hf_policy is None else hf_policy.model.state_dict(),
+        )
+
+    def restore(
+        self,
+        agent: nn.Module,
+        optimizer: FlatAdam,
+        rng: np.random.Generator,
+        resets: TrainingResets,
+        hf_policy: HFPolicy | None,
+    ) -> RunState:
+        """Load weights, optimiser and generator states in place; return the run state."""
+        agent.load_state_dict(self.agent)
+        optimizer.load_state_dict(self.optimizer)
+        rng.bit_generator.state = self.rng
+        resets.state = self.resets
+        if hf_policy is not None and self.hf_model is not None:
+            hf_policy.model.load_state_dict(self.hf_model)
+        return self.state
 
 
 def save_checkpoint(path: Path, checkpoint: Checkpoint) -> None:

@@ -371,29 +371,12 @@ def train(
 
         def save() -> None:
             assert checkpoint is not None
-            hf_model = None if hf_policy is None else hf_policy.model.state_dict()
-            save_checkpoint(
-                checkpoint,
-                Checkpoint(
-                    config=asdict(config),
-                    agent=agent.state_dict(),
-                    optimizer=optimizer.state_dict(),
-                    rng=rng.bit_generator.state,
-                    resets=resets.state,
-                    state=state,
-                    hf_model=hf_model,
-                ),
-            )
+            snapshot = (asdict(config), agent, optimizer, rng, resets, state, hf_policy)
+            save_checkpoint(checkpoint, Checkpoint.capture(*snapshot))
 
         if checkpoint is not None and checkpoint.exists():
             restored = load_checkpoint(checkpoint, asdict(config))
-            agent.load_state_dict(restored.agent)
-            optimizer.load_state_dict(restored.optimizer)
-            rng.bit_generator.state = restored.rng
-            resets.state = restored.resets
-            state = restored.state
-            if hf_policy is not None and restored.hf_model is not None:
-                hf_policy.model.load_state_dict(restored.hf_model)
+            state = restored.restore(agent, optimizer, rng, resets, hf_policy)
             obs, _ = env.reset(seed=state.episode_seed)
             for action in state.episode_actions:  # replay the episode in progress
                 obs, *_ = env.step(action)
