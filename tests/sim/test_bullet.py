@@ -56,16 +56,24 @@ def test_husky_from_shapes_renders_exactly_like_the_urdf(capfd: pytest.CaptureFi
 
 
 def test_importing_and_using_the_env_prints_nothing(tmp_path) -> None:
+    room = tmp_path / "room.json"  # a small map: its oracle builds in milliseconds
+    room.write_text(
+        '{"name": "room", "bounds": {"x_max": 4, "y_max": 3}, '
+        '"start": {"x": 1, "y": 1.5}, "goal": {"x": 3.2, "y": 1.5}}'
+    )
+    workdir = tmp_path / "work"
+    workdir.mkdir()
     code = (
         "import gymnasium as gym, services.sim\n"
-        "env = gym.make('services.sim:BrainNav-SSSG-v0', render_mode='rgb_array')\n"
+        f"env = gym.make('services.sim:BrainNav-SSSG-v0', map_path={str(room)!r}, "
+        "render_mode='rgb_array')\n"
         "env.reset(seed=0); env.step(0); env.render(); env.close()\n"
     )
     out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, check=True
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=workdir, check=True
     )
     assert (out.stdout, out.stderr) == ("", "")
-    assert list(tmp_path.iterdir()) == []  # and writes nothing to the working directory
+    assert list(workdir.iterdir()) == []  # and writes nothing to the working directory
 
 
 def test_env_construction_leaves_stdout_alone(capfd: pytest.CaptureFixture) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import threading
 import time
@@ -151,26 +152,41 @@ def test_corrupt_cache_file_is_rebuilt(tmp_path: Path, caplog: pytest.LogCapture
         np.testing.assert_array_equal(data["cost"], oracle.cost)
 
 
+def corridor_file(folder: Path, goal_x: float) -> Path:
+    """:func:`corridor_map` as a map file (its lattice builds in milliseconds)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"corridor_{goal_x}.json"
+    path.write_text(json.dumps(corridor_map(goal_x).model_dump(mode="json")))
+    return path
+
+
 def test_without_a_cache_dir_nothing_is_written(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.chdir(tmp_path)
+    map_path = corridor_file(tmp_path / "maps", goal_x=3.35)
+    workdir = tmp_path / "work"
+    workdir.mkdir()
+    monkeypatch.chdir(workdir)
     monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path / "data"))  # ignored: no env reads
-    Oracle.clear_memory()
-    env = gym.make("services.sim:BrainNav-SSSG-v0")
+    Oracle._memory.pop(Oracle.cache_key(load_map(map_path)), None)  # a cold build
+    env = gym.make("services.sim:BrainNav-SSSG-v0", map_path=map_path)
     try:
         env.reset(seed=0)
         env.step(0)
     finally:
         env.close()
-    assert list(tmp_path.iterdir()) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["maps", "work"]
+    assert list(workdir.iterdir()) == []
 
 
 def test_gym_make_uses_the_cache_dir_it_is_given(tmp_path: Path) -> None:
-    Oracle.clear_memory()
-    env = gym.make("services.sim:BrainNav-VSSG-v0", oracle_cache_dir=tmp_path / "cache")
+    map_path = corridor_file(tmp_path / "maps", goal_x=3.4)
+    key = Oracle.cache_key(load_map(map_path))
+    Oracle._memory.pop(key, None)
+    env = gym.make(
+        "services.sim:BrainNav-VSSG-v0", map_path=map_path, oracle_cache_dir=tmp_path / "cache"
+    )
     env.close()
-    key = Oracle.cache_key(load_map(DEFAULT_MAP_PATH))
     assert [p.name for p in (tmp_path / "cache").iterdir()] == [f"{key}.npz"]
 
 
