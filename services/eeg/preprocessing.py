@@ -1,7 +1,7 @@
 """ErrP preprocessing shared by calibration (offline) and live decoding (online).
 
 One causal pipeline serves both paths, so a classifier trained on a recording sees exactly
-the features it will see live (paper §EEG Classifier Training; DESIGN §1, §4):
+the features it will see live (paper §EEG Classifier Training; docs/eeg.md):
 
 1. anti-alias low-pass at the input rate (Butterworth, ``antialias_order`` at
    ``antialias_cutoff`` Hz), then keep every ``q``-th sample, ``q = sfreq_in / sfreq_out``

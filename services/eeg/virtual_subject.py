@@ -1,4 +1,4 @@
-"""A virtual subject: realistic **synthetic** observation-ErrP EEG (DESIGN §3).
+"""A virtual subject: realistic **synthetic** observation-ErrP EEG (docs/eeg.md).
 
 No real ErrP recordings can be downloaded here, so tests, demos and benchmarks use this
 generator. Everything it makes is marked ``SYNTHETIC`` in ``raw.info["description"]`` (and in
@@ -23,7 +23,7 @@ Signal model (64 BioSemi channels, volts), all drawn from one seeded generator:
 
 ``quality`` in [0, 1] is the single per-subject knob: it scales every label-dependent
 component (the error wave and the correct-trial bump) by ``quality * ERRP_GAIN``, so
-``quality=0`` has no ErrP at all, ``quality=0.36`` has the typical amplitudes of DESIGN §3 and
+``quality=0`` has no ErrP at all, ``quality=0.36`` has the typical amplitudes below and
 ``quality=1`` is the clearest subject the generator makes. The background does not
 depend on ``quality``, so two subjects with the same seed differ only in their ErrP.
 """
@@ -85,7 +85,7 @@ ERROR_COMPONENTS: tuple[ErpComponent, ...] = (
     ErpComponent(7.5, 0.320, 0.045, "Cz", 0.065),
     ErpComponent(-4.0, 0.450, 0.055, "Cz", 0.065),
 )
-"""The observation-ErrP on error trials (DESIGN §3), typical amplitudes (``quality=0.36``)."""
+"""The observation-ErrP on error trials, typical amplitudes (``quality=0.36``)."""
 
 CORRECT_COMPONENTS: tuple[ErpComponent, ...] = (ErpComponent(2.0, 0.350, 0.060, "CPz", 0.07),)
 """The weaker P300-like bump on correct trials, typical amplitude (``quality=0.36``)."""
