@@ -7,7 +7,7 @@ const PAGE = 50;
 const CODE_PATTERN = "[A-Za-z0-9][A-Za-z0-9_.\\-]{0,63}";
 
 function createForm(onCreated) {
-  const code = h("input", { name: "code", required: true, pattern: CODE_PATTERN, maxlength: 64 });
+  const code = h("input", { id: "new-subject-code", name: "code", required: true, pattern: CODE_PATTERN, maxlength: 64 });
   const notes = h("textarea", { name: "notes", rows: 3, maxlength: 10000 });
   const codeField = field("Code", code, "Pseudonymous, e.g. S01 (never a name).");
   const message = messageBox();
