@@ -19,8 +19,8 @@ from services.core.logging import configure_logging
 from services.core.settings import load_settings
 from services.core.web import create_service_app
 from services.sim.lsl_markers import MarkerPublisher
+from services.sim.registry import SessionRegistry
 from services.sim.routes import images, oracle, paced, service, sessions, stream
-from services.sim.sessions import SessionRegistry
 from services.sim.settings import SimSettings
 
 

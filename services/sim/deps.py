@@ -8,7 +8,8 @@ from fastapi import Depends
 from starlette.requests import HTTPConnection
 
 from services.sim.lsl_markers import MarkerPublisher
-from services.sim.sessions import SessionRegistry, SimSession
+from services.sim.registry import SessionRegistry
+from services.sim.sessions import SimSession
 from services.sim.settings import SimSettings
 
 

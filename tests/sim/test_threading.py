@@ -11,7 +11,8 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from services.sim.app import create_app
-from services.sim.sessions import PacedPolicy, SimSession, resolve_map
+from services.sim.registry import resolve_map
+from services.sim.sessions import PacedPolicy, SimSession
 from services.sim.settings import SimSettings
 
 with warnings.catch_warnings():

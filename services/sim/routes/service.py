@@ -10,8 +10,8 @@ from starlette.requests import Request
 from services.sim.deps import SettingsDep, get_publisher, get_registry, get_settings
 from services.sim.lsl_markers import lsl_clock
 from services.sim.maps import DEFAULT_MAP_PATH, MapError, load_map
+from services.sim.registry import available_maps
 from services.sim.schemas import MapPublic
-from services.sim.sessions import available_maps
 
 router = APIRouter(tags=["service"])
 
