@@ -7,7 +7,9 @@ Threading model. Each session owns one env and therefore one pybullet DIRECT cli
 HTTP handlers, the paced-mode thread and the frame streamer all reach the env only through
 :class:`SimSession` methods that hold the session's lock, so the client is never used from
 two threads at once. A frame render (~tens of ms) briefly delays a concurrent step, never
-the other way round for longer than one step.
+the other way round for longer than one step. Listeners (:meth:`SimSession.add_listener`)
+are called after the lock is released, from manual steps and the paced mode alike;
+``_notify`` refuses to run under the lock, so a listener can never stall other threads.
 """
 
 from __future__ import annotations
