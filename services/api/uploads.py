@@ -132,9 +132,8 @@ async def receive_recording(
         if not boundary:
             raise BadRequestError("multipart body without a boundary", field="content-type")
         upload = _MultipartFile(request, boundary)
-        name = check_recording_name(filename or await upload.start())
-        if filename:
-            await upload.start()
+        part_name = await upload.start()
+        name = check_recording_name(filename or part_name)
         stream = upload.chunks()
     else:
         if not filename:

@@ -145,6 +145,11 @@ def test_upload_limits_and_bad_requests(api: Api) -> None:
 
     streamed = api.client.post(f"{url}?filename=big.bdf", content=chunks(), headers=staff)
     assert streamed.status_code == 413
+    multipart = api.client.post(
+        url, files={"file": ("big.bdf", b"z" * (80 * 1024))}, headers=api.as_("staff")
+    )
+    assert multipart.status_code == 413
+    assert multipart.json()["field"] == "file"
     wrong_type = api.client.post(f"{url}?filename=notes.txt", content=b"hello", headers=staff)
     assert wrong_type.status_code == 415
     assert wrong_type.json() == {
