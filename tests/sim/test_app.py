@@ -235,6 +235,10 @@ def test_bad_requests_get_clear_4xx(client: TestClient) -> None:
         headers={"content-type": "application/json"},
     )
     assert too_big.status_code == 413
+    assert too_big.json() == {
+        "detail": "request body too large (this endpoint accepts at most 65536 bytes)",
+        "field": "body",
+    }
 
 
 def test_session_limit(client: TestClient) -> None:
