@@ -40,6 +40,7 @@ def worker(
     from services.worker import app as worker_app
 
     celery = worker_app.main_app(settings)
+    worker_app.load_handler("guided_ppo")  # import the learner now, not in the first job
     typer.echo(
         f"worker {settings.owner_name}: broker {broker_url(settings).split('@')[-1]}, "
         f"artifacts {settings.resolved_artifact_dir}",

@@ -28,8 +28,16 @@ REDIS_URL = "redis://127.0.0.1:6379/11"
 """A Redis database of its own, so other tests on this machine's Redis are not disturbed."""
 PG_ADMIN_URL = "host=127.0.0.1 port=5432 dbname=test user=postgres"
 PG_DATABASE = "bgrl_worker_test"
-PG_URL = f"postgresql+psycopg://postgres@127.0.0.1:5432/{PG_DATABASE}"
-FAST_LEASE = {"BGRL_JOB_LEASE_S": "3", "BGRL_JOB_HEARTBEAT_S": "0.5"}
+
+
+def pg_url(database: str = PG_DATABASE) -> str:
+    return f"postgresql+psycopg://postgres@127.0.0.1:5432/{database}"
+
+
+FAST_LEASE = {"BGRL_JOB_LEASE_S": "10", "BGRL_JOB_HEARTBEAT_S": "0.5"}
+"""A dead worker's job is re-sent 10 s after its last heartbeat (30 s by default). Shorter
+leases expire on a loaded test machine while a worker's first job imports and compiles
+(the heartbeat thread waits for the GIL), which is safe (the job runs again) but slow."""
 WORKER_TUNING = {"BGRL_REAPER_INTERVAL_S": "0.5", "BGRL_LOG_LEVEL": "INFO"}
 TINY_PPO = {"n_epochs": 4, "eval_every": 256}
 """PPO overrides that keep test jobs short (seconds); results stay deterministic per seed."""
@@ -46,14 +54,15 @@ def redis_available() -> str | None:
     return None
 
 
-def postgres_database() -> str | None:
-    """Recreate the tests' PostgreSQL database; None if done, else the reason to skip."""
+def postgres_database(database: str = PG_DATABASE) -> str | None:
+    """(Re)create a PostgreSQL database of these tests (next to the shared ``test``, so
+    other tests are not disturbed); None if done, else the reason to skip."""
     try:
         import psycopg
 
         with psycopg.connect(PG_ADMIN_URL, autocommit=True, connect_timeout=2) as conn:
-            conn.execute(f"DROP DATABASE IF EXISTS {PG_DATABASE} WITH (FORCE)")
-            conn.execute(f"CREATE DATABASE {PG_DATABASE}")
+            conn.execute(f"DROP DATABASE IF EXISTS {database} WITH (FORCE)")
+            conn.execute(f"CREATE DATABASE {database}")
     except Exception as exc:
         return f"PostgreSQL at 127.0.0.1:5432 (db test, trust auth) is not usable ({exc})"
     return None
@@ -88,14 +97,16 @@ class Platform:
         cache_dir = SimSettings(data_dir=self.settings.data_dir).oracle_cache_dir
         Oracle.for_map(load_map(DEFAULT_MAP_PATH), cache_dir)
 
-    def start_worker(self, name: str, env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
+    def start_worker(
+        self, name: str, env: dict[str, str] | None = None, cwd: Path | None = None
+    ) -> subprocess.Popen[bytes]:
         """A ``bgrl worker`` process with the platform's environment (or exactly ``env``)."""
         base = {k: v for k, v in os.environ.items() if not k.startswith("BGRL_")}
         full_env = {**base, **(self.env if env is None else env)}
         log = self.root / f"worker-{name}.log"
         proc = subprocess.Popen(
             [sys.executable, "-m", "services.cli.main", "worker", "--name", name],
-            cwd=self.root,
+            cwd=cwd or self.root,
             env=full_env,
             stdout=log.open("wb"),
             stderr=subprocess.STDOUT,

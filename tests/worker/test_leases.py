@@ -1,0 +1,197 @@
+"""Leases on job rows (services.core.db.jobs) on SQLite and PostgreSQL: one claim wins, a
+lost lease is refused, the reaper settles what dead workers left, attempts are bounded."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from datetime import timedelta
+
+import pytest
+from sqlalchemy import delete, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from services.core.db import jobs as job_rows
+from services.core.db.base import utcnow
+from services.core.db.migrate import upgrade_database
+from services.core.db.models import Job
+from services.core.db.session import make_engine, make_session_factory
+from tests.worker.conftest import pg_url, postgres_database
+
+Claim = job_rows.ClaimOutcome
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def database(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[sessionmaker[Session]]:
+    """A migrated database per backend, shared by this module's tests."""
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path_factory.mktemp('leases') / 'jobs.db'}"
+    else:
+        reason = postgres_database("bgrl_worker_leases")
+        if reason:
+            pytest.skip(reason)
+        url = pg_url("bgrl_worker_leases")
+    upgrade_database(url)
+    engine = make_engine(url)
+    yield make_session_factory(engine)
+    engine.dispose()
+
+
+@pytest.fixture
+def sessions(database: sessionmaker[Session]) -> sessionmaker[Session]:
+    """The database with no job rows (the reaper looks at every row)."""
+    with database() as session:
+        session.execute(delete(Job).where(Job.parent_id.is_not(None)))
+        session.execute(delete(Job))
+        session.commit()
+    return database
+
+
+def add_job(sessions: sessionmaker[Session], **values: object) -> str:
+    with sessions() as session:
+        job = Job(**{"kind": "guided_ppo", "config": {}, **values})
+        session.add(job)
+        session.commit()
+        return job.id
+
+
+def row(sessions: sessionmaker[Session], job_id: str) -> Job:
+    with sessions() as session:
+        job = session.get(Job, job_id)
+        assert job is not None
+        return job
+
+
+def expire(sessions: sessionmaker[Session], job_id: str) -> None:
+    with sessions() as session:
+        session.execute(
+            update(Job)
+            .where(Job.id == job_id)
+            .values(lease_expires_at=utcnow() - timedelta(seconds=1))
+        )
+        session.commit()
+
+
+def test_concurrent_claims_one_wins(sessions: sessionmaker[Session]) -> None:
+    job_id = add_job(sessions)
+    outcomes: list[Claim] = []
+    barrier = threading.Barrier(8)
+
+    def claim(i: int) -> None:
+        with sessions() as session:
+            barrier.wait()
+            outcomes.append(job_rows.claim_job(session, job_id, f"w{i}", 30))
+
+    threads = [threading.Thread(target=claim, args=(i,)) for i in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(o.value for o in outcomes) == ["claimed"] + ["leased"] * 7
+    job = row(sessions, job_id)
+    assert job.status == "running" and job.attempts == 1 and job.started_at is not None
+
+
+def test_lost_lease_refuses_every_write(sessions: sessionmaker[Session]) -> None:
+    job_id = add_job(sessions)
+    with sessions() as session:
+        assert job_rows.claim_job(session, job_id, "slow", 30) is Claim.CLAIMED
+        assert job_rows.heartbeat(session, job_id, "slow", 30) == job_rows.Heartbeat(True, False)
+    expire(sessions, job_id)  # "slow" paused past its lease; "fast" takes over
+    with sessions() as session:
+        assert job_rows.claim_job(session, job_id, "fast", 30) is Claim.CLAIMED
+        assert job_rows.heartbeat(session, job_id, "slow", 30).held is False
+        assert job_rows.update_job(session, job_id, "slow", progress=0.5) is False
+        assert job_rows.finish_job(session, job_id, "slow", "succeeded") is False
+        assert job_rows.update_job(session, job_id, "fast", progress=0.25) is True
+    job = row(sessions, job_id)
+    assert (job.lease_owner, job.attempts, job.progress, job.status) == ("fast", 2, 0.25, "running")
+
+
+def test_cancel_request_is_seen_by_heartbeat_and_blocks_a_claim(
+    sessions: sessionmaker[Session],
+) -> None:
+    running = add_job(sessions)
+    queued = add_job(sessions, cancel_requested=True)
+    with sessions() as session:
+        job_rows.claim_job(session, running, "w", 30)
+        session.execute(update(Job).where(Job.id == running).values(cancel_requested=True))
+        session.commit()
+        assert job_rows.heartbeat(session, running, "w", 30) == job_rows.Heartbeat(True, True)
+        assert job_rows.claim_job(session, queued, "w", 30) is Claim.CANCELLED
+    assert row(sessions, queued).status == "cancelled"
+
+
+def test_retries_are_bounded_by_max_attempts(sessions: sessionmaker[Session]) -> None:
+    job_id = add_job(sessions, max_attempts=2)
+    with sessions() as session:
+        for attempt, expected in ((1, "queued"), (2, "failed")):
+            assert job_rows.claim_job(session, job_id, "w", 30) is Claim.CLAIMED
+            status = job_rows.release_for_retry(
+                session, job_id, "w", error=f"boom {attempt}", traceback="tb"
+            )
+            assert status == expected
+        assert job_rows.claim_job(session, job_id, "w", 30) is Claim.FINISHED
+    job = row(sessions, job_id)
+    assert (job.status, job.attempts, job.error, job.lease_owner) == ("failed", 2, "boom 2", None)
+
+
+def test_reaper_requeues_expired_leases_and_settles_the_rest(
+    sessions: sessionmaker[Session],
+) -> None:
+    lost = add_job(sessions)
+    lost_cancelled = add_job(sessions)
+    lost_last_attempt = add_job(sessions, max_attempts=1)
+    live = add_job(sessions)
+    with sessions() as session:
+        for job_id in (lost, lost_cancelled, lost_last_attempt, live):
+            assert job_rows.claim_job(session, job_id, "w", 30) is Claim.CLAIMED
+        session.execute(update(Job).where(Job.id == lost_cancelled).values(cancel_requested=True))
+        session.commit()
+    for job_id in (lost, lost_cancelled, lost_last_attempt):
+        expire(sessions, job_id)
+    with sessions() as session:
+        assert job_rows.reap(session) == [(lost, "guided_ppo")]
+        assert job_rows.reap(session) == []  # settled once
+    assert [row(sessions, j).status for j in (lost, lost_cancelled, lost_last_attempt, live)] == [
+        "queued",
+        "cancelled",
+        "failed",
+        "running",
+    ]
+    assert row(sessions, lost_last_attempt).error == "worker lost on the last of 1 attempts"
+    assert row(sessions, lost).lease_owner is None
+
+
+def test_reaper_resends_stale_queued_jobs_and_finished_parents(
+    sessions: sessionmaker[Session],
+) -> None:
+    stale = add_job(sessions)
+    parent = add_job(sessions, kind="reproduce")
+    with sessions() as session:
+        session.execute(
+            update(Job).where(Job.id == stale).values(updated_at=utcnow() - timedelta(seconds=100))
+        )
+        session.commit()
+        assert job_rows.claim_job(session, parent, "w", 30) is Claim.CLAIMED
+        assert job_rows.wait_for_children(session, parent, "w") is True
+        child = Job(kind="reproduce_run", config={}, parent_id=parent, status="succeeded")
+        session.add(child)
+        session.commit()
+        assert sorted(job_rows.reap(session, stale_queued_s=50)) == sorted(
+            [(stale, "guided_ppo"), (parent, "reproduce")]
+        )
+        assert job_rows.reap(session, stale_queued_s=50) == [(parent, "reproduce")]
+        assert job_rows.claim_job(session, parent, "w2", 30) is Claim.CLAIMED
+    assert row(sessions, parent).attempts == 1  # the wait gave the attempts back
+
+
+def test_hand_back_does_not_use_up_an_attempt(sessions: sessionmaker[Session]) -> None:
+    job_id = add_job(sessions)
+    with sessions() as session:
+        assert job_rows.claim_job(session, job_id, "w", 30) is Claim.CLAIMED
+        assert job_rows.hand_back(session, job_id, "w") is True
+    job = row(sessions, job_id)
+    assert (job.status, job.attempts, job.lease_owner) == ("queued", 0, None)
