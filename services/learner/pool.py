@@ -93,12 +93,14 @@ def run_isolated(
 
 
 def validate_maps(specs: Sequence[RunSpec]) -> None:
-    """Load every map the specs name; a one-line ValueError for the first bad one."""
+    """Load every map the specs name and check that its goal can be reached; a one-line
+    ValueError for the first bad one."""
     from services.sim.maps import MapError, load_map
+    from services.sim.oracle import Oracle
 
     for map_path in sorted({s.map_path for s in specs if s.map_path is not None}):
         try:
-            load_map(map_path)
+            Oracle.for_map(load_map(map_path)).check_reachable(f"map file {map_path}")
         except MapError as exc:
             raise ValueError(str(exc).splitlines()[0]) from None
 
