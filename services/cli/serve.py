@@ -115,6 +115,9 @@ def up(
         list[str] | None,
         typer.Option(help="Start only these services: api, sim, eeg, worker (repeatable)."),
     ] = None,
+    migrate: Annotated[
+        bool, typer.Option(help="Bring the database to the current schema first.")
+    ] = True,
 ) -> None:
     """Start the platform: api, sim and EEG services and the job workers; Ctrl-C stops all."""
     from services.core.logging import configure_logging
@@ -137,10 +140,12 @@ def up(
     configure_logging(platform.log_level, json_lines=platform.log_json)
 
     data_dir = platform.ensure_data_dir().resolve()
-    from services.core.db.migrate import upgrade_database
+    typer.echo(f"data folder {data_dir}")
+    if migrate:
+        from services.core.db.migrate import upgrade_database
 
-    upgrade_database(platform.resolved_database_url)
-    typer.echo(f"data folder {data_dir} (database, broker, artifacts); schema up to date")
+        upgrade_database(platform.resolved_database_url)
+        typer.echo("database schema up to date")
 
     uvicorn = [sys.executable, "-m", "uvicorn"]
     services = [
