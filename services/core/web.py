@@ -229,6 +229,9 @@ def create_service_app(
         from services.core.websockets import CLOSE_BAD_REQUEST
 
         body = validation_error_body(exc.errors())
+        # accept first: a close before accept reaches the client as a bare HTTP 403
+        await request.accept()
+        await request.send_json({"type": "error", **body})
         await request.close(code=CLOSE_BAD_REQUEST, reason=body["message"][:120])
 
     if not any(getattr(r, "path", None) == "/health" for r in routers):

@@ -6,9 +6,10 @@ import json
 import logging
 
 import pytest
-from fastapi import APIRouter
+from fastapi import APIRouter, Query, WebSocket
 from fastapi.testclient import TestClient
 from pydantic_settings import SettingsConfigDict
+from starlette.websockets import WebSocketDisconnect
 
 from services.core.errors import NotFoundError
 from services.core.files import write_json_atomic
@@ -129,3 +130,22 @@ def test_service_token_guards_every_route_but_health() -> None:
     assert wrong.status_code == 401
     ok = client.post("/echo", json={"x": 1}, headers={"x-service-token": "s3cret-token-0123456789"})
     assert ok.json() == {"x": 1.0}
+
+
+def test_bad_websocket_query_closes_with_4422_naming_the_parameter() -> None:
+    ws_router = APIRouter()
+
+    @ws_router.websocket("/ws")
+    async def ws(websocket: WebSocket, fps: float = Query(ge=1, le=30)) -> None:
+        await websocket.accept()
+        await websocket.close()
+
+    app = create_service_app(
+        name="t", title="t", summary="t", version="0", max_body_size=100, routers=[ws_router]
+    )
+    with TestClient(app).websocket_connect("/ws?fps=500") as socket:
+        message = socket.receive_json()
+        assert message["detail"][0]["field"] == "fps"
+        with pytest.raises(WebSocketDisconnect) as info:
+            socket.receive_json()
+    assert info.value.code == 4422
