@@ -96,8 +96,11 @@ class LiveSession:
         *,
         stream_name: str | None = None,
         eeg_source: EegSource | None = None,
+        synthetic: bool = False,
     ) -> None:
         self.ingest = ingest
+        self.synthetic = synthetic
+        """The source says its data are generated (a virtual subject)."""
         self.classifier = classifier
         self.classifier_id = classifier_id
         self.source = source

@@ -172,6 +172,9 @@ class IngestHeader(StrictRequest):
         min_length=1, max_length=1024
     )
     sfreq: float = Field(gt=0, le=100_000)
+    synthetic: bool = Field(
+        False, description="The samples are generated (a virtual subject), not recorded."
+    )
 
 
 class IngestChunk(StrictRequest):

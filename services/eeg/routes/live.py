@@ -230,7 +230,7 @@ async def ingest_socket(
         await _close(websocket, CLOSE_BAD_REQUEST, str(exc))
         return
 
-    session = LiveSession(ingest, clf, classifier_id, "websocket")
+    session = LiveSession(ingest, clf, classifier_id, "websocket", synthetic=header.synthetic)
     loop = asyncio.get_running_loop()
     replaced = asyncio.Event()
 
