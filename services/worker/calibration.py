@@ -15,6 +15,7 @@ from typing import Any
 from sqlalchemy import select
 
 from services.core.db.models import Artifact, Classifier, LabSession, Recording
+from services.core.web import jsonable
 from services.eeg.calibration import TrainingConfig, calibrate
 from services.eeg.classifier import ONNX_FILE, TORCHSCRIPT_FILE
 from services.eeg.io import RecordingError, read_recording
@@ -33,7 +34,7 @@ def _int(config: dict[str, Any], name: str, default: int | None, minimum: int) -
 
 def eeg_calibration(context: JobContext) -> JobOutcome:
     """Handler of ``eeg_calibration`` jobs."""
-    config = context.config
+    config = {k: v for k, v in context.config.items() if v is not None}
     unknown = set(config) - CALIBRATION_FIELDS
     if unknown:
         raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
@@ -76,7 +77,7 @@ def eeg_calibration(context: JobContext) -> JobOutcome:
             for path in sorted(out.iterdir())
             if path.is_file()
         }
-    metrics = dict(result.metrics)
+    metrics = jsonable(dict(result.metrics))
     with context.runtime.sessions() as session:
         classifier = Classifier(
             name=f"{recording.filename} (seed {seed})",

@@ -44,6 +44,7 @@ def _items(value: Any, name: str) -> list[str]:
 
 def specs_from_config(config: dict[str, Any]) -> list[RunSpec]:
     """The run specs of a ``reproduce`` job config (the options of ``bgrl reproduce``)."""
+    config = {k: v for k, v in config.items() if v is not None}
     unknown = set(config) - REPRODUCE_FIELDS
     if unknown:
         raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")

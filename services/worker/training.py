@@ -171,8 +171,9 @@ def train_spec(context: JobContext, spec: RunSpec, checkpoint_every: int) -> Job
 
 def guided_ppo(context: JobContext) -> JobOutcome:
     """Handler of ``guided_ppo`` jobs."""
-    spec = spec_from_guided_config(context.config)
-    every = context.config.get("checkpoint_every", context.runtime.settings.checkpoint_every)
+    config = {k: v for k, v in context.config.items() if v is not None}
+    spec = spec_from_guided_config(config)
+    every = config.get("checkpoint_every", context.runtime.settings.checkpoint_every)
     if not isinstance(every, int) or every < 1:
         raise JobConfigError("checkpoint_every must be a positive integer")
     return train_spec(context, spec, every)
