@@ -6,6 +6,7 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,17 +81,17 @@ def live_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveApi]:
         eeg_url=None,
     )
     app = create_app(settings)
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "api did not start"
-        time.sleep(0.02)
-    live = LiveApi(url=f"http://127.0.0.1:{port}", app=app, settings=settings)
+    try:
+        with serve(app) as url:
+            live = LiveApi(url=url, app=app, settings=settings)
+            add_accounts(live)
+            yield live
+    finally:
+        patch.undo()
+
+
+def add_accounts(live: LiveApi) -> None:
+    """A staff and a viewer account besides the settings' admin."""
     with PlatformClient(live.url) as admin:
         admin.login(ADMIN_EMAIL, ADMIN_PASSWORD)
         for email, role in ((STAFF_EMAIL, "staff"), (VIEWER_EMAIL, "viewer")):
@@ -100,13 +101,27 @@ def live_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveApi]:
                 headers={"Authorization": f"Bearer {admin.token}"},
             )
             assert response.status_code == 201, response.text
+
+
+@contextmanager
+def serve(app: FastAPI) -> Iterator[str]:
+    """Serve ``app`` with uvicorn on 127.0.0.1 (a free port) in a thread; yields its URL."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
     try:
-        yield live
+        while not server.started:
+            assert thread.is_alive() and time.monotonic() < deadline, "api did not start"
+            time.sleep(0.02)
+        yield f"http://127.0.0.1:{port}"
     finally:
         server.should_exit = True
         thread.join(timeout=10)
         sock.close()
-        patch.undo()
 
 
 @pytest.fixture

@@ -1,0 +1,196 @@
+"""The read-load generator of ``bgrl bench api``: a separate, light process (asyncio only).
+
+``python -m benchmarks.api_load --url URL --rate 200 --duration 30 --blocks 6`` reads a
+bearer token from stdin, then sends ``GET /api/v1/jobs?limit=50`` and ``GET /healthz`` in
+alternating blocks, ``rate`` requests/s each, open loop: every request leaves at its
+scheduled time whatever the earlier ones are doing, and its latency runs from that
+scheduled time to the end of the response, so a server (or this client) falling behind
+shows up in the figures. Prints a JSON summary per route.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import statistics
+import sys
+import time
+from typing import Any
+from urllib.parse import urlsplit
+
+JOBS_ROUTE = "/api/v1/jobs?limit=50"
+BARE_ROUTE = "/healthz"
+
+
+def percentile(sorted_values: list[float], q: float) -> float:
+    """Nearest-rank percentile ``q`` (0..100) of already sorted values."""
+    rank = max(1, math.ceil(q / 100 * len(sorted_values)))
+    return sorted_values[rank - 1]
+
+
+def latency_summary(latencies_ms: list[float]) -> dict[str, float | int]:
+    """Count, p50, p99, mean and max of latencies in milliseconds."""
+    values = sorted(latencies_ms)
+    if not values:
+        return {"count": 0}
+    return {
+        "count": len(values),
+        "p50_ms": percentile(values, 50),
+        "p99_ms": percentile(values, 99),
+        "mean_ms": statistics.fmean(values),
+        "max_ms": values[-1],
+    }
+
+
+IDLE_RECONNECT_S = 4.0
+"""A connection idle this long is reopened before use (uvicorn closes idle ones after 5 s)."""
+REQUEST_TIMEOUT_S = 30.0
+
+
+class Connection:
+    """One keep-alive HTTP/1.1 connection, written by hand: a request costs this process
+    tens of microseconds, so the generator keeps its schedule where httpx's asyncio client
+    fell behind on this shared machine."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self.host, self.port = host, port
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+        self.last_used = 0.0
+
+    async def open(self) -> None:
+        self.close()
+        self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
+        self.last_used = time.perf_counter()
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        self.reader = self.writer = None
+
+    async def get(self, request: bytes) -> int:
+        """Send ``request``; read the whole answer; its status code."""
+        if self.writer is None or time.perf_counter() - self.last_used > IDLE_RECONNECT_S:
+            await self.open()
+        assert self.reader is not None and self.writer is not None
+        self.writer.write(request)
+        status_line = await self.reader.readline()
+        if not status_line:
+            raise ConnectionError("connection closed by the server")
+        status = int(status_line.split()[1])
+        length, chunked = 0, False
+        while (line := await self.reader.readline()) not in (b"\r\n", b""):
+            name, _, value = line.decode("latin-1").partition(":")
+            if name.lower() == "content-length":
+                length = int(value)
+            elif name.lower() == "transfer-encoding" and "chunked" in value.lower():
+                chunked = True
+        if chunked:
+            while (size := int((await self.reader.readline()).split(b";")[0], 16)) > 0:
+                await self.reader.readexactly(size + 2)
+            await self.reader.readline()
+        else:
+            await self.reader.readexactly(length)
+        self.last_used = time.perf_counter()
+        return status
+
+
+async def _drive(
+    url: str, token: str, rate: float, duration_s: float, blocks: int, connections: int
+) -> dict[str, Any]:
+    """Alternate blocks of ``JOBS_ROUTE`` and ``BARE_ROUTE`` at ``rate`` requests/s each,
+    ``duration_s`` per route in total; open loop, latency from the scheduled send time.
+    Requests wait for a free connection of the pool (that wait is part of the latency)."""
+    parsed = urlsplit(url)
+    host, port = parsed.hostname or "127.0.0.1", parsed.port or 80
+    requests = {
+        route: (
+            f"GET {route} HTTP/1.1\r\nHost: {host}:{port}\r\n"
+            f"Authorization: Bearer {token}\r\nAccept: application/json\r\n\r\n"
+        ).encode()
+        for route in (JOBS_ROUTE, BARE_ROUTE)
+    }
+    block_s = duration_s / blocks
+    per_block = round(rate * block_s)
+    latencies: dict[str, list[float]] = {JOBS_ROUTE: [], BARE_ROUTE: []}
+    errors: dict[str, dict[str, int]] = {JOBS_ROUTE: {}, BARE_ROUTE: {}}
+    late_ms: list[float] = []
+    pool: asyncio.Queue[Connection] = asyncio.Queue()
+    for _ in range(connections):
+        conn = Connection(host, port)
+        await conn.open()
+        pool.put_nowait(conn)
+
+    async def one(route: str, scheduled: float) -> None:
+        late_ms.append(1000 * (time.perf_counter() - scheduled))
+        conn = await pool.get()
+        kind = "200"
+        try:
+            status = await asyncio.wait_for(conn.get(requests[route]), REQUEST_TIMEOUT_S)
+            kind = str(status)
+        except (OSError, ValueError, asyncio.IncompleteReadError, TimeoutError) as exc:
+            kind = type(exc).__name__
+            conn.close()
+        finally:
+            pool.put_nowait(conn)
+        latencies[route].append(1000 * (time.perf_counter() - scheduled))
+        if kind != "200":
+            errors[route][kind] = errors[route].get(kind, 0) + 1
+
+    for route in (JOBS_ROUTE, BARE_ROUTE):  # warm the connections and the server
+        await asyncio.gather(*(one(route, time.perf_counter()) for _ in range(connections)))
+    for values in (*latencies.values(), late_ms):
+        values.clear()
+    for counts in errors.values():
+        counts.clear()
+    tasks: list[asyncio.Task[None]] = []
+    started = time.perf_counter()
+    for block in range(2 * blocks):
+        route = JOBS_ROUTE if block % 2 == 0 else BARE_ROUTE
+        block_start = started + block * block_s
+        for i in range(per_block):
+            scheduled = block_start + i / rate
+            delay = scheduled - time.perf_counter()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            tasks.append(asyncio.create_task(one(route, scheduled)))
+    await asyncio.gather(*tasks)
+    elapsed = time.perf_counter() - started
+    while not pool.empty():
+        pool.get_nowait().close()
+    routes = {}
+    for route, values in latencies.items():
+        routes[route] = {
+            **latency_summary(values),
+            "errors": sum(errors[route].values()),
+            "error_kinds": errors[route],
+        }
+    late = sorted(late_ms)
+    return {
+        "routes": routes,
+        "connections": connections,
+        "wall_s": elapsed,
+        "send_lag_ms": {"p50": percentile(late, 50), "p99": percentile(late, 99)},
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m benchmarks.api_load --url URL ...`` (token on stdin): JSON on stdout."""
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.api_load")
+    parser.add_argument("--url", required=True)
+    parser.add_argument("--rate", type=float, default=200.0, help="requests/s")
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds per route")
+    parser.add_argument("--blocks", type=int, default=6, help="alternating blocks per route")
+    parser.add_argument("--connections", type=int, default=32, help="keep-alive connections")
+    args = parser.parse_args(argv)
+    token = sys.stdin.readline().strip()
+    result = asyncio.run(
+        _drive(args.url, token, args.rate, args.duration, args.blocks, args.connections)
+    )
+    json.dump(result, sys.stdout)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,565 @@
+"""``bgrl bench api``: the platform api under load, and job throughput through real workers.
+
+Figures:
+
+- **reads under load**: the api (``uvicorn services.api.app:app``, one process, on
+  loopback) with ``jobs_stored`` jobs in its database; a SECOND process sends ``rate``
+  requests/s, open loop (each request leaves at its scheduled time, whatever the earlier
+  ones are doing), of ``GET /api/v1/jobs?limit=50`` (signed in) and of the bare
+  ``GET /healthz`` of the same server, in alternating blocks so load from other processes
+  hits both alike. Latency is measured from the scheduled send time to the end of the
+  response (so a client or server falling behind shows up), p50/p99 and errors per route
+  and the ratio of the two p99s. SQLite, and PostgreSQL when it is reachable.
+- **RSS** of the api process when idle (started, signed in, jobs stored) and after the load.
+- **job throughput**: short ``guided_ppo`` jobs (hf_sparse, ``total_steps`` 2000) per
+  minute through 1 and then 2 ``bgrl worker`` processes (embedded filesystem broker,
+  SQLite: what ``bgrl up`` runs), from the first commit to the last finish; **queue
+  latency** (commit to start) of probe jobs submitted one at a time to idle workers (each
+  cancelled once it has started; the time from cancel to stop is reported too), and the
+  hand-over gap between one job's finish and the next one's start on a busy worker.
+
+The load generator, the second process, is ``benchmarks/api_load.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import secrets
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import httpx
+from sqlalchemy import create_engine, insert, text
+
+from benchmarks.api_load import BARE_ROUTE, JOBS_ROUTE, latency_summary, percentile
+from services.client import Job, PlatformClient
+from services.core.db.models import Job as JobRow
+from services.core.db.session import make_engine
+
+Progress = Callable[[str], None]
+ADMIN_EMAIL = "bench@lab.test"
+PG_ADMIN_URLS = (
+    "postgresql+psycopg://postgres@127.0.0.1:5432/test",
+    "postgresql+psycopg://root@127.0.0.1:5432/test",
+)
+PG_SKIP_REASON = "no PostgreSQL at 127.0.0.1:5432 (database 'test', user postgres or root)"
+AIM_P99_MS = 50.0
+AIM_RATIO_TO_BARE = 3.0
+AIM_SPEEDUP_2_WORKERS = 1.7
+THROUGHPUT_CONFIG = {
+    "task": "sssg",
+    "method": "hf_sparse",
+    "accuracy": 0.7,
+    "total_steps": 2000,
+}
+STARTUP_TIMEOUT_S = 120.0
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _rss_mb(pid: int) -> float:
+    """Resident set size of a process (Linux ``/proc``), in MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no VmRSS for process {pid}")
+
+
+def _platform_env(data_dir: Path, database_url: str, admin_password: str) -> dict[str, str]:
+    """The environment of the bench's api and workers (nothing inherited from BGRL_*)."""
+    base = {k: v for k, v in os.environ.items() if not k.startswith("BGRL_")}
+    return {
+        **base,
+        "BGRL_DATA_DIR": str(data_dir),
+        "BGRL_DATABASE_URL": database_url,
+        "BGRL_ADMIN_EMAIL": ADMIN_EMAIL,
+        "BGRL_ADMIN_PASSWORD": admin_password,
+        "BGRL_EEG_URL": "",
+        "BGRL_LOG_LEVEL": "WARNING",
+    }
+
+
+class Platform:
+    """An api process (and worker processes) on one database and data folder."""
+
+    def __init__(self, root: Path, database_url: str) -> None:
+        self.root = root
+        self.database_url = database_url
+        self.admin_password = secrets.token_urlsafe(16)
+        self.env = _platform_env(root / "data", database_url, self.admin_password)
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.api: subprocess.Popen[bytes] | None = None
+        self.workers: list[subprocess.Popen[bytes]] = []
+
+    def _spawn(self, name: str, args: list[str]) -> subprocess.Popen[bytes]:
+        log = (self.root / f"{name}.log").open("wb")
+        return subprocess.Popen(
+            [sys.executable, *args], env=self.env, cwd=self.root, stdout=log, stderr=log
+        )
+
+    def start_api(self) -> None:
+        """Start uvicorn and wait until ``/readyz`` answers 200 (migrations done)."""
+        self.api = self._spawn(
+            "api",
+            ["-m", "uvicorn", "services.api.app:app", "--host", "127.0.0.1",
+             "--port", str(self.port), "--no-access-log", "--log-level", "warning"],
+        )  # fmt: skip
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while True:
+            if self.api.poll() is not None:
+                raise RuntimeError(f"the api exited: {self.log('api')[-2000:]}")
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the api did not get ready: {self.log('api')[-2000:]}")
+            time.sleep(0.2)
+
+    def start_worker(self, name: str) -> None:
+        """Start one ``bgrl worker`` process."""
+        self.workers.append(
+            self._spawn(name, ["-m", "services.cli.main", "worker", "--name", name])
+        )
+
+    def log(self, name: str) -> str:
+        return (self.root / f"{name}.log").read_text(errors="replace")
+
+    def client(self) -> PlatformClient:
+        """A client signed in as the bench's admin."""
+        client = PlatformClient(self.url, timeout_s=60)
+        client.login(ADMIN_EMAIL, self.admin_password)
+        return client
+
+    def api_rss_mb(self) -> float:
+        assert self.api is not None
+        return _rss_mb(self.api.pid)
+
+    def stop(self) -> None:
+        """SIGTERM everything started, SIGKILL what is left after 15 s."""
+        procs = [*self.workers, *([self.api] if self.api else [])]
+        for proc in procs:
+            if proc.poll() is None:
+                proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+@contextmanager
+def _postgres_schema() -> Iterator[str | None]:
+    """A private schema of PostgreSQL's ``test`` database (dropped afterwards), or None."""
+    for admin_url in PG_ADMIN_URLS:
+        try:
+            admin = create_engine(
+                admin_url, isolation_level="AUTOCOMMIT", connect_args={"connect_timeout": 2}
+            )
+            with admin.connect() as connection:
+                connection.execute(text("SELECT 1"))
+            break
+        except Exception:
+            continue
+    else:
+        yield None
+        return
+    schema = f"bgrl_bench_{uuid.uuid4().hex[:12]}"
+    with admin.connect() as connection:
+        connection.execute(text(f'CREATE SCHEMA "{schema}"'))
+    try:
+        yield f"{admin_url}?options=-csearch_path%3D{schema}"
+    finally:
+        with admin.connect() as connection:
+            connection.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
+        admin.dispose()
+
+
+def store_jobs(database_url: str, count: int) -> None:
+    """Insert ``count`` finished guided_ppo jobs shaped like a worker's (config, result,
+    curve), created a minute apart; nothing is enqueued."""
+    statuses = ("succeeded", "succeeded", "succeeded", "failed", "cancelled")
+    start = datetime.now(UTC) - timedelta(minutes=count)
+    rows = []
+    for i in range(count):
+        status = statuses[i % len(statuses)]
+        created = start + timedelta(minutes=i)
+        curve = [[step, round(0.02 * k, 3)] for k, step in enumerate(range(0, 40_001, 2000))]
+        config = {
+            **THROUGHPUT_CONFIG,
+            "total_steps": 40_000,
+            "seed": i,
+            "hf_treatment": "authors",
+            "n_labels": 1000,
+            "ppo": {},
+        }
+        result = None
+        if status == "succeeded":
+            result = {
+                "task": "sssg",
+                "method": "hf_sparse",
+                "accuracy": 0.7,
+                "seed": i,
+                "total_steps": 40_000,
+                "final_spl": 0.71,
+                "last5_spl": 0.69,
+                "sampled_success_rate": 0.9,
+                "curve_steps": [p[0] for p in curve],
+                "curve_spl": [p[1] for p in curve],
+                "wall_time_s": 612.5,
+                "weights_sha256": uuid.uuid4().hex * 2,
+            }
+        rows.append(
+            {
+                "id": uuid.uuid4().hex,
+                "kind": "guided_ppo",
+                "config": config,
+                "status": status,
+                "progress": 1.0 if status == "succeeded" else 0.4,
+                "attempts": 1,
+                "max_attempts": 3,
+                "steps_done": 40_000 if status == "succeeded" else 16_000,
+                "curve": curve,
+                "result": result,
+                "error": "ValueError: example failure" if status == "failed" else None,
+                "cancel_requested": status == "cancelled",
+                "created_at": created,
+                "updated_at": created + timedelta(minutes=10),
+                "started_at": created + timedelta(seconds=1),
+                "finished_at": created + timedelta(minutes=10),
+            }
+        )
+    engine = make_engine(database_url)
+    try:
+        with engine.begin() as connection:
+            connection.execute(insert(JobRow), rows)
+    finally:
+        engine.dispose()
+
+
+def run_load(
+    url: str, token: str, *, rate: float, duration_s: float, blocks: int
+) -> dict[str, Any]:
+    """Run the load generator in a second process; its JSON summary."""
+    cmd = [
+        sys.executable, "-m", "benchmarks.api_load", "--url", url,
+        "--rate", str(rate), "--duration", str(duration_s), "--blocks", str(blocks),
+    ]  # fmt: skip
+    done = subprocess.run(
+        cmd,
+        input=token,
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=4 * duration_s + 120,
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"load generator failed: {done.stderr[-2000:]}")
+    return json.loads(done.stdout)
+
+
+def bench_reads(
+    database: str,
+    database_url: str,
+    root: Path,
+    *,
+    jobs_stored: int,
+    rate: float,
+    light_rate: float,
+    duration_s: float,
+    blocks: int,
+    progress: Progress,
+) -> dict[str, Any]:
+    """One api on ``database_url``: RSS idle, the load at ``rate``, RSS after, then the
+    same load at ``light_rate`` (what the server carries on this machine, for reference)."""
+    plat = Platform(root, database_url)
+    try:
+        plat.start_api()
+        with plat.client() as client:
+            store_jobs(database_url, jobs_stored)
+            page = client.list_jobs(limit=50)
+            assert page.total == jobs_stored, page.total
+            token = client.token
+        assert token is not None
+        progress(f"{database}: api up, {jobs_stored} jobs stored")
+        rss_idle = plat.api_rss_mb()
+        load = run_load(plat.url, token, rate=rate, duration_s=duration_s, blocks=blocks)
+        rss_after = plat.api_rss_mb()
+        progress(f"{database}: load done")
+        light = run_load(plat.url, token, rate=light_rate, duration_s=duration_s, blocks=blocks)
+        progress(f"{database}: light load done")
+    finally:
+        plat.stop()
+    jobs, bare = load["routes"][JOBS_ROUTE], load["routes"][BARE_ROUTE]
+    ratio = jobs["p99_ms"] / bare["p99_ms"] if bare.get("p99_ms") else None
+    light_jobs, light_bare = light["routes"][JOBS_ROUTE], light["routes"][BARE_ROUTE]
+    return {
+        "database": database,
+        "jobs_stored": jobs_stored,
+        "load": {"rate_per_s": rate, **load},
+        "jobs_p99_to_bare_p99": ratio,
+        "light_load": {
+            "rate_per_s": light_rate,
+            **light,
+            "jobs_p99_to_bare_p99": light_jobs["p99_ms"] / light_bare["p99_ms"],
+        },
+        "meets_aim": bool(
+            jobs.get("p99_ms", math.inf) < AIM_P99_MS
+            and ratio is not None
+            and ratio < AIM_RATIO_TO_BARE
+            and jobs["errors"] == 0
+        ),
+        "api_rss_mb": {"idle": rss_idle, "after_load": rss_after},
+    }
+
+
+def _probe(client: PlatformClient, job_id: str, timeout_s: float) -> tuple[float, float]:
+    """Wait until the job starts, cancel it and wait until it stops: (commit to start,
+    cancel to stop), in seconds."""
+    deadline = time.monotonic() + timeout_s
+    job = client.get_job(job_id)
+    while job.started_at is None:
+        if job.finished or time.monotonic() > deadline:
+            raise RuntimeError(f"probe job {job_id} {job.status} without starting")
+        time.sleep(0.05)
+        job = client.get_job(job_id)
+    cancelled_at = time.monotonic()
+    client.cancel_job(job_id)
+    final = client.wait_job(job_id, timeout_s=timeout_s, poll_s=0.1)
+    if final.status not in ("cancelled", "succeeded"):
+        raise RuntimeError(f"probe job {job_id} {final.status}: {final.error}")
+    queued_s = (job.started_at - job.created_at).total_seconds()
+    return queued_s, time.monotonic() - cancelled_at
+
+
+def _wait_all(client: PlatformClient, job_ids: list[str], timeout_s: float) -> list[Job]:
+    deadline = time.monotonic() + timeout_s
+    jobs = []
+    for job_id in job_ids:
+        jobs.append(client.wait_job(job_id, timeout_s=max(1.0, deadline - time.monotonic())))
+    failed = [j for j in jobs if j.status != "succeeded"]
+    if failed:
+        raise RuntimeError(f"job {failed[0].id} {failed[0].status}: {failed[0].error}")
+    return jobs
+
+
+def _handover_gaps_s(jobs: list[Job]) -> list[float]:
+    """Per worker slot: seconds from one job's finish to the next job's start (busy queue)."""
+    ends = sorted(j.finished_at for j in jobs if j.finished_at)  # type: ignore[misc]
+    starts = sorted(j.started_at for j in jobs if j.started_at)  # type: ignore[misc]
+    gaps = []
+    for start in starts:
+        before = [end for end in ends if end <= start]
+        if before:
+            gaps.append((start - before[-1]).total_seconds())
+            ends.remove(before[-1])
+    return gaps
+
+
+def bench_throughput(
+    root: Path,
+    *,
+    job_config: dict[str, Any],
+    batch: int,
+    probes: int,
+    progress: Progress,
+    timeout_s: float,
+) -> dict[str, Any]:
+    """Jobs/min with 1 then 2 workers; queue latency of jobs sent to idle workers."""
+    plat = Platform(root, f"sqlite:///{root / 'data' / 'bgrl.db'}")
+    (root / "data").mkdir(parents=True, exist_ok=True)
+    seed = iter(range(10**6))
+    phases: dict[str, Any] = {}
+    all_latencies: list[float] = []
+    all_cancels: list[float] = []
+    try:
+        plat.start_api()
+        with plat.client() as client:
+
+            def submit(n: int) -> list[str]:
+                return [
+                    client.submit_job("guided_ppo", {**job_config, "seed": next(seed)}).id
+                    for _ in range(n)
+                ]
+
+            for n_workers in (1, 2):
+                while len(plat.workers) < n_workers:
+                    plat.start_worker(f"bench-w{len(plat.workers) + 1}")
+                # warm-up: one job per worker (imports, oracle cache, first-run costs)
+                _wait_all(client, submit(n_workers), timeout_s)
+                progress(f"{n_workers} worker(s) warm")
+                started = time.monotonic()
+                jobs = _wait_all(client, submit(batch * n_workers), timeout_s)
+                wall = time.monotonic() - started
+                first = min(j.created_at for j in jobs)
+                last = max(j.finished_at for j in jobs if j.finished_at)
+                span_s = (last - first).total_seconds()
+                durations = [
+                    (j.finished_at - j.started_at).total_seconds()
+                    for j in jobs
+                    if j.finished_at and j.started_at
+                ]
+                gaps = sorted(1000 * g for g in _handover_gaps_s(jobs))
+                progress(f"{n_workers} worker(s): {len(jobs)} jobs in {span_s:.0f} s")
+                latencies, cancels = [], []
+                for _ in range(probes):
+                    (probe_id,) = submit(1)
+                    queued_s, cancel_s = _probe(client, probe_id, timeout_s)
+                    latencies.append(1000 * queued_s)
+                    cancels.append(cancel_s)
+                all_latencies.extend(latencies)
+                all_cancels.extend(cancels)
+                progress(f"{n_workers} worker(s): {probes} queue-latency probes")
+                phases[f"workers_{n_workers}"] = {
+                    "workers": n_workers,
+                    "jobs": len(jobs),
+                    "span_s": span_s,
+                    "client_wall_s": wall,
+                    "jobs_per_minute": 60 * len(jobs) / span_s,
+                    "job_run_s": {
+                        "p50": statistics.median(durations),
+                        "max": max(durations),
+                    },
+                    "handover_gap_ms": {
+                        "p50": percentile(gaps, 50) if gaps else None,
+                        "p99": percentile(gaps, 99) if gaps else None,
+                        "count": len(gaps),
+                    },
+                    "queue_latency_idle_ms": latency_summary(latencies),
+                    "cancel_to_stop_s": {"p50": statistics.median(cancels), "max": max(cancels)},
+                }
+    finally:
+        plat.stop()
+    one, two = phases["workers_1"], phases["workers_2"]
+    speedup = two["jobs_per_minute"] / one["jobs_per_minute"]
+    return {
+        "config": job_config,
+        "broker": "embedded filesystem (kombu)",
+        "database": "sqlite",
+        **phases,
+        "speedup_2_workers": speedup,
+        "aim_speedup": AIM_SPEEDUP_2_WORKERS,
+        "meets_aim": speedup >= AIM_SPEEDUP_2_WORKERS,
+        "queue_latency_idle_ms": latency_summary(all_latencies),
+        "cancel_to_stop_s": {"p50": statistics.median(all_cancels), "max": max(all_cancels)},
+    }
+
+
+def bench_all_reads(
+    root: Path,
+    *,
+    jobs_stored: int,
+    rate: float,
+    light_rate: float,
+    duration_s: float,
+    blocks: int,
+    progress: Progress,
+) -> dict[str, Any]:
+    """:func:`bench_reads` on SQLite, and on PostgreSQL when it is reachable."""
+    kwargs = {"jobs_stored": jobs_stored, "rate": rate, "light_rate": light_rate,
+              "duration_s": duration_s,
+              "blocks": blocks, "progress": progress}  # fmt: skip
+    figures: dict[str, Any] = {}
+    (root / "sqlite").mkdir()
+    figures["sqlite"] = bench_reads(
+        "sqlite", f"sqlite:///{root / 'sqlite' / 'bgrl.db'}", root / "sqlite", **kwargs
+    )
+    with _postgres_schema() as pg_url:
+        if pg_url is None:
+            figures["postgresql"] = {"skipped": PG_SKIP_REASON}
+            progress("postgresql: skipped")
+        else:
+            (root / "postgresql").mkdir()
+            figures["postgresql"] = bench_reads("postgresql", pg_url, root / "postgresql", **kwargs)
+    return figures
+
+
+def run(
+    *,
+    rate: float = 200.0,
+    light_rate: float = 25.0,
+    duration_s: float = 30.0,
+    blocks: int = 6,
+    jobs_stored: int = 1000,
+    batch: int = 2,
+    probes: int = 5,
+    job_method: str = "hf_sparse",
+    job_steps: int = 2000,
+    job_timeout_s: float = 1800.0,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Every api benchmark; the figures as a JSON-ready dict."""
+    report: Progress = progress if progress is not None else (lambda _message: None)
+    started = time.perf_counter()
+    job_config: dict[str, Any] = {
+        **THROUGHPUT_CONFIG,
+        "method": job_method,
+        "total_steps": job_steps,
+    }
+    if job_method != "hf_sparse":
+        job_config.pop("accuracy")
+    with tempfile.TemporaryDirectory(prefix="bgrl-bench-api-") as tmp:
+        root = Path(tmp)
+        reads = bench_all_reads(
+            root, jobs_stored=jobs_stored, rate=rate, light_rate=light_rate,
+            duration_s=duration_s, blocks=blocks,
+            progress=report,
+        )  # fmt: skip
+        (root / "jobs").mkdir()
+        throughput = bench_throughput(
+            root / "jobs",
+            job_config=job_config,
+            batch=batch,
+            probes=probes,
+            progress=report,
+            timeout_s=job_timeout_s,
+        )
+    return {
+        "benchmark": "api",
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "load_average_at_end": list(os.getloadavg()),
+        },
+        "parameters": {
+            "rate_per_s": rate,
+            "light_rate_per_s": light_rate,
+            "duration_s_per_route": duration_s,
+            "blocks_per_route": blocks,
+            "jobs_stored": jobs_stored,
+            "jobs_route": JOBS_ROUTE,
+            "bare_route": BARE_ROUTE,
+            "throughput_jobs_per_worker": batch,
+            "queue_latency_probes_per_phase": probes,
+        },
+        "aims": {
+            "reads_p99_ms": AIM_P99_MS,
+            "reads_p99_to_bare": AIM_RATIO_TO_BARE,
+            "speedup_2_workers": AIM_SPEEDUP_2_WORKERS,
+        },
+        "reads": reads,
+        "throughput": throughput,
+        "wall_time_s": time.perf_counter() - started,
+    }
