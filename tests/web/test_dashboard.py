@@ -12,6 +12,9 @@ from pathlib import Path
 
 import pytest
 
+from services.core.db.models import Classifier, Job
+from services.core.db.session import make_engine, make_session_factory
+from services.core.platform import PlatformSettings
 from tests.web.conftest import STAFF, Server, open_as
 
 pytestmark = pytest.mark.slow
@@ -213,7 +216,7 @@ def test_job_progress_reaches_the_end_and_model_downloads(
     form.locator("input[name=eval_every]").fill(str(TINY_PPO["eval_every"]))
     form.get_by_role("button", name="Submit job").click()
     page.get_by_text(re.compile(r"^Job \w{8} submitted\.$")).wait_for()
-    (job,) = server.call("GET", "/api/v1/jobs")["items"]
+    (job,) = server.call("GET", "/api/v1/jobs", params={"kind": "guided_ppo"})["items"]
     assert job["config"] == {
         "task": "sssg", "method": "rl_sparse", "seed": 3, "total_steps": 1024,
         "hf_treatment": "authors", "ppo": TINY_PPO, "n_labels": 1000,
@@ -239,7 +242,7 @@ def test_job_progress_reaches_the_end_and_model_downloads(
     seen = page.evaluate("window.progressSeen")
     assert seen == sorted(seen) and seen[-1] == 1.0  # it only moved forward
     assert len(set(seen)) >= 3  # pushed live, not only at the start and the end
-    page.screenshot(path=str(screenshot_dir / "jobs.png"), full_page=True)
+    page.screenshot(path=str(screenshot_dir / "jobs-finished.png"), full_page=True)
 
     page.get_by_role("link", name=job["id"][:8]).click()
     page.locator("svg.chart polyline").first.wait_for(state="attached")
@@ -267,6 +270,61 @@ def test_job_progress_reaches_the_end_and_model_downloads(
     assert watch.console_errors == []
 
 
+RUNS = {  # (method, accuracy, seed): (curve, SPL of pi_HF); binary-exact values
+    ("rl_sparse", None, 0): ([[0, 0.0], [256, 0.25], [512, 0.5]], None),
+    ("rl_sparse", None, 1): ([[0, 0.0], [256, 0.75], [512, 1.0]], None),
+    ("hf_sparse", 0.7, 0): ([[0, 0.5], [256, 0.5], [512, 1.0]], 0.5),
+    ("hf_sparse", 0.7, 1): ([[0, 0.5], [256, 1.0], [512, 1.0]], 1.0),
+}
+
+
+def test_reproduction_shows_mean_half_std_and_hf_lines(
+    context: tuple, server: Server, screenshot_dir: Path
+) -> None:
+    """A finished reproduction's runs (rows as its workers leave them) drawn as Fig. 3."""
+    engine = make_engine(PlatformSettings(data_dir=server.root / "data").resolved_database_url)
+    with make_session_factory(engine)() as db:
+        parent = Job(
+            kind="reproduce",
+            config={"tasks": ["sssg"], "methods": ["rl_sparse", "hf_sparse"], "seeds": 2,
+                    "accuracies": [0.7], "treatments": ["authors"]},
+            status="succeeded", progress=1.0, attempts=1,
+            result={"runs": 4, "succeeded": 4, "failed": [], "artifacts": {}, "claims": []},
+        )  # fmt: skip
+        db.add(parent)
+        db.flush()
+        for (method, accuracy, seed), (curve, hf_spl) in RUNS.items():
+            config = {"task": "sssg", "method": method, "accuracy": accuracy, "seed": seed,
+                      "hf_treatment": "authors" if accuracy else None}  # fmt: skip
+            result = {**config, "curve": curve, "hf_policy_spl": hf_spl, "final_spl": curve[-1][1]}
+            db.add(
+                Job(kind="reproduce_run", config=config, parent_id=parent.id, status="succeeded",
+                    progress=1.0, steps_done=512, attempts=1, curve=curve, result=result)
+            )  # fmt: skip
+        db.commit()
+        parent_id = parent.id
+    engine.dispose()
+    page = open_as(context[0], server, "viewer", f"/jobs/{parent_id}")
+    page.locator("svg.chart").wait_for()
+    assert page.locator(".legend li").all_inner_texts() == [
+        "rl_sparse (2 seeds)",
+        "hf_sparse C=0.7 (2 seeds)",
+        "π_HF hf_sparse C=0.7",
+    ]
+    lines = page.locator("svg.chart polyline")
+    # x: 52 + step / 512 * 572; y: 276 - SPL * 248
+    assert lines.nth(0).get_attribute("points") == "52,276 338,152 624,90"  # means 0, .5, .75
+    assert lines.nth(1).get_attribute("points") == "52,152 338,90 624,28"  # means .5, .75, 1
+    assert lines.nth(2).get_attribute("points") == "52,90 624,90"  # pi_HF mean 0.75, dashed
+    assert lines.nth(2).get_attribute("class") == "line series-1 dashed"  # hf_sparse's colour
+    band = page.locator("svg.chart path.band").first.get_attribute("d")
+    assert band == "M52,276L338,121L624,59L624,121L338,183L52,276Z"  # mean ± ½ std
+    assert page.get_by_text("4 of 4 run(s) finished.").count() == 1
+    assert page.locator("#job-form, button:has-text('Retry')").count() == 0
+    page.screenshot(path=str(screenshot_dir / "reproduction.png"), full_page=True)
+    assert context[1].console_errors == []
+
+
 @pytest.mark.parametrize("context", ["light", "dark"], indirect=True)
 def test_every_page_is_clean_and_local(
     context: tuple, server: Server, screenshot_dir: Path, request: pytest.FixtureRequest
@@ -280,6 +338,17 @@ def test_every_page_is_clean_and_local(
         "/api/v1/sessions",
         json={"subject_id": subject["id"], "kind": "rl", "scheduled_at": start.isoformat()},
     )
+    engine = make_engine(PlatformSettings(data_dir=server.root / "data").resolved_database_url)
+    with make_session_factory(engine)() as db:
+        metrics = {"test_accuracy": 0.9, "balanced_accuracy": 0.875, "roc_auc": 0.95,
+                   "confusion_matrix": [[40, 2], [3, 15]], "n_epochs": 300}  # fmt: skip
+        classifier = Classifier(
+            name="S-pages.bdf (seed 0)", subject_id=subject["id"], metrics=metrics
+        )
+        db.add(classifier)
+        db.commit()
+        classifier_id = classifier.id
+    engine.dispose()
     page = open_as(ctx, server, "staff", "/subjects")
     pages = {
         "subjects": ("/subjects", "Subjects"),
@@ -287,6 +356,7 @@ def test_every_page_is_clean_and_local(
         "sessions": ("/sessions", "Sessions"),
         "jobs": ("/jobs", "Jobs"),
         "models": ("/models", "Models and downloads"),
+        "classifier": (f"/classifiers/{classifier_id}", "Calibration: S-pages.bdf (seed 0)"),
     }
     for name, (path, heading) in pages.items():
         page.goto(path)
@@ -295,6 +365,8 @@ def test_every_page_is_clean_and_local(
         assert nav_labels(page) == NAV
         suffix = "" if scheme == "light" else "-dark"
         page.screenshot(path=str(screenshot_dir / f"{name}{suffix}.png"), full_page=True)
+    cells = page.locator("table.confusion tbody td").all_inner_texts()
+    assert cells == ["40", "2", "3", "15"]
     page.goto("/signin")
     page.locator("input[name=email]").wait_for()
     page.screenshot(path=str(screenshot_dir / f"signin{'' if scheme == 'light' else '-dark'}.png"))

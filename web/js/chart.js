@@ -21,7 +21,8 @@ function fmtSteps(value) {
 }
 
 /**
- * series: [{label, points: [[x, y], ...], band?: [[x, lo, hi], ...], dashed?: bool}]
+ * series: [{label, points: [[x, y], ...], band?: [[x, lo, hi], ...], dashed?: bool,
+ *   colour?: index of the palette (default: the series' position)}]
  * Returns a <figure> with the SVG (role="img", described by its title) and a legend.
  */
 export function lineChart(series, { title, xLabel = "environment steps", yLabel = "SPL" } = {}) {
@@ -58,7 +59,7 @@ export function lineChart(series, { title, xLabel = "environment steps", yLabel 
   svg.append(axes);
   const legend = h("ul", { class: "legend" });
   series.forEach((s, i) => {
-    const colour = `series-${i % 8}`;
+    const colour = `series-${(s.colour ?? i) % 8}`;
     if (s.band && s.band.length > 1) {
       const upper = s.band.map(([bx, , hi]) => `${x(bx)},${y(hi)}`);
       const lower = s.band.map(([bx, lo]) => `${x(bx)},${y(lo)}`).reverse();
@@ -66,8 +67,8 @@ export function lineChart(series, { title, xLabel = "environment steps", yLabel 
     }
     const points = s.points.map(([px, py]) => `${x(px)},${y(py)}`).join(" ");
     svg.append(h("polyline", { points, class: `line ${colour}${s.dashed ? " dashed" : ""}` }));
-    if (s.points.length === 1 && !s.dashed) {
-      svg.append(h("circle", { cx: x(s.points[0][0]), cy: y(s.points[0][1]), r: 3, class: `dot ${colour}` }));
+    if (!s.dashed && s.points.length <= 60) {
+      for (const [px, py] of s.points) svg.append(h("circle", { cx: x(px), cy: y(py), r: 2.5, class: `dot ${colour}` }));
     }
     legend.append(h("li", {}, h("span", { class: `swatch ${colour}${s.dashed ? " dashed" : ""}`, "aria-hidden": "true" }), s.label));
   });

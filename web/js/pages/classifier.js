@@ -18,6 +18,7 @@ export async function classifierPage(root, _context, classifierId) {
   const clf = await get(`/api/v1/classifiers/${classifierId}`);
   document.title = `Classifier ${clf.id} · Brain-guided RL platform`;
   const artifacts = clf.job_id ? await all("/api/v1/artifacts", { job_id: clf.job_id }) : [];
+  const subject = clf.subject_id ? await get(`/api/v1/subjects/${clf.subject_id}`) : null;
   const m = clf.metrics;
   const scalar = Object.entries(m).filter(([, v]) => typeof v === "number" || typeof v === "boolean");
   const report = artifacts.find((a) => a.relpath.endsWith("report.png"));
@@ -29,7 +30,7 @@ export async function classifierPage(root, _context, classifierId) {
     h("p", { class: "crumbs" }, h("a", { href: "/models" }, "Models"), " / classifier ", clf.id),
     h("h1", {}, `Calibration: ${clf.name}`),
     h("p", { class: "muted" }, `Made ${fmtDateTime(clf.created_at)}`,
-      clf.subject_id ? [" · subject ", h("a", { href: `/subjects/${clf.subject_id}` }, `#${clf.subject_id}`)] : "",
+      subject ? [" · subject ", h("a", { href: `/subjects/${subject.id}` }, subject.code)] : "",
       clf.job_id ? [" · job ", h("a", { href: `/jobs/${clf.job_id}` }, clf.job_id.slice(0, 8))] : ""),
     h("div", { class: "columns" },
       h("section", {}, h("h2", {}, "Metrics"),
@@ -39,6 +40,8 @@ export async function classifierPage(root, _context, classifierId) {
         ])),
       h("section", {}, confusionMatrix(m.confusion_matrix),
         h("h2", {}, "Downloads"),
+        clf.onnx_artifact_id || clf.torchscript_artifact_id || artifacts.length ? null
+          : h("p", { class: "muted" }, "No files stored for this classifier."),
         h("ul", { class: "plain" },
           clf.onnx_artifact_id ? h("li", {}, downloadButton("ONNX", `/api/v1/classifiers/${clf.id}/download?format=onnx`, `classifier-${clf.id}.onnx`)) : null,
           clf.torchscript_artifact_id ? h("li", {}, downloadButton("TorchScript", `/api/v1/classifiers/${clf.id}/download?format=torchscript`, `classifier-${clf.id}.pt`)) : null,

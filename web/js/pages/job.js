@@ -50,27 +50,35 @@ async function reproductionCharts(job) {
       ? `${c.method} C=${c.accuracy}${c.hf_treatment && c.hf_treatment !== "authors" ? ` [${c.hf_treatment}]` : ""}`
       : c.method;
     const key = `${c.task}|${label}`;
-    if (!groups.has(key)) groups.set(key, { task: c.task, label, curves: [], hf: [] });
+    if (!groups.has(key)) groups.set(key, { task: c.task, method: c.method, label, curves: [], hf: [] });
     const group = groups.get(key);
     if (curves[i].length) group.curves.push(curves[i]);
     if (typeof run.result?.hf_policy_spl === "number") group.hf.push(run.result.hf_policy_spl);
   });
-  const tasks = [...new Set([...groups.values()].map((g) => g.task))].sort();
+  const order = (g) => [["rl_sparse", "rl_rich", "hf_sparse"].indexOf(g.method), g.label];
+  const sorted = [...groups.values()].sort((a, b) => {
+    const [ma, la] = order(a);
+    const [mb, lb] = order(b);
+    return ma - mb || la.localeCompare(lb);
+  });
+  const tasks = [...new Set(sorted.map((g) => g.task))].sort();
   const done = runs.filter((r) => FINAL.has(r.status)).length;
   const figures = tasks.map((task) => {
-    const members = [...groups.values()].filter((g) => g.task === task);
+    const members = sorted.filter((g) => g.task === task);
     const series = [];
     for (const g of members) {
       const { points, band } = meanHalfStd(g.curves);
-      if (points.length) series.push({ label: `${g.label} (${g.curves.length} seeds)`, points, band });
+      if (points.length) series.push({ label: `${g.label} (${g.curves.length} seeds)`, points, band, group: g });
     }
     const xMax = Math.max(1, ...series.flatMap((s) => s.points.map((p) => p[0])));
-    for (const g of members) {
+    series.forEach((s, i) => { s.colour = i; });
+    members.forEach((g) => {
+      const drawn = series.find((s) => s.group === g);
       if (g.hf.length) {
         const mean = g.hf.reduce((a, b) => a + b, 0) / g.hf.length;
-        series.push(hfLine(`π_HF ${g.label}`, mean, xMax));
+        series.push({ ...hfLine(`π_HF ${g.label}`, mean, xMax), colour: drawn?.colour });
       }
-    }
+    });
     return lineChart(series, { title: `${task.toUpperCase()}: SPL of greedy π_RL (mean ± ½ std; dashed: π_HF)` });
   });
   return [h("p", { class: "muted" }, `${done} of ${runs.length} run(s) finished.`), ...figures,
@@ -140,7 +148,8 @@ export async function jobPage(root, { canEdit }, jobId) {
   async function refreshResults() {
     const artifacts = await all("/api/v1/artifacts", { job_id: job.id });
     curves.replaceChildren(h("h2", { id: "curves-title" }, "Learning curves"), ...(await curveSection(job)));
-    files.replaceChildren(h("h2", { id: "files-title" }, "Downloads"), ...(await downloads(job)));
+    files.replaceChildren(h("h2", { id: "files-title" }, "Downloads"),
+      ...(await downloads(job)).filter(Boolean));
     const images = await plots(job, artifacts);
     pngs.replaceChildren(h("h2", { id: "png-title" }, "Figures from the API (PNG)"),
       ...(images.length ? images : [h("p", { class: "muted" }, "No figures yet.")]));
@@ -148,10 +157,11 @@ export async function jobPage(root, { canEdit }, jobId) {
 
   let refreshing = null;
   let lastRefresh = 0;
-  /** Redraw the results at most every 3 s while the job runs, and once when it ends. */
+  /** Redraw the results every few seconds at most while the job runs, and when it ends. */
   function scheduleRefresh() {
     if (refreshing) return;
-    const wait = FINAL.has(job.status) ? 0 : Math.max(0, lastRefresh + 3000 - Date.now());
+    const every = job.kind === "reproduce" ? 10_000 : 3000; // a sweep reads every run's curve
+    const wait = FINAL.has(job.status) ? 0 : Math.max(0, lastRefresh + every - Date.now());
     refreshing = setTimeout(async () => {
       lastRefresh = Date.now();
       try {
@@ -165,7 +175,7 @@ export async function jobPage(root, { canEdit }, jobId) {
   }
 
   function update(next) {
-    const stepsChanged = next.steps_done !== job.steps_done || next.status !== job.status;
+    const changed = next.updated_at !== job.updated_at || next.status !== job.status;
     job = next;
     bar.set(job);
     badge.replaceChildren(statusBadge(job.status));
@@ -176,7 +186,7 @@ export async function jobPage(root, { canEdit }, jobId) {
       update(changed);
       if (!FINAL.has(changed.status)) stop = watchJob(changed.id, update);
     }));
-    if (stepsChanged) scheduleRefresh();
+    if (changed) scheduleRefresh();
   }
 
   root.append(
@@ -188,8 +198,7 @@ export async function jobPage(root, { canEdit }, jobId) {
     error,
     factBox,
     h("details", {}, h("summary", {}, "Configuration"), h("pre", {}, JSON.stringify(job.config, null, 2))),
-    curves,
-    pngs,
+    h("div", { class: "figures" }, curves, pngs),
     files,
   );
   let stop = FINAL.has(job.status) ? () => {} : watchJob(job.id, update);

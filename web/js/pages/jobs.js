@@ -6,6 +6,7 @@ import { FINAL, progressBar, watchJob } from "../live.js";
 import { jobForm } from "./jobform.js";
 
 const PAGE = 50;
+const LIST_REFRESH_MS = 15_000;
 const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
 const KINDS = ["guided_ppo", "reproduce", "reproduce_run", "eeg_calibration"];
 
@@ -144,5 +145,18 @@ export async function jobsPage(root, { canEdit, query }) {
   }
   root.append(h("h1", {}, "Jobs"), h("div", { class: "columns" }, list, form));
   await load();
-  window.addEventListener("pagehide", () => { for (const stop of watchers.values()) stop(); });
+  // jobs submitted elsewhere (other users, scripts) appear within LIST_REFRESH_MS
+  const refresh = setInterval(async () => {
+    try {
+      const page = await get("/api/v1/jobs", { status: status.value, kind: kind.value, limit: PAGE, offset });
+      const shown = [...tbody.querySelectorAll("tr[data-job]")].map((tr) => tr.dataset.job).join();
+      if (page.items.map((j) => j.id).join() !== shown) await load();
+    } catch {
+      // the next round tries again
+    }
+  }, LIST_REFRESH_MS);
+  window.addEventListener("pagehide", () => {
+    clearInterval(refresh);
+    for (const stop of watchers.values()) stop();
+  });
 }
