@@ -38,6 +38,7 @@ TASK_NAMES: dict[str, str] = {
     "reproduce": "bgrl.jobs.reproduce",
     "reproduce_run": "bgrl.jobs.reproduce_run",
     "eeg_calibration": "bgrl.jobs.eeg_calibration",
+    "live_session": "bgrl.jobs.live_session",
 }
 """Job kind -> Celery task name (the api sends by name; only workers import the tasks)."""
 

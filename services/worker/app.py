@@ -30,6 +30,7 @@ HANDLERS: dict[str, str] = {
     "reproduce": "services.worker.reproduce:reproduce",
     "reproduce_run": "services.worker.training:reproduce_run",
     "eeg_calibration": "services.worker.calibration:eeg_calibration",
+    "live_session": "services.worker.live_session:live_session",
 }
 """Handler of each job kind, imported on first use (a worker that only trains never loads
 the EEG pipeline, which takes seconds to import)."""

@@ -37,6 +37,11 @@ TABLES = {
     "classifiers",
     "hf_models",
     "feedback_labels",
+    "live_runs",
+    "live_markers",
+    "live_decisions",
+    "live_model_versions",
+    "live_frames_shown",
     "alembic_version",
 }
 
@@ -45,7 +50,7 @@ def test_empty_database_upgrades_to_head_matching_the_models(any_db_url: str) ->
     upgrade_database(any_db_url)
     engine = make_engine(any_db_url)
     try:
-        assert current_revision(engine) == head_revision() == "0002"
+        assert current_revision(engine) == head_revision() == "0003"
         assert set(inspect(engine).get_table_names()) == TABLES
         with engine.connect() as connection:
             diff = compare_metadata(
@@ -71,7 +76,7 @@ def test_previous_revision_upgrades_and_keeps_its_rows(any_db_url: str) -> None:
             )
             db.commit()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0002"
+        assert current_revision(engine) == "0003"
         with sessions() as db:
             job = db.get(Job, "j" * 32)
             assert (job.config, job.status, job.curve, job.attempts) == (

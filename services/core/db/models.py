@@ -32,7 +32,7 @@ ROLES = ("admin", "staff", "viewer")
 SESSION_KINDS = ("calibration", "test", "online", "rl")
 SESSION_STATUSES = ("scheduled", "running", "completed", "cancelled", "failed")
 VALIDATION_STATUSES = ("pending", "valid", "invalid")
-JOB_KINDS = ("guided_ppo", "reproduce", "reproduce_run", "eeg_calibration")
+JOB_KINDS = ("guided_ppo", "reproduce", "reproduce_run", "eeg_calibration", "live_session")
 JOB_STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
 JOB_FINAL_STATUSES = ("succeeded", "failed", "cancelled")
 ARTIFACT_KINDS = ("recording", "classifier", "checkpoint", "model", "results", "plot", "bids")
@@ -288,3 +288,8 @@ class FeedbackLabel(Base):
     shown_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     decoded_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+# The live-session tables (issue 10) live in their own module; importing it here registers
+# them on the same metadata, so every user of the models (and Alembic) sees them.
+from services.core.db import live as _live  # noqa: E402, F401

@@ -1,0 +1,165 @@
+"""Tables of live sessions (issue 10): one row per run, marker, epoch decision, model version
+and frame shown, written as they happen so that a crashed run resumes from them.
+
+A *live run* is one start of a lab session's calibration, test or online session (a
+``live_session`` job). Its rows are numbered by ``step``, the run's action index (0-based,
+unique per run). Labels are :class:`~services.core.db.models.FeedbackLabel` rows of the lab
+session (one per accepted decision of an online run). Clock columns ending in ``_ts`` are
+seconds on the runner's LSL clock (``local_clock``; the sim's marker timestamps use the same
+clock on one host); ``*_at`` columns are UTC datetimes.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    CheckConstraint,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import Mapped, mapped_column
+
+from services.core.db.base import Base, UtcDateTime, utcnow
+from services.core.db.models import BigIntId
+
+LIVE_MODES = ("calibration", "test", "online")
+LIVE_STATUSES = ("queued", "running", "completed", "stopped", "failed")
+DECISION_STATUSES = ("ok", "rejected")
+
+
+class LiveRun(Base):
+    """One start of a lab session's live loop and what it needs to re-attach after a crash."""
+
+    __tablename__ = "live_runs"
+    __table_args__ = (
+        CheckConstraint(f"mode IN {LIVE_MODES}", name="mode_allowed"),
+        CheckConstraint(f"status IN {LIVE_STATUSES}", name="status_allowed"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("sessions.id", ondelete="CASCADE"), index=True
+    )
+    job_id: Mapped[str | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
+    mode: Mapped[str] = mapped_column(String(16))
+    options: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    status: Mapped[str] = mapped_column(String(16), default="queued")
+    stop_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    sim_session_id: Mapped[str | None] = mapped_column(String(200))
+    hf_session_id: Mapped[str | None] = mapped_column(String(64))
+    eeg_classifier_id: Mapped[str | None] = mapped_column(String(64))
+    recording_id: Mapped[int | None] = mapped_column(
+        ForeignKey("recordings.id", ondelete="SET NULL")
+    )
+    hf_model_id: Mapped[int | None] = mapped_column(ForeignKey("hf_models.id", ondelete="SET NULL"))
+    follow_up_job_id: Mapped[str | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
+    """The eeg_calibration job a calibration run started."""
+    resumes: Mapped[int] = mapped_column(Integer, default=0)
+    """Times the run re-attached after a crash of the worker or of a service."""
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow, onupdate=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+
+class LiveMarker(Base):
+    """One executed action: the sim's marker (oracle label) and the state it was taken in."""
+
+    __tablename__ = "live_markers"
+    __table_args__ = (UniqueConstraint("run_id", "step", name="uq_live_markers_step"),)
+
+    id: Mapped[int] = mapped_column(BigIntId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("live_runs.id", ondelete="CASCADE"))
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("sessions.id", ondelete="CASCADE"), index=True
+    )
+    step: Mapped[int] = mapped_column(Integer)
+    sim_session_id: Mapped[str] = mapped_column(String(200))
+    sim_step: Mapped[int] = mapped_column(Integer)
+    episode: Mapped[int] = mapped_column(Integer)
+    action: Mapped[int] = mapped_column(Integer)
+    oracle_correct: Mapped[bool | None] = mapped_column(Boolean)
+    observation: Mapped[list[float]] = mapped_column(JSON)
+    policy_version: Mapped[int | None] = mapped_column(Integer)
+    """pi_HF's model version that chose the action (online runs)."""
+    marker_ts: Mapped[float] = mapped_column(Float)
+    """The sim's marker timestamp (LSL clock): when the action was executed."""
+    eeg_ts: Mapped[float] = mapped_column(Float)
+    """The marker's time on the EEG stream's clock (the virtual clock when accelerated)."""
+    executed_at: Mapped[datetime] = mapped_column(UtcDateTime)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class LiveDecision(Base):
+    """The EEG service's decision on the epoch after one marker (accepted or rejected, why)."""
+
+    __tablename__ = "live_decisions"
+    __table_args__ = (
+        UniqueConstraint("run_id", "step", name="uq_live_decisions_step"),
+        CheckConstraint(f"status IN {DECISION_STATUSES}", name="status_allowed"),
+    )
+
+    id: Mapped[int] = mapped_column(BigIntId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("live_runs.id", ondelete="CASCADE"))
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("sessions.id", ondelete="CASCADE"), index=True
+    )
+    step: Mapped[int] = mapped_column(Integer)
+    status: Mapped[str] = mapped_column(String(16))
+    reason: Mapped[str | None] = mapped_column(Text)
+    feedback: Mapped[str | None] = mapped_column(String(16))
+    p_error: Mapped[float | None] = mapped_column(Float)
+    oracle_correct: Mapped[bool | None] = mapped_column(Boolean)
+    classifier_id: Mapped[str | None] = mapped_column(String(64))
+    epoch_end_ts: Mapped[float | None] = mapped_column(Float)
+    """When the epoch's last sample was in the EEG service (runner clock)."""
+    decided_ts: Mapped[float] = mapped_column(Float)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class LiveModelVersion(Base):
+    """The learner's state after one label of an online run (and when the next action was
+    ready)."""
+
+    __tablename__ = "live_model_versions"
+    __table_args__ = (UniqueConstraint("run_id", "step", name="uq_live_model_versions_step"),)
+
+    id: Mapped[int] = mapped_column(BigIntId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("live_runs.id", ondelete="CASCADE"))
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("sessions.id", ondelete="CASCADE"), index=True
+    )
+    step: Mapped[int] = mapped_column(Integer)
+    labels: Mapped[int] = mapped_column(Integer)
+    model_version: Mapped[int] = mapped_column(Integer)
+    metrics: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    updated_ts: Mapped[float] = mapped_column(Float)
+    """When the learner answered the label (runner clock)."""
+    next_ready_ts: Mapped[float | None] = mapped_column(Float)
+    """When pi_HF's next action was known (runner clock)."""
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class LiveFrameShown(Base):
+    """When the subject's display actually showed the frame of one action."""
+
+    __tablename__ = "live_frames_shown"
+    __table_args__ = (UniqueConstraint("run_id", "step", name="uq_live_frames_shown_step"),)
+
+    id: Mapped[int] = mapped_column(BigIntId, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("live_runs.id", ondelete="CASCADE"))
+    session_id: Mapped[int] = mapped_column(
+        ForeignKey("sessions.id", ondelete="CASCADE"), index=True
+    )
+    step: Mapped[int] = mapped_column(Integer)
+    shown_at: Mapped[datetime] = mapped_column(UtcDateTime)
+    received_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
