@@ -125,7 +125,8 @@ def reproduce(
     summary and plots, so a reproduction can be extended by more seeds or methods; failed
     runs of earlier calls are retried. Runs with other settings (labels, map, PPO overrides)
     and maps that do not load are refused with a ValueError before anything runs. Returns
-    the results; ``results.failed`` lists the runs that failed in this call.
+    the results; ``results.failed`` lists the runs that failed in this call (and earlier
+    failures of runs this call did not include).
     """
     validate_maps(specs)
     out = Path(out_dir)
@@ -138,7 +139,8 @@ def reproduce(
         "label_steps_counted_in_budget": False,
         **(config_note or {}),
     }
-    runs: list[RunRecord] = load_results(results_path).runs if results_path.exists() else []
+    earlier = load_results(results_path) if results_path.exists() else Results(config=config)
+    runs = earlier.runs
     if settings_conflict([*specs, *(r.run_spec for r in runs)]):
         raise ValueError(
             f"{out} holds runs with other settings (labels, map or PPO overrides); "
@@ -149,7 +151,9 @@ def reproduce(
     pending = [s for s in specs if s.key not in done]
     if on_resume is not None:
         on_resume(len(specs) - len(pending))
-    results = Results(config=config, runs=runs)
+    attempted = {s.key for s in specs} | done
+    not_retried = [f for f in earlier.failed if RunSpec.from_dict(f.spec).key not in attempted]
+    results = Results(config=config, runs=runs, failed=not_retried)
 
     def finished(record: RunRecord) -> None:
         results.runs.append(record)
