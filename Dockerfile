@@ -16,6 +16,8 @@ WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY services ./services
 COPY benchmarks ./benchmarks
+# The dashboard's static files: the api serves web/ from beside services/ (/app/web).
+COPY web ./web
 # CPU-only torch (the platform trains small MLPs and EEGNet on CPU).
 RUN pip install --extra-index-url https://download.pytorch.org/whl/cpu .
 
