@@ -1,0 +1,481 @@
+"""``live_session`` jobs: a lab session's calibration, test or online loop across the sim,
+EEG and learner services (issue 10).
+
+Each step: the action (random for calibration and test, pi_HF's from the learner online) is
+executed by the sim (``POST /sessions/{id}/step``, which publishes its LSL marker carrying
+the oracle's label); the marker row is written; test and online sessions then ask the EEG
+service for the decision on the [0, 0.8] s epoch after it (decision row: accepted, or
+rejected and why); online, an accepted decision goes to the learner as a label (label row)
+and pi_HF's next action comes from the updated model (model-version row). Paced sessions keep
+one action every ``period_s`` on the runner's clock; accelerated ones run as fast as the
+services answer while the virtual subject's clock advances ``period_s`` per action.
+
+Resume: every attempt starts from the rows. The marker whose decision was not written is
+the label in flight: it is recorded as rejected ("lost") and the loop goes on with the next
+step; a decision whose label was not written is sent again (the learner ignores a marker id
+it has seen). A service that restarts is waited for (backoff) and re-attached: a sim session
+that is gone is opened again (new episode), the HF session is found again (its state is on
+the learner's disk), the EEG source re-connects.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+from mne_lsl.lsl import local_clock
+from pydantic import ValidationError
+from sqlalchemy import func, select
+
+from services.core.db.base import utcnow
+from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion, LiveRun
+from services.core.db.models import FeedbackLabel, LabSession
+from services.core.live import DEFAULT_ACTIONS, ONLINE_ACTIONS_PER_LABEL, LiveOptions
+from services.core.markers import ActionMarker
+from services.core.settings import load_settings
+from services.worker.live_eeg import EegDecoder, install_classifier
+from services.worker.live_finish import finish_calibration, finish_online, finish_test
+from services.worker.live_services import LiveSettings, ServiceCallError, clients
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome
+
+logger = logging.getLogger(__name__)
+
+PROGRESS_EVERY_S = 1.0
+
+
+def _options(context: JobContext) -> tuple[int, LiveOptions]:
+    config = dict(context.config)
+    run_id = config.pop("run_id", None)
+    config.pop("session_id", None)
+    if not isinstance(run_id, int):
+        raise JobConfigError("run_id: a live_session job needs the id of its live run")
+    try:
+        return run_id, LiveOptions.model_validate(config)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        raise JobConfigError(f"{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+
+
+class LiveRunner:
+    """Runs one live run from where its rows stop."""
+
+    def __init__(self, context: JobContext, run_id: int, options: LiveOptions) -> None:
+        self.context = context
+        self.runtime = context.runtime
+        self.settings = load_settings(LiveSettings)
+        self.options = options
+        self.services = clients(self.settings, on_retry=context.check_stop)
+        with self.runtime.sessions() as db:
+            run = db.get(LiveRun, run_id)
+            if run is None:
+                raise JobConfigError(f"run_id: no live run {run_id}")
+            lab = db.get(LabSession, run.session_id)
+            assert lab is not None
+            self.run_id, self.session_id, self.mode = run.id, run.session_id, run.mode
+            self.subject_id = lab.subject_id
+            self.sim_session_id = run.sim_session_id
+            self.hf_session_id = run.hf_session_id
+            self.done = db.scalar(select(func.count()).where(LiveMarker.run_id == run_id)) or 0
+            if self.done:
+                run.resumes += 1
+            run.status, run.job_id = "running", context.job_id
+            lab.status = "running"
+            db.commit()
+        if self.mode in ("test", "online") and options.classifier_id is None:
+            raise JobConfigError(f"classifier_id is required for a {self.mode} session")
+        if self.mode == "calibration" and options.eeg_source == "lsl":
+            raise JobConfigError(
+                "eeg_source lsl: calibration from a headset needs the EEG service's live "
+                "recording; record with LabRecorder and upload the file instead"
+            )
+        self.virtual_seed = (
+            options.virtual_seed if options.virtual_seed is not None else self.subject_id
+        )
+        self.observation: list[float] = []
+        self.episode_over = False
+        self.next_action: tuple[int, int] | None = None
+        self.decoder: EegDecoder | None = None
+        self.last_progress = 0.0
+
+    # ----------------------------------------------------------------- helpers
+    def _set_run(self, **values: Any) -> None:
+        with self.runtime.sessions() as db:
+            run = db.get(LiveRun, self.run_id)
+            assert run is not None
+            for key, value in values.items():
+                setattr(run, key, value)
+            db.commit()
+
+    def _stop_requested(self) -> bool:
+        with self.runtime.sessions() as db:
+            return bool(db.scalar(select(LiveRun.stop_requested).where(LiveRun.id == self.run_id)))
+
+    def _labels(self) -> int:
+        with self.runtime.sessions() as db:
+            return (
+                db.scalar(select(func.count()).where(FeedbackLabel.session_id == self.session_id))
+                or 0
+            )
+
+    # ------------------------------------------------------------------ attach
+    def attach_sim(self) -> None:
+        sim = self.services["sim"]
+        if self.sim_session_id is not None:
+            try:
+                state = sim.call("GET", f"/sessions/{self.sim_session_id}")
+                self.observation = list(state["observation"])
+                self.episode_over = bool(state["terminated"] or state["truncated"])
+                return
+            except ServiceCallError as exc:
+                if exc.status_code not in (404, 410):
+                    raise
+                logger.info("sim session %s is gone; opening a new one", self.sim_session_id)
+        seed = self.options.seed + 1000 * self.done
+        created = sim.call(
+            "POST",
+            "/sessions",
+            json={"task": self.options.task, "map": self.options.map, "seed": seed},
+        )
+        self.sim_session_id = created["id"]
+        self.observation = list(created["observation"])
+        self.episode_over = False
+        self._set_run(sim_session_id=self.sim_session_id)
+
+    def attach_learner(self) -> None:
+        learner = self.services["learner"]
+        if self.hf_session_id is not None:
+            learner.call("GET", f"/hf-sessions/{self.hf_session_id}")
+            return
+        created = learner.call(
+            "POST",
+            "/hf-sessions",
+            json={
+                "task": self.options.task,
+                "map": self.options.map,
+                "seed": self.options.seed,
+                "label_budget": self.options.label_budget,
+            },
+        )
+        self.hf_session_id = created["id"]
+        self._set_run(hf_session_id=self.hf_session_id)
+
+    def attach_eeg(self) -> None:
+        from services.eeg.virtual_source import VirtualEEGSource
+
+        eeg_id = install_classifier(self.runtime, self.options.classifier_id or 0)
+        self._set_run(eeg_classifier_id=eeg_id)
+        source = None
+        if self.options.eeg_source == "virtual":
+            start = 0.0 if self.options.accelerated else local_clock()
+            if self.options.accelerated and self.done:
+                with self.runtime.sessions() as db:
+                    start = (db.scalar(
+                        select(func.max(LiveMarker.eeg_ts)).where(LiveMarker.run_id == self.run_id)
+                    ) or 0.0) + 1.0  # fmt: skip
+            source = VirtualEEGSource(
+                quality=self.options.virtual_quality,
+                seed=self.virtual_seed,
+                start_timestamp=start,
+            )
+            source.n_markers = self.done  # the trials' random streams continue
+        self.decoder = EegDecoder(
+            self.services["eeg"],
+            eeg_id,
+            source=source,
+            accelerated=self.options.accelerated,
+            stream_name=self.options.stream_name,
+            retry_s=self.settings.live_retry_s,
+            period_s=self.options.period_s,
+        )
+        self.decoder.attach()
+
+    # ---------------------------------------------------------------- recovery
+    def recover_in_flight(self) -> None:
+        """Settle the step the last attempt left half done (see the module docstring)."""
+        if self.done == 0 or self.mode == "calibration":
+            return
+        step = self.done - 1
+        with self.runtime.sessions() as db:
+            marker = db.scalar(
+                select(LiveMarker).where(LiveMarker.run_id == self.run_id, LiveMarker.step == step)
+            )
+            decision = db.scalar(
+                select(LiveDecision).where(
+                    LiveDecision.run_id == self.run_id, LiveDecision.step == step
+                )
+            )
+            assert marker is not None
+            if decision is None:
+                db.add(
+                    LiveDecision(
+                        run_id=self.run_id,
+                        session_id=self.session_id,
+                        step=step,
+                        status="rejected",
+                        reason="lost: the session stopped before its epoch was decoded",
+                        oracle_correct=marker.oracle_correct,
+                        decided_ts=local_clock(),
+                    )
+                )
+                db.commit()
+                return
+            labelled = db.scalar(
+                select(FeedbackLabel.id).where(
+                    FeedbackLabel.session_id == self.session_id, FeedbackLabel.step == step
+                )
+            )
+            marker_row = (marker.observation, marker.action, marker.oracle_correct)
+            feedback = {"status": decision.status, "feedback": decision.feedback,
+                        "p_error": decision.p_error}  # fmt: skip
+        if self.mode == "online" and decision.status == "ok" and labelled is None:
+            self.send_label(step, *marker_row, feedback)
+
+    # -------------------------------------------------------------------- loop
+    def choose_action(self, step: int) -> tuple[int, int | None]:
+        if self.mode != "online":
+            rng = np.random.default_rng([self.options.seed, step])
+            return int(rng.integers(3)), None
+        if self.next_action is None:
+            self.next_action = self.act()
+        return self.next_action
+
+    def act(self) -> tuple[int, int]:
+        answer = self.services["learner"].call(
+            "POST", f"/hf-sessions/{self.hf_session_id}/act", json={"observation": self.observation}
+        )
+        return int(answer["action"]), int(answer["model_version"])
+
+    def execute(self, action: int) -> dict[str, Any]:
+        """The sim executes ``action``; a sim session lost to a restart is re-opened once."""
+        try:
+            return self.services["sim"].call(
+                "POST", f"/sessions/{self.sim_session_id}/step", json={"action": action}
+            )
+        except ServiceCallError as exc:
+            if exc.status_code not in (404, 410):
+                raise
+        self.sim_session_id = None
+        self.attach_sim()
+        return self.services["sim"].call(
+            "POST", f"/sessions/{self.sim_session_id}/step", json={"action": action}
+        )
+
+    def send_label(
+        self,
+        step: int,
+        observation: list[float],
+        action: int,
+        oracle_correct: bool | None,
+        decision: dict[str, Any],
+    ) -> bool:
+        """Label one accepted decision; returns False once the learner's budget is full."""
+        try:
+            answer = self.services["learner"].call(
+                "POST",
+                f"/hf-sessions/{self.hf_session_id}/labels",
+                json={
+                    "marker_id": f"run{self.run_id}:{step}",
+                    "observation": observation,
+                    "action": action,
+                    "feedback": decision["feedback"],
+                    "p_error": decision["p_error"],
+                    "oracle_correct": oracle_correct,
+                },
+            )
+        except ServiceCallError as exc:
+            if exc.status_code == 409:
+                return False
+            raise
+        updated = local_clock()
+        with self.runtime.sessions() as db:
+            db.add(
+                FeedbackLabel(
+                    session_id=self.session_id,
+                    step=step,
+                    state=observation,
+                    action=action,
+                    decoded_error=decision["feedback"] == "error",
+                    p_error=decision["p_error"],
+                    oracle_error=None if oracle_correct is None else not oracle_correct,
+                    decoded_at=utcnow(),
+                )
+            )
+            db.add(
+                LiveModelVersion(
+                    run_id=self.run_id,
+                    session_id=self.session_id,
+                    step=step,
+                    labels=int(answer["labels"]),
+                    model_version=int(answer["model_version"]),
+                    metrics=answer.get("metrics") or {},
+                    updated_ts=updated,
+                )
+            )
+            db.commit()
+        return not answer.get("done", False)
+
+    def total_actions(self) -> int:
+        if self.options.n_actions is not None:
+            return self.options.n_actions
+        if self.mode == "online":
+            return self.options.label_budget * ONLINE_ACTIONS_PER_LABEL
+        return DEFAULT_ACTIONS[self.mode]
+
+    def step(self, step: int) -> bool:
+        """Run action ``step``; returns False when the session is complete."""
+        action, version = self.choose_action(step)
+        obs_before = list(self.observation)
+        out = self.execute(action)
+        marker = ActionMarker.model_validate(out["marker"])
+        now_wall, now_clock = time.time(), local_clock()
+        if self.decoder is not None:
+            eeg_ts = self.decoder.next_eeg_timestamp(marker.timestamp)
+        elif self.options.accelerated:  # calibration: the recording's virtual clock
+            eeg_ts = step * self.options.period_s
+        else:
+            eeg_ts = marker.timestamp
+        with self.runtime.sessions() as db:
+            db.add(
+                LiveMarker(
+                    run_id=self.run_id,
+                    session_id=self.session_id,
+                    step=step,
+                    sim_session_id=marker.session_id,
+                    sim_step=marker.step,
+                    episode=marker.episode,
+                    action=action,
+                    oracle_correct=marker.correct,
+                    observation=obs_before,
+                    policy_version=version,
+                    marker_ts=marker.timestamp,
+                    eeg_ts=eeg_ts,
+                    executed_at=datetime.fromtimestamp(
+                        now_wall - (now_clock - marker.timestamp), UTC
+                    ),
+                )
+            )
+            db.commit()
+        self.next_action = None
+        self.observation = list(out["observation"])
+        self.episode_over = bool(out["terminated"] or out["truncated"])
+        more = True
+        if self.decoder is not None:
+            decision, epoch_end = self.decoder.decide(
+                marker.model_copy(update={"timestamp": eeg_ts})
+            )
+            with self.runtime.sessions() as db:
+                db.add(
+                    LiveDecision(
+                        run_id=self.run_id,
+                        session_id=self.session_id,
+                        step=step,
+                        status=decision["status"],
+                        reason=decision.get("reason"),
+                        feedback=decision.get("feedback"),
+                        p_error=decision.get("p_error"),
+                        oracle_correct=marker.correct,
+                        classifier_id=self.decoder.classifier_id,
+                        epoch_end_ts=epoch_end,
+                        decided_ts=local_clock(),
+                    )
+                )
+                db.commit()
+            if self.mode == "online" and decision["status"] == "ok":
+                more = self.send_label(step, obs_before, action, marker.correct, decision)
+        if self.episode_over:
+            reset = self.services["sim"].call("POST", f"/sessions/{self.sim_session_id}/reset")
+            self.observation = list(reset["observation"])
+            self.episode_over = False
+        if self.mode == "online" and more:
+            self.next_action = self.act()
+            with self.runtime.sessions() as db:
+                row = db.scalar(
+                    select(LiveModelVersion).where(
+                        LiveModelVersion.run_id == self.run_id, LiveModelVersion.step == step
+                    )
+                )
+                if row is not None:
+                    row.next_ready_ts = local_clock()
+                    db.commit()
+        return more
+
+    def run(self) -> JobOutcome:
+        total = self.total_actions()
+        try:
+            self.attach_sim()
+            if self.mode == "online":
+                self.attach_learner()
+            if self.mode in ("test", "online"):
+                self.attach_eeg()
+            self.recover_in_flight()
+            if self.episode_over:
+                reset = self.services["sim"].call("POST", f"/sessions/{self.sim_session_id}/reset")
+                self.observation = list(reset["observation"])
+            origin, first = local_clock(), self.done
+            stopped = False
+            step = self.done
+            while step < total:
+                self.context.check_stop()
+                if self._stop_requested():
+                    stopped = True
+                    break
+                if self.mode == "online" and self._labels() >= self.options.label_budget:
+                    break
+                if not self.options.accelerated:
+                    delay = origin + (step - first) * self.options.period_s - local_clock()
+                    if delay > 0:
+                        time.sleep(delay)
+                more = self.step(step)
+                step += 1
+                self._progress(step, total)
+                if not more:
+                    break
+            self.done = step
+        finally:
+            if self.decoder is not None:
+                self.decoder.close()
+        return self.finish(stopped)
+
+    def _progress(self, step: int, total: int) -> None:
+        now = time.monotonic()
+        if now - self.last_progress < PROGRESS_EVERY_S:
+            return
+        self.last_progress = now
+        if self.mode == "online":
+            fraction = self._labels() / self.options.label_budget
+        else:
+            fraction = step / total
+        self.context.update(steps_done=step, progress=min(fraction, 0.99))
+
+    def finish(self, stopped: bool) -> JobOutcome:
+        if self.mode == "calibration":
+            result = finish_calibration(self)
+        elif self.mode == "test":
+            result = finish_test(self)
+        else:
+            result = finish_online(self)
+        result["stopped_on_command"] = stopped
+        status = "stopped" if stopped else "completed"
+        self._set_run(status=status, result=result, finished_at=utcnow())
+        with self.runtime.sessions() as db:
+            lab = db.get(LabSession, self.session_id)
+            assert lab is not None
+            lab.status = "completed"
+            db.commit()
+        for client in self.services.values():
+            client.close()
+        return JobOutcome(result=result, values={"steps_done": self.done})
+
+
+def live_session(context: JobContext) -> JobOutcome:
+    """Handler of ``live_session`` jobs."""
+    run_id, options = _options(context)
+    runner = LiveRunner(context, run_id, options)
+    try:
+        return runner.run()
+    except JobConfigError as exc:
+        runner._set_run(status="failed", error=str(exc), finished_at=utcnow())
+        raise
