@@ -31,7 +31,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from services.eeg.classifier import ErrPClassifier
+from services.eeg.classifier import (
+    CONFIG_FILE,
+    ONNX_FILE,
+    STATE_FILE,
+    TORCHSCRIPT_FILE,
+    ErrPClassifier,
+)
 from services.eeg.eegnet import EEGNet, count_parameters
 from services.eeg.preprocessing import EpochSet, PreprocessingParams, epochs_from_raw
 
@@ -42,6 +48,20 @@ SPLIT_FRACTIONS = (0.80, 0.12, 0.08)
 """Train / validation / test fractions (paper §EEG Classifier Training)."""
 METRICS_FILE = "metrics.json"
 HISTORY_FILE = "history.json"
+
+
+_ARTEFACTS = frozenset(
+    {
+        CONFIG_FILE,
+        STATE_FILE,
+        TORCHSCRIPT_FILE,
+        ONNX_FILE,
+        HISTORY_FILE,
+        "report.png",
+        "report.html",
+    }
+)
+"""Files a calibration writes besides ``metrics.json`` (report names: services.eeg.report)."""
 
 
 class CalibrationCancelled(Exception):  # noqa: N818 (the name callers catch)
@@ -424,6 +444,11 @@ def _write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: 
         (staging / METRICS_FILE).write_text(json.dumps(result.metrics, indent=2))
         out.mkdir(exist_ok=True)
         names = sorted(p.name for p in staging.iterdir() if p.name != METRICS_FILE)
+        # metrics.json marks a finished classifier: the old one goes first, and artefacts
+        # of an earlier run that this run did not make (model.onnx, report) go too.
+        (out / METRICS_FILE).unlink(missing_ok=True)
+        for name in _ARTEFACTS - set(names):
+            (out / name).unlink(missing_ok=True)
         for name in [*names, METRICS_FILE]:
             os.replace(staging / name, out / name)
     finally:

@@ -159,7 +159,18 @@ def test_calibration_leaves_process_state_alone_and_is_repeatable(tmp_path) -> N
     torch_state = torch.random.get_rng_state()
     numpy_state = np.random.get_state()[1].copy()
     config = TrainingConfig(max_passes=3)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / ONNX_FILE).write_text("an earlier run's model")  # not made this time
+    (tmp_path / "a" / "notes.txt").write_text("the user's")
     first = calibrate(epochs, seed=3, out_dir=tmp_path / "a", config=config, report=False)
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == [
+        "classifier.json",
+        "history.json",
+        "metrics.json",
+        "model.pt",
+        "model.torchscript.pt",
+        "notes.txt",
+    ]
     assert torch.get_num_threads() == threads
     assert torch.equal(torch.random.get_rng_state(), torch_state)
     np.testing.assert_array_equal(np.random.get_state()[1], numpy_state)
