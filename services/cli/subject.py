@@ -83,17 +83,47 @@ def simulate_command(
 
 @subject_app.command("stream")
 def stream_command(
-    recording: Annotated[Path, typer.Argument(help="Recording to replay (BDF, EDF or FIF).")],
+    recording: Annotated[
+        Path | None,
+        typer.Argument(help="Recording to replay (BDF, EDF or FIF); none: the live subject."),
+    ] = None,
     name: Annotated[str, typer.Option(help="LSL stream name.")] = "BrainNav-EEG",
     chunk_size: Annotated[int, typer.Option(min=1, help="Samples per LSL chunk.")] = 64,
     repeat: Annotated[int, typer.Option(min=1, help="How many times to play it.")] = 1,
+    quality: Annotated[
+        float, typer.Option(min=0.0, max=1.0, help="Live subject: ErrP quality (0 none, 1 best).")
+    ] = 0.6,
+    seed: Annotated[int, typer.Option(help="Live subject: seed of the subject.")] = 0,
+    sfreq: Annotated[float, typer.Option(min=256.0, help="Live subject: sampling rate.")] = 256.0,
+    marker_stream: Annotated[
+        str, typer.Option(help="Live subject: the sim's LSL marker stream to follow.")
+    ] = "BrainNav-Markers",
+    duration: Annotated[
+        float, typer.Option(min=0.0, help="Live subject: stop after this many s (0: Ctrl-C).")
+    ] = 0.0,
 ) -> None:
-    """Replay a recording over LSL in real time (Status triggers included); Ctrl-C stops."""
+    """Stream EEG over LSL in real time; Ctrl-C stops.
+
+    With RECORDING, replay it (Status triggers included). Without, stream the virtual
+    subject live (SYNTHETIC), its ErrPs driven by the oracle labels of the sim's markers.
+    """
     import time
 
     from services.eeg.io import RecordingError, read_recording
     from services.eeg.lsl import replay
 
+    if recording is None:
+        from services.cli.subject_live import stream_virtual_subject
+
+        stream_virtual_subject(
+            quality=quality,
+            seed=seed,
+            sfreq=sfreq,
+            name=name,
+            marker_stream=marker_stream,
+            duration_s=duration,
+        )
+        return
     try:
         raw = read_recording(recording)
     except RecordingError as exc:

@@ -242,6 +242,8 @@ class MarkerInlet:
         self._inlet = StreamInlet(infos[0], processing_flags=["clocksync"])
         try:
             self._inlet.open_stream(timeout=timeout)
+            # The first clock-offset estimate takes ~0.6 s: get it now, not on the first marker.
+            self._inlet.time_correction(timeout=timeout)
         except BaseException:
             self.close()
             raise

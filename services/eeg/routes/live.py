@@ -67,6 +67,7 @@ def connect_live(body: LiveConnect, service: ServiceDep) -> LiveStatus:
     the feedback goes to ``WS /live/feedback``. Replaces the current live source.
     """
     from services.eeg import lsl
+    from services.eeg.virtual_stream import stream_is_synthetic
 
     settings = service.settings
     clf = service.classifiers.get(body.classifier_id)
@@ -86,6 +87,7 @@ def connect_live(body: LiveConnect, service: ServiceDep) -> LiveStatus:
         "lsl",
         stream_name=body.stream_name,
         eeg_source=source,
+        synthetic=stream_is_synthetic(source.stream.sinfo),
     )
     try:
         try:
