@@ -142,6 +142,24 @@ class FeedbackReplayBuffer:
             torch.from_numpy(self.labels[indices]),
         )
 
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The stored labels as tensors (only the filled rows), for checkpoints."""
+        return {
+            "obs": torch.from_numpy(self.obs[: self.size].copy()),
+            "actions": torch.from_numpy(self.actions[: self.size].copy()),
+            "labels": torch.from_numpy(self.labels[: self.size].copy()),
+        }
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Replace the contents with those of :meth:`state_dict`."""
+        size = int(state["labels"].shape[0])
+        if size > len(self.labels):
+            raise OverflowError(f"{size} labels exceed the buffer's capacity {len(self.labels)}")
+        self.obs[:size] = state["obs"].numpy()
+        self.actions[:size] = state["actions"].numpy()
+        self.labels[:size] = state["labels"].numpy()
+        self.size = size
+
 
 @dataclass
 class FeedbackRecord:
@@ -209,6 +227,55 @@ class FeedbackLearner:
             )
             self._step(*self.buffer.tensors(indices))
         return record
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything :meth:`add` depends on: weights, optimiser, buffer, validation, RNG.
+
+        A learner restored with :meth:`load_state_dict` continues exactly as this one would
+        (the same updates for the same labels); the result loads with
+        ``torch.load(..., weights_only=True)``.
+        """
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "buffer": self.buffer.state_dict(),
+            "validation": {
+                "obs": torch.tensor([r.obs for r in self.validation], dtype=torch.float32),
+                "actions": torch.tensor([r.action for r in self.validation], dtype=torch.int64),
+                "labels": torch.tensor([r.label for r in self.validation], dtype=torch.bool),
+                "optimal": torch.tensor(  # -1 unknown, 0 sub-optimal, 1 optimal
+                    [-1 if r.optimal is None else int(r.optimal) for r in self.validation],
+                    dtype=torch.int8,
+                ),
+            },
+            "rng": self.rng.bit_generator.state,
+            "n_updates": self.n_updates,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore the state saved by :meth:`state_dict` (same config and normaliser)."""
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.buffer.load_state_dict(state["buffer"])
+        held_out = state["validation"]
+        self.validation = [
+            FeedbackRecord(
+                obs=obs,
+                action=action,
+                label=label,
+                optimal=None if optimal < 0 else bool(optimal),
+                validation=True,
+            )
+            for obs, action, label, optimal in zip(
+                held_out["obs"].reshape(-1, self.buffer.obs.shape[1]).tolist(),
+                held_out["actions"].tolist(),
+                held_out["labels"].tolist(),
+                held_out["optimal"].tolist(),
+                strict=True,
+            )
+        ]
+        self.rng.bit_generator.state = state["rng"]
+        self.n_updates = int(state["n_updates"])
 
     def validation_accuracy(self) -> tuple[float | None, float | None]:
         """Accuracy of ``sigmoid(Fhat(s)[a]) > 0.5`` on held-out labels: (noisy, true).
@@ -402,6 +469,15 @@ class HFResult:
         }
 
 
+def sampling_rng(seed: int) -> np.random.Generator:
+    """The generator pi_HF samples its actions from while labels of seed ``seed`` are collected.
+
+    Separate from the learner's own generator (validation split, replay minibatches), so the
+    actions drawn do not depend on how many replay batches the labels caused.
+    """
+    return np.random.default_rng([seed, 1])
+
+
 def _optimal_now(env: gym.Env, action: int) -> bool | None:
     oracle_actions = getattr(env.unwrapped, "optimal_actions", None)
     return None if oracle_actions is None else action in oracle_actions()
@@ -448,7 +524,7 @@ def collect_feedback(
     start = time.perf_counter()
     learner = FeedbackLearner(ObsNormalizer.from_space(env.observation_space), config, seed)
     policy = HFPolicy(learner.model, config.beta)
-    rng = np.random.default_rng([seed, 1])
+    rng = sampling_rng(seed)
     obs, _ = env.reset(seed=seed)
     records: list[FeedbackRecord] = []
     n_steps, n_episodes = 0, 1

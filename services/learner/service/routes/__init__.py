@@ -1,0 +1,1 @@
+"""HTTP routes of the learner service, one module per resource."""

@@ -1,0 +1,30 @@
+"""pi_HF: the next action in a state, and its TorchScript export."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from services.learner.service.deps import SessionDep, StoreDep
+from services.learner.service.schemas import ActPublic, ActRequest, ExportPublic, ExportRequest
+
+router = APIRouter(prefix="/hf-sessions/{session_id}", tags=["policy"])
+
+
+@router.post("/act")
+def act(body: ActRequest, session: SessionDep, store: StoreDep) -> ActPublic:
+    """pi_HF's action: sampled while collecting labels (default) or greedy."""
+    action, version = store.act(session, body.observation, body.greedy)
+    return ActPublic(action=action, model_version=version, greedy=body.greedy)
+
+
+@router.post("/export")
+def export(body: ExportRequest, session: SessionDep, store: StoreDep) -> ExportPublic:
+    """Write the greedy pi_HF as TorchScript into the platform's artifact store."""
+    stored, version, metrics = store.export(session)
+    return ExportPublic(
+        relpath=stored.relpath,
+        sha256=stored.sha256,
+        size_bytes=stored.size_bytes,
+        model_version=version,
+        metrics=metrics,
+    )

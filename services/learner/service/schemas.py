@@ -1,0 +1,179 @@
+"""Request (``*Create`` / ``*Request``) and response (``*Public``) bodies of the learner service."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, Field, ValidationInfo, field_validator
+
+from services.core.actions import Action
+from services.core.feedback import is_error
+from services.core.schemas import StrictRequest
+from services.sim.env import OBS_SIZE
+
+Observation = Annotated[
+    list[float],
+    Field(
+        min_length=OBS_SIZE,
+        max_length=OBS_SIZE,
+        description=f"The env's {OBS_SIZE} finite floats (10 ray distances, goal distance, "
+        "goal angle, heading), unnormalised.",
+    ),
+]
+ActionValue = Annotated[
+    int,
+    Field(
+        strict=True,
+        ge=min(Action),
+        le=max(Action),
+        description="0 forward 0.3 m, 1 turn left 30 deg, 2 turn right 30 deg.",
+    ),
+]
+Seed = Annotated[
+    int, Field(strict=True, ge=0, le=2**63 - 1, description="A JSON integer in [0, 2^63).")
+]
+
+
+class FhatSettings(StrictRequest):
+    """Overrides of Fhat's settings (:class:`services.learner.feedback.FeedbackConfig`).
+
+    Omitted fields keep the paper's values.
+    """
+
+    hidden_size: int | None = Field(None, strict=True, ge=1, le=1024, description="Paper: 16.")
+    lr: float | None = Field(None, gt=0, le=1, description="Adam learning rate (1e-3).")
+    replay_updates: int | None = Field(
+        None, strict=True, ge=0, le=1000, description="K_HF: replay steps per label (16)."
+    )
+    batch_size: int | None = Field(None, strict=True, ge=1, le=4096, description="(32)")
+    newest_fraction: float | None = Field(
+        None, ge=0, le=1, description="Chance a replay batch is the newest labels (0.3)."
+    )
+    validation_fraction: float | None = Field(
+        None, ge=0, lt=1, description="Chance a label is held out for validation (0.2)."
+    )
+    beta: float | None = Field(
+        None, gt=0, le=1000, description="Inverse temperature of pi_HF's sampling (8)."
+    )
+
+    def overrides(self) -> dict[str, Any]:
+        """The fields given."""
+        return {k: v for k, v in self.model_dump().items() if v is not None}
+
+
+class HFSessionCreate(StrictRequest):
+    """Start an online HF-training session (stage 2 of the paper, label by label)."""
+
+    task: Literal["sssg", "vssg"] = Field(
+        "sssg", description="sssg: single start single goal; vssg: start jittered."
+    )
+    map: str | None = Field(
+        None,
+        max_length=1024,
+        description="Name (e.g. 'default') or path of a map the service ships or is "
+        "configured with (the sim service's maps); default map when omitted.",
+    )
+    seed: Seed = Field(
+        0,
+        description="Run seed: Fhat's initial weights, the validation split and pi_HF's "
+        "sampling are those of `bgrl reproduce`'s stage 2 for this seed.",
+    )
+    label_budget: int = Field(1000, strict=True, ge=1, description="Labels to collect.")
+    method: Literal["paper"] = Field("paper", description="How Fhat is trained (the paper's).")
+    fhat: FhatSettings = Field(default_factory=FhatSettings)
+
+
+class HFSessionPublic(BaseModel):
+    """An HF session and its current state."""
+
+    id: str
+    task: str
+    map: str
+    seed: int
+    method: str
+    fhat: dict[str, Any] = Field(description="Fhat's settings in use.")
+    label_budget: int
+    labels: int = Field(description="Labels received (training and validation).")
+    model_version: int = Field(description="Training labels Fhat was updated with.")
+    metrics: dict[str, Any]
+    done: bool = Field(description="True once the label budget is reached.")
+    created_at: datetime
+
+
+class ActRequest(StrictRequest):
+    """Ask pi_HF for the action in a state."""
+
+    observation: Observation
+    greedy: bool = Field(
+        False,
+        strict=True,
+        description="False: sample softmax(beta * sigmoid(Fhat)), as while collecting labels; "
+        "true: argmax (the pi_HF that guides RL).",
+    )
+
+
+class ActPublic(BaseModel):
+    """pi_HF's action."""
+
+    action: int
+    model_version: int
+    greedy: bool
+
+
+class LabelCreate(StrictRequest):
+    """The decoded feedback on one executed action."""
+
+    marker_id: str = Field(
+        min_length=1,
+        max_length=200,
+        description="Unique per action (e.g. '<sim session>:<step>'); a label sent again "
+        "with the same marker id is not counted twice.",
+    )
+    observation: Observation = Field(description="The state the action was taken in.")
+    action: ActionValue
+    feedback: Literal["correct", "error"]
+    p_error: float | None = Field(
+        None, ge=0, le=1, description="The classifier's P(error), when decoded from EEG."
+    )
+    oracle_correct: bool | None = Field(
+        None, strict=True, description="The oracle's truth, when known (simulation)."
+    )
+
+    @field_validator("p_error")
+    @classmethod
+    def _p_error_matches_feedback(cls, p_error: float | None, info: ValidationInfo) -> float | None:
+        feedback = info.data.get("feedback")
+        if (
+            p_error is not None
+            and feedback is not None
+            and is_error(p_error) != (feedback == "error")
+        ):
+            decoded = "error" if is_error(p_error) else "correct"
+            raise ValueError(f"p_error {p_error:g} decodes to {decoded}, not {feedback}")
+        return p_error
+
+
+class LabelPublic(BaseModel):
+    """The session after a label."""
+
+    labels: int
+    model_version: int
+    metrics: dict[str, Any]
+    done: bool
+    duplicate: bool = Field(description="The marker id was labelled before; nothing changed.")
+    validation: bool = Field(description="The label was held out for validation.")
+
+
+class ExportRequest(StrictRequest):
+    """Export the greedy pi_HF (no options yet: an empty object)."""
+
+
+class ExportPublic(BaseModel):
+    """Where the TorchScript pi_HF was stored in the platform's artifact store."""
+
+    relpath: str
+    sha256: str
+    size_bytes: int
+    model_version: int
+    metrics: dict[str, Any]

@@ -1,0 +1,206 @@
+"""One online HF-training session: Fhat, its replay buffer and pi_HF, label by label.
+
+A session is stage 2 of ``bgrl reproduce`` (:func:`services.learner.feedback.collect_feedback`)
+with the environment loop outside: the caller asks for an action (:meth:`HFSession.act`),
+executes it, and sends the decoded feedback back (:meth:`HFSession.add_label`). With the same
+``seed`` and the same labels it trains exactly the Fhat that ``collect_feedback`` trains:
+
+* Fhat's initial weights, the 20 % validation hold-out and the replay minibatches come from
+  :class:`~services.learner.feedback.FeedbackLearner` seeded with the run's
+  ``LABEL_COLLECTION`` stream (:mod:`services.learner.seeding`), as in ``bgrl reproduce``;
+* every training label is one SGD step plus K_HF replay steps
+  (:meth:`FeedbackLearner.add <services.learner.feedback.FeedbackLearner.add>`);
+* pi_HF samples ``softmax(beta * sigmoid(Fhat(s)))`` from
+  :func:`~services.learner.feedback.sampling_rng`, one draw per sampled action.
+
+:meth:`HFSession.state_dict` holds everything the next label depends on, so a session
+restored from it continues bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import asdict, dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from services.learner.feedback import (
+    FeedbackConfig,
+    FeedbackLearner,
+    HFPolicy,
+    sampling_rng,
+)
+from services.learner.networks import ObsNormalizer
+from services.learner.seeding import RunSeeds, Stream
+from services.learner.service.errors import LabelBudgetError, MarkerConflictError
+from services.learner.service.labels import LabelRecord, LabelTable
+from services.sim.env import N_RAYS, RAY_LENGTH_M
+from services.sim.maps import NavMap, load_map
+
+STATE_FORMAT = 1
+"""Version of :meth:`HFSession.state_dict`'s layout."""
+
+
+def observation_space(nav_map: NavMap) -> spaces.Box:
+    """The BrainNav env's observation space on ``nav_map`` (13 rays/goal/heading bounds)."""
+    high = np.array([RAY_LENGTH_M] * N_RAYS + [nav_map.diagonal, math.pi, math.pi], np.float32)
+    low = np.array([0.0] * N_RAYS + [0.0, -math.pi, -math.pi], dtype=np.float32)
+    return spaces.Box(low=low, high=high, dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """What a session was created with (kept in ``session.json``)."""
+
+    id: str
+    task: str
+    map: str
+    """Name of the map (file stem)."""
+    map_path: str
+    seed: int
+    label_budget: int
+    method: str
+    fhat: dict[str, Any]
+    """The :class:`FeedbackConfig` fields."""
+    created_at: datetime
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able form."""
+        return {**asdict(self), "created_at": self.created_at.isoformat()}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> SessionSpec:
+        """Rebuild from :meth:`to_json`."""
+        return cls(**{**data, "created_at": datetime.fromisoformat(data["created_at"])})
+
+    @property
+    def learner_seed(self) -> int:
+        """The integer seed of stage 2 for run seed ``seed`` (as ``bgrl reproduce``)."""
+        return RunSeeds(self.seed).int_seed(Stream.LABEL_COLLECTION)
+
+
+@dataclass(frozen=True)
+class LabelOutcome:
+    """What :meth:`HFSession.add_label` did."""
+
+    record: LabelRecord
+    duplicate: bool
+    """The marker id had been labelled before; nothing changed."""
+
+
+class HFSession:
+    """Fhat, its buffer and pi_HF of one session; callers hold :attr:`lock` around each use."""
+
+    def __init__(self, spec: SessionSpec) -> None:
+        self.spec = spec
+        self.config = FeedbackConfig(**spec.fhat)
+        normalizer = ObsNormalizer.from_space(observation_space(load_map(Path(spec.map_path))))
+        self.learner = FeedbackLearner(normalizer, self.config, spec.learner_seed)
+        self.policy = HFPolicy(self.learner.model, self.config.beta)
+        self.rng = sampling_rng(spec.learner_seed)
+        self.labels = LabelTable(spec.label_budget, normalizer.n_obs)
+        self.lock = threading.Lock()
+
+    @property
+    def id(self) -> str:
+        return self.spec.id
+
+    @property
+    def model_version(self) -> int:
+        """Training labels Fhat has been updated with (changes exactly when Fhat does)."""
+        return len(self.learner.buffer)
+
+    @property
+    def done(self) -> bool:
+        """True once the label budget is reached."""
+        return len(self.labels) >= self.spec.label_budget
+
+    def act(self, observation: list[float], greedy: bool) -> int:
+        """pi_HF's action: a sample (label collection) or the greedy argmax (guidance)."""
+        obs = np.asarray(observation, dtype=np.float32)
+        return self.policy.act(obs, None if greedy else self.rng)
+
+    def add_label(
+        self,
+        marker_id: str,
+        observation: list[float],
+        action: int,
+        correct: bool,
+        p_error: float | None = None,
+        oracle_correct: bool | None = None,
+    ) -> LabelOutcome:
+        """Store the label and update Fhat (1 + K_HF steps unless it is held out).
+
+        A marker id labelled before changes nothing (``duplicate``) if it carries the same
+        label, and raises :class:`MarkerConflictError` if not; a new label once the budget is
+        reached raises :class:`LabelBudgetError`.
+        """
+        obs = np.asarray(observation, dtype=np.float32)
+        known = self.labels.get(marker_id)
+        if known is not None:
+            same = known.observation == obs.tolist() and (
+                known.action,
+                known.correct,
+                known.p_error,
+                known.oracle_correct,
+            ) == (action, correct, p_error, oracle_correct)
+            if not same:
+                raise MarkerConflictError(
+                    f"marker {marker_id!r} was labelled before with a different observation, "
+                    "action or feedback",
+                    field="marker_id",
+                )
+            return LabelOutcome(known, duplicate=True)
+        if self.done:
+            raise LabelBudgetError(
+                f"session {self.id} has all {self.spec.label_budget} labels of its budget"
+            )
+        fed = self.learner.add(obs, action, correct, oracle_correct)
+        record = LabelRecord(
+            marker_id=marker_id,
+            observation=fed.obs,
+            action=fed.action,
+            correct=fed.label,
+            p_error=p_error,
+            oracle_correct=fed.optimal,
+            validation=fed.validation,
+            model_version=self.model_version,
+        )
+        self.labels.append(record)
+        return LabelOutcome(record, duplicate=False)
+
+    def metrics(self) -> dict[str, Any]:
+        """Label counts, Fhat's validation accuracies and the realised label accuracy."""
+        acc_noisy, acc_true = self.learner.validation_accuracy()
+        labels = self.labels
+        n_validation = len(self.learner.validation)
+        return {
+            "training_labels": len(labels) - n_validation,
+            "validation_labels": n_validation,
+            "validation_accuracy": acc_noisy,
+            "validation_accuracy_true": acc_true,
+            "label_accuracy": labels.n_agree / labels.n_known if labels.n_known else None,
+            "fhat_updates": self.learner.n_updates,
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything the next label and action depend on (``torch.load(weights_only=True)``)."""
+        return {
+            "format": STATE_FORMAT,
+            "learner": self.learner.state_dict(),
+            "sampling_rng": self.rng.bit_generator.state,
+            "labels": self.labels.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`'s state."""
+        if state.get("format") != STATE_FORMAT:
+            raise ValueError(f"unknown session state format {state.get('format')!r}")
+        self.learner.load_state_dict(state["learner"])
+        self.rng.bit_generator.state = state["sampling_rng"]
+        self.labels.load_state_dict(state["labels"])
