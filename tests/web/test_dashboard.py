@@ -270,6 +270,25 @@ def test_job_progress_reaches_the_end_and_model_downloads(
     assert watch.console_errors == []
 
 
+def test_cancel_and_retry_from_the_list(context: tuple, server: Server) -> None:
+    ctx, watch = context
+    config = {"task": "vssg", "method": "rl_sparse", "seed": 9, "total_steps": 200_000}
+    job = server.call("POST", "/api/v1/jobs", json={"kind": "guided_ppo", "config": config})
+    page = open_as(ctx, server, "staff", "/jobs")
+    row = page.locator(f"tr[data-job='{job['id']}']")
+    row.get_by_role("button", name="Cancel").click()
+    page.get_by_text(f"Cancel requested for job {job['id'][:8]}.").wait_for()
+    row.locator(".badge", has_text="cancelled").wait_for(timeout=30_000)
+    assert row.get_by_role("button", name="Cancel").count() == 0
+    row.get_by_role("button", name="Retry").click()
+    page.get_by_text(f"Job {job['id'][:8]} queued again.").wait_for()
+    assert server.call("GET", f"/api/v1/jobs/{job['id']}")["status"] in ("queued", "running")
+    row.get_by_role("button", name="Cancel").click()  # and stop it again
+    row.locator(".badge", has_text="cancelled").wait_for(timeout=30_000)
+    assert server.call("GET", f"/api/v1/jobs/{job['id']}")["status"] == "cancelled"
+    assert watch.console_errors == []
+
+
 RUNS = {  # (method, accuracy, seed): (curve, SPL of pi_HF); binary-exact values
     ("rl_sparse", None, 0): ([[0, 0.0], [256, 0.25], [512, 0.5]], None),
     ("rl_sparse", None, 1): ([[0, 0.0], [256, 0.75], [512, 1.0]], None),

@@ -53,6 +53,14 @@ export function fmtDateTime(iso) {
   });
 }
 
+/** Month, day and time (no year): for lists of recent things. */
+export function fmtShort(iso) {
+  if (!iso) return "–";
+  return new Date(iso).toLocaleString(undefined, {
+    month: "short", day: "numeric", hour: "2-digit", minute: "2-digit",
+  });
+}
+
 export function fmtTime(iso) {
   return new Date(iso).toLocaleTimeString(undefined, { hour: "2-digit", minute: "2-digit" });
 }

@@ -1,7 +1,7 @@
 // Jobs: submit (staff), a list with live progress, cancel and retry.
 
 import { all, get, post } from "../api.js";
-import { fmtDateTime, h, messageBox, statusBadge } from "../dom.js";
+import { fmtShort, h, messageBox, statusBadge } from "../dom.js";
 import { FINAL, progressBar, watchJob } from "../live.js";
 import { jobForm } from "./jobform.js";
 
@@ -76,14 +76,15 @@ export async function jobsPage(root, { canEdit, query }) {
     const steps = h("td", { class: "num" }, job.steps_done.toLocaleString("en"));
     const actions = h("td");
     const tr = h("tr", { "data-job": job.id },
-      h("td", {}, h("a", { href: `/jobs/${job.id}` }, job.id.slice(0, 8))),
-      h("td", {}, job.kind, job.parent_id ? h("span", { class: "muted small" }, " run of ",
-        h("a", { href: `/jobs/${job.parent_id}` }, job.parent_id.slice(0, 8))) : ""),
+      h("td", {}, h("a", { href: `/jobs/${job.id}` }, job.id.slice(0, 8)),
+        h("div", { class: "muted small" }, job.kind),
+        job.parent_id ? h("div", { class: "muted small" }, "run of ",
+          h("a", { href: `/jobs/${job.parent_id}` }, job.parent_id.slice(0, 8))) : ""),
       h("td", {}, jobSummary(job)),
       badge,
       h("td", {}, bar),
       steps,
-      h("td", {}, fmtDateTime(job.created_at)),
+      h("td", { class: "when" }, fmtShort(job.created_at)),
       actions);
     const update = (j) => {
       bar.set(j);
@@ -128,7 +129,7 @@ export async function jobsPage(root, { canEdit, query }) {
       h("label", { for: "filter-kind" }, "Kind"), kind),
     message,
     h("table", { class: "grid", id: "jobs-table" }, caption,
-      h("thead", {}, h("tr", {}, ["Job", "Kind", "What", "Status", "Progress", "Steps", "Submitted", ""]
+      h("thead", {}, h("tr", {}, ["Job", "What", "Status", "Progress", "Steps", "Submitted", ""]
         .map((label) => h("th", { scope: "col" }, label)))),
       tbody),
     pager);
