@@ -56,7 +56,9 @@ def test_reset_parameters_from_a_generator_equals_global_seeding() -> None:
     state = torch.random.get_rng_state()
     model = EEGNet(64, 2, 103)
     model.reset_parameters(torch.Generator().manual_seed(7))
-    for (name, a), b in zip(reference.state_dict().items(), model.state_dict().values()):
+    for (name, a), b in zip(
+        reference.state_dict().items(), model.state_dict().values(), strict=True
+    ):
         torch.testing.assert_close(a, b, rtol=0, atol=0, msg=name)
     assert not torch.equal(torch.random.get_rng_state(), state)  # the constructor drew
     model.reset_parameters(torch.Generator().manual_seed(7))
