@@ -161,19 +161,24 @@ def run_one(
     checkpoint_path: str | Path | None = None,
     checkpoint_every: int = 10,
     model_path: str | Path | None = None,
+    hf_policy: HFPolicy | None = None,
 ) -> RunRecord:
     """Execute one run (stage 2 for hf_sparse, then stage 3) and return its record.
 
     ``callback``, ``checkpoint_path`` and ``checkpoint_every`` go to :func:`train` (a job
     worker reports progress, stops on cancel and resumes from the checkpoint); with
-    ``model_path`` the trained policy is exported there as TorchScript.
+    ``model_path`` the trained policy is exported there as TorchScript. A given
+    ``hf_policy`` (e.g. learned from a subject's decoded EEG in an online session) guides
+    an hf_sparse run instead of stage 2's simulated feedback.
     """
     start = time.perf_counter()
     config: PPOConfig = spec.ppo_config()
-    hf_policy: HFPolicy | None = None
     hf_policy_spl = None
     hf_summary = None
-    if spec.method == "hf_sparse":
+    if hf_policy is not None:
+        with closing(gym.make(config.env_id, **config.env_kwargs)) as eval_env:
+            hf_policy_spl = evaluate_spl(eval_env, hf_policy.act, config.eval_seeds)
+    elif spec.method == "hf_sparse":
         assert spec.accuracy is not None  # RunSpec guarantees it for hf_sparse
         with closing(gym.make(config.env_id, **config.env_kwargs)) as label_env:
             hf = learn_hf_policy(label_env, spec.accuracy, spec.seed, spec.n_labels)

@@ -19,7 +19,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from sqlalchemy import select
 
+from services.core.db.models import Artifact, HFModel
+from services.learner.feedback import HFPolicy
 from services.learner.ppo import Callback
 from services.learner.runs import RunRecord, run_one
 from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec
@@ -81,8 +84,6 @@ def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
     unknown = set(config) - GUIDED_PPO_FIELDS
     if unknown:
         raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
-    if config.get("hf_model_id") is not None:
-        raise JobConfigError("hf_model_id: guiding with a stored HF model is not available yet")
     task = str(config.get("task", "")).lower()
     if task not in TASK_ENV_IDS:
         raise JobConfigError(f"task must be one of {sorted(t.upper() for t in TASK_ENV_IDS)}")
@@ -136,7 +137,26 @@ def warm_oracle(spec: RunSpec, data_dir: Path) -> None:
     Oracle.for_map(nav_map, cache_dir)
 
 
-def train_spec(context: JobContext, spec: RunSpec, checkpoint_every: int) -> JobOutcome:
+def stored_hf_policy(context: JobContext, hf_model_id: Any) -> tuple[HFPolicy, float | None]:
+    """The greedy pi_HF of HF model ``hf_model_id`` (an online session's TorchScript export)
+    and the feedback accuracy it was learned with."""
+    if not isinstance(hf_model_id, int) or isinstance(hf_model_id, bool):
+        raise JobConfigError("hf_model_id must be an integer")
+    with context.runtime.sessions() as session:
+        row = session.execute(
+            select(HFModel.feedback_accuracy, Artifact.relpath)
+            .join(Artifact, Artifact.id == HFModel.torchscript_artifact_id)
+            .where(HFModel.id == hf_model_id)
+        ).first()
+    if row is None:
+        raise JobConfigError(f"hf_model_id: no HF model {hf_model_id} with a TorchScript file")
+    module = torch.jit.load(str(context.runtime.store.path(row.relpath)), map_location="cpu")
+    return HFPolicy(module), row.feedback_accuracy
+
+
+def train_spec(
+    context: JobContext, spec: RunSpec, checkpoint_every: int, hf_policy: HFPolicy | None = None
+) -> JobOutcome:
     """Run ``spec`` for the job, resuming from its checkpoint if one exists."""
     total_steps = spec.ppo_config().total_steps
     warm_oracle(spec, context.runtime.settings.data_dir)
@@ -155,6 +175,7 @@ def train_spec(context: JobContext, spec: RunSpec, checkpoint_every: int) -> Job
             checkpoint_path=checkpoint,
             checkpoint_every=checkpoint_every,
             model_path=model_path,
+            hf_policy=hf_policy,
         )
         context.check_stop()
         weights = weights_sha256(model_path)
@@ -172,11 +193,21 @@ def train_spec(context: JobContext, spec: RunSpec, checkpoint_every: int) -> Job
 def guided_ppo(context: JobContext) -> JobOutcome:
     """Handler of ``guided_ppo`` jobs."""
     config = {k: v for k, v in context.config.items() if v is not None}
+    hf_policy = None
+    if "hf_model_id" in config:
+        hf_policy, accuracy = stored_hf_policy(context, config["hf_model_id"])
+        config.setdefault("method", "hf_sparse")
+        if config["method"] != "hf_sparse":
+            raise JobConfigError("hf_model_id guides an hf_sparse run: method must be hf_sparse")
+        if config.get("accuracy") is None:
+            if accuracy is None:
+                raise JobConfigError("accuracy: the HF model has no measured feedback accuracy")
+            config["accuracy"] = round(accuracy, 4)
     spec = spec_from_guided_config(config)
     every = config.get("checkpoint_every", context.runtime.settings.checkpoint_every)
     if not isinstance(every, int) or every < 1:
         raise JobConfigError("checkpoint_every must be a positive integer")
-    return train_spec(context, spec, every)
+    return train_spec(context, spec, every, hf_policy)
 
 
 def reproduce_run(context: JobContext) -> JobOutcome:

@@ -3,15 +3,20 @@
 
 from __future__ import annotations
 
+import threading
+import time
+
 import pytest
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 
 from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion, LiveRun
 from services.core.db.models import Classifier, FeedbackLabel, HFModel, Job, Recording
 from services.worker.calibration import eeg_calibration
 from services.worker.live_session import live_session
 from services.worker.runtime import run_job
+from services.worker.training import guided_ppo
 from tests.loop.conftest import LoopPlatform
+from tests.worker.conftest import TINY_PPO
 
 pytestmark = pytest.mark.slow
 
@@ -77,3 +82,109 @@ def test_online_session_labels_to_its_budget_and_registers_the_hf_model(
     assert count(loop, LiveModelVersion, run_id=run_id) == 40
     assert count(loop, LiveMarker, run_id=run_id) == markers
     assert count(loop, LiveDecision, run_id=run_id) == markers
+
+    # one call starts guided PPO from the session's HF model
+    with loop.runtime.sessions() as db:
+        job = Job(
+            kind="guided_ppo",
+            config={"task": "sssg", "hf_model_id": model.id, "seed": 0, "ppo": TINY_PPO,
+                    "total_steps": 512},
+        )  # fmt: skip
+        db.add(job)
+        db.commit()
+        guided_id = job.id
+    assert run_job(loop.runtime, guided_id, guided_ppo) == "succeeded"
+    with loop.runtime.sessions() as db:
+        guided = db.get(Job, guided_id)
+        assert guided is not None and guided.result is not None
+        assert guided.result["method"] == "hf_sparse"
+        assert guided.result["accuracy"] == round(model.feedback_accuracy, 4)
+        assert guided.result["hf_policy_spl"] == model.metrics["hf_policy_spl"]
+
+
+def wait_for(check, timeout: float = 300.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not check():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("service", ["sim", "eeg", "learner"])
+def test_a_service_killed_mid_session_loses_at_most_one_label(
+    loop: LoopPlatform, classifier_id: int, service: str
+) -> None:
+    session_id = loop.lab_session("online")
+    options = {"accelerated": True, "classifier_id": classifier_id, "label_budget": 24,
+               "virtual_quality": 1.0}  # fmt: skip
+    run_id, job_id = loop.live_job(session_id, options)
+    outcome: list[str] = []
+    worker = threading.Thread(
+        target=lambda: outcome.append(run_job(loop.runtime, job_id, live_session))
+    )
+    worker.start()
+    wait_for(lambda: count(loop, FeedbackLabel, session_id=session_id) >= 8)
+    loop.kill(service)
+    loop.start(service)
+    worker.join(timeout=600)
+    assert outcome == ["succeeded"]
+    with loop.runtime.sessions() as db:
+        run = db.get(LiveRun, run_id)
+        assert run is not None and run.status == "completed" and run.result is not None
+        lost = run.result["decoding_lost"]
+        markers = run.result["actions"]
+    assert lost <= 1
+    assert count(loop, FeedbackLabel, session_id=session_id) == 24
+    assert count(loop, LiveDecision, run_id=run_id) == markers
+    if service == "eeg":  # the epoch in flight when the ingest broke is the lost one
+        assert lost == 1
+
+
+def test_a_resumed_run_continues_from_its_rows_and_stops_on_command(
+    loop: LoopPlatform, classifier_id: int
+) -> None:
+    """A job stopped mid-session (as a dead worker's is) and claimed again resumes from
+    its rows: the step in flight is recorded as lost, nothing is counted twice; a stop
+    request then ends the session normally (HF model exported)."""
+    session_id = loop.lab_session("online")
+    options = {"accelerated": True, "classifier_id": classifier_id, "label_budget": 1000,
+               "virtual_quality": 1.0}  # fmt: skip
+    run_id, job_id = loop.live_job(session_id, options)
+    outcome: list[str] = []
+    worker = threading.Thread(
+        target=lambda: outcome.append(run_job(loop.runtime, job_id, live_session))
+    )
+    worker.start()
+    wait_for(lambda: count(loop, FeedbackLabel, session_id=session_id) >= 5)
+    with loop.runtime.sessions() as db:
+        db.execute(update(Job).where(Job.id == job_id).values(cancel_requested=True))
+        db.commit()
+    worker.join(timeout=120)
+    assert outcome == ["cancelled"]
+    before = count(loop, LiveMarker, run_id=run_id)
+    with loop.runtime.sessions() as db:
+        db.execute(
+            update(Job)
+            .where(Job.id == job_id)
+            .values(status="queued", cancel_requested=False, attempts=0, finished_at=None)
+        )
+        db.commit()
+    worker = threading.Thread(
+        target=lambda: outcome.append(run_job(loop.runtime, job_id, live_session))
+    )
+    worker.start()
+    wait_for(lambda: count(loop, LiveMarker, run_id=run_id) >= before + 5)
+    with loop.runtime.sessions() as db:
+        db.execute(update(LiveRun).where(LiveRun.id == run_id).values(stop_requested=True))
+        db.commit()
+    worker.join(timeout=300)
+    assert outcome == ["cancelled", "succeeded"]
+    with loop.runtime.sessions() as db:
+        run = db.get(LiveRun, run_id)
+        assert run is not None and run.status == "stopped" and run.resumes == 1
+        assert run.result is not None and run.result["stopped_on_command"] is True
+        assert run.hf_model_id is not None
+        markers = run.result["actions"]
+        steps = db.scalars(select(LiveMarker.step).where(LiveMarker.run_id == run_id)).all()
+    assert sorted(steps) == list(range(markers))
+    assert count(loop, LiveDecision, run_id=run_id) == markers
+    assert run.result["decoding_lost"] <= 1

@@ -1,0 +1,382 @@
+"""``bgrl demo``: the whole closed loop with the virtual subject, through the real services.
+
+calibration session (random policy, virtual subject) -> ``eeg_calibration`` job (classifier)
+-> online session (pi_HF from the learner, labels decoded live by the EEG service) -> guided
+PPO from the session's HF model. The sim, EEG and learner services are started as processes
+(as ``bgrl up`` does) on free loopback ports with a temporary data folder unless
+``--data-dir`` is given; the jobs run in this process with the worker's job runner (the same
+handlers a ``bgrl worker`` runs). Writes ``OUT/summary.json`` and ``OUT/demo.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import socket
+import sys
+import tempfile
+import time
+from datetime import timedelta
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+SERVICES = {
+    "sim": "services.sim.app:app",
+    "eeg": "services.eeg.app:app",
+    "learner": "services.learner.service.app:app",
+}
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _wait_healthy(url: str, timeout_s: float = 180.0) -> None:
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{url}/health", timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.3)
+    raise RuntimeError(f"{url} did not become healthy within {timeout_s:g} s")
+
+
+def start_services(data_dir: Path, token: str) -> tuple[dict[str, str], list[Any]]:
+    """The sim, EEG and learner services as child processes (``bgrl up``'s :class:`Child`)."""
+    from services.cli.serve import Child
+
+    env = {
+        **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
+        "BGRL_DATA_DIR": str(data_dir),
+        "BGRL_SERVICE_TOKEN": token,
+        "BGRL_LOG_LEVEL": "WARNING",
+    }
+    urls, children = {}, []
+    saved = dict(os.environ)
+    os.environ.clear()
+    os.environ.update(env)  # Child inherits this process's environment
+    try:
+        for name, app in SERVICES.items():
+            port = _free_port()
+            urls[name] = f"http://127.0.0.1:{port}"
+            cmd = [sys.executable, "-m", "uvicorn", app, "--host", "127.0.0.1", "--port", str(port)]
+            child = Child(name, cmd)
+            child.start()
+            children.append(child)
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    for url in urls.values():
+        _wait_healthy(url)
+    return urls, children
+
+
+def _lab_session(runtime: Any, kind: str, subject_id: int) -> int:
+    from services.core.db.base import utcnow
+    from services.core.db.models import LabSession
+
+    with runtime.sessions() as db:
+        start = utcnow()
+        lab = LabSession(
+            subject_id=subject_id,
+            kind=kind,
+            scheduled_at=start,
+            duration_minutes=120,
+            ends_at=start + timedelta(minutes=120),
+        )
+        db.add(lab)
+        db.commit()
+        return lab.id
+
+
+def _job(runtime: Any, kind: str, config: dict[str, Any]) -> str:
+    from services.core.db.models import Job
+
+    with runtime.sessions() as db:
+        job = Job(kind=kind, config=config, status="queued")
+        db.add(job)
+        db.commit()
+        return job.id
+
+
+def _live_run(runtime: Any, session_id: int, mode: str, options: dict[str, Any]) -> tuple[int, str]:
+    """What ``POST /api/v1/sessions/{id}/start`` writes: the live run and its job."""
+    from services.core.db.live import LiveRun
+    from services.core.db.models import Job
+
+    with runtime.sessions() as db:
+        run = LiveRun(session_id=session_id, mode=mode, options=options, status="queued")
+        db.add(run)
+        db.flush()
+        job = Job(
+            kind="live_session",
+            config={"session_id": session_id, "run_id": run.id, **options},
+            status="queued",
+        )
+        db.add(job)
+        db.flush()
+        run.job_id = job.id
+        db.commit()
+        return run.id, job.id
+
+
+def _run(runtime: Any, job_id: str, handler: Any) -> dict[str, Any]:
+    from services.core.db.models import Job
+    from services.worker.runtime import run_job
+
+    status = run_job(runtime, job_id, handler)
+    with runtime.sessions() as db:
+        job = db.get(Job, job_id)
+        assert job is not None
+        if status != "succeeded":
+            raise RuntimeError(f"{job.kind} job {job_id} {status}: {job.error}")
+        return dict(job.result or {})
+
+
+def run_latencies(runtime: Any, run_id: int) -> dict[str, Any]:
+    """Latency percentiles (ms) of a live run from its rows."""
+    from sqlalchemy import select
+
+    from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion
+    from services.core.live import latency_summary, timeline_latencies
+
+    with runtime.sessions() as db:
+        markers = {
+            s: (ts, at.timestamp())
+            for s, ts, at in db.execute(
+                select(LiveMarker.step, LiveMarker.marker_ts, LiveMarker.executed_at).where(
+                    LiveMarker.run_id == run_id
+                )
+            )
+        }
+        decisions = {
+            s: (end, dec)
+            for s, end, dec in db.execute(
+                select(LiveDecision.step, LiveDecision.epoch_end_ts, LiveDecision.decided_ts).where(
+                    LiveDecision.run_id == run_id
+                )
+            )
+        }
+        versions = {
+            s: (up, ready)
+            for s, up, ready in db.execute(
+                select(
+                    LiveModelVersion.step,
+                    LiveModelVersion.updated_ts,
+                    LiveModelVersion.next_ready_ts,
+                ).where(LiveModelVersion.run_id == run_id)
+            )
+        }
+    return latency_summary(timeline_latencies(markers, decisions, versions, []))
+
+
+def _plot(out: Path, curve: list[list[float]], hf_spl: float | None, accuracy_trace: list) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    if accuracy_trace:
+        xs, ys = zip(*accuracy_trace, strict=True)
+        left.plot(xs, ys)
+    left.set_xlabel("labels")
+    left.set_ylabel("running decoding accuracy (vs oracle)")
+    left.set_ylim(0, 1)
+    left.set_title("online session (virtual subject, SYNTHETIC)")
+    if curve:
+        steps, spl = zip(*curve, strict=True)
+        right.plot(steps, spl, label="guided PPO")
+    if hf_spl is not None:
+        right.axhline(hf_spl, linestyle="--", color="grey", label="pi_HF alone")
+    right.set_xlabel("environment steps")
+    right.set_ylabel("SPL")
+    right.set_ylim(0, 1)
+    right.legend()
+    right.set_title("guided PPO from the session's pi_HF")
+    fig.tight_layout()
+    fig.savefig(out / "demo.png", dpi=100)
+    plt.close(fig)
+
+
+def _accuracy_trace(runtime: Any, run_id: int) -> list[tuple[int, float]]:
+    from sqlalchemy import select
+
+    from services.core.db.live import LiveDecision
+
+    with runtime.sessions() as db:
+        rows = db.execute(
+            select(LiveDecision.feedback, LiveDecision.oracle_correct)
+            .where(LiveDecision.run_id == run_id, LiveDecision.status == "ok")
+            .order_by(LiveDecision.step)
+        ).all()
+    trace, hits = [], 0
+    for n, (feedback, correct) in enumerate(rows, start=1):
+        hits += (feedback == "correct") == bool(correct)
+        trace.append((n, hits / n))
+    return trace
+
+
+def demo(
+    out: Annotated[Path, typer.Option(help="Folder for summary.json and demo.png.")],
+    accelerated: Annotated[
+        bool, typer.Option(help="Run on the virtual clock (else one action every 1.5 s).")
+    ] = False,
+    data_dir: Annotated[
+        Path | None, typer.Option(help="Data folder (default: a temporary one).")
+    ] = None,
+    calibration_actions: Annotated[int, typer.Option(min=20)] = 600,
+    labels: Annotated[int, typer.Option(min=1, help="Label budget of the online session.")] = 1000,
+    quality: Annotated[float, typer.Option(min=0.0, max=1.0, help="Virtual subject.")] = 0.7,
+    total_steps: Annotated[int, typer.Option(min=256, help="Guided-PPO env steps.")] = 40_000,
+    max_passes: Annotated[int | None, typer.Option(min=1, help="Calibration passes.")] = None,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
+) -> None:
+    """Calibration -> classifier -> online session -> guided PPO, with the virtual subject."""
+    from services.core.db.migrate import upgrade_database
+    from services.core.db.models import Subject
+    from services.core.logging import configure_logging
+    from services.core.queue import make_celery
+    from services.worker.calibration import eeg_calibration
+    from services.worker.live_session import live_session
+    from services.worker.runtime import Runtime
+    from services.worker.settings import WorkerSettings
+    from services.worker.training import guided_ppo
+
+    configure_logging("WARNING")
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = None if data_dir is not None else tempfile.TemporaryDirectory(prefix="bgrl-demo-")
+    folder = (data_dir or Path(tmp.name)).resolve()  # type: ignore[union-attr]
+    token = os.environ.get("BGRL_SERVICE_TOKEN") or secrets.token_hex(16)
+    started = time.perf_counter()
+    load_before = os.getloadavg()
+    urls, children = start_services(folder, token)
+    for name, url in urls.items():
+        os.environ[f"BGRL_{name.upper()}_URL"] = url
+    os.environ["BGRL_SERVICE_TOKEN"] = token
+    os.environ["BGRL_DATA_DIR"] = str(folder)
+    settings = WorkerSettings(data_dir=folder)
+    upgrade_database(settings.resolved_database_url)
+    runtime = Runtime(settings=settings, celery=make_celery(settings))
+    stages: dict[str, float] = {"services_s": time.perf_counter() - started}
+    try:
+        with runtime.sessions() as db:
+            subject = Subject(code=f"DEMO-{secrets.token_hex(3)}", notes="virtual subject")
+            db.add(subject)
+            db.commit()
+            subject_id = subject.id
+        common = {"accelerated": accelerated, "virtual_quality": quality, "seed": seed}
+
+        t = time.perf_counter()
+        typer.echo(f"calibration: {calibration_actions} actions")
+        cal_session = _lab_session(runtime, "calibration", subject_id)
+        options = {**common, "n_actions": calibration_actions}
+        if max_passes is not None:
+            options["calibration_max_passes"] = max_passes
+        _, job_id = _live_run(runtime, cal_session, "calibration", options)
+        calibration = _run(runtime, job_id, live_session)
+        stages["calibration_session_s"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        typer.echo("classifier: eeg_calibration job")
+        trained = _run(runtime, calibration["calibration_job_id"], eeg_calibration)
+        stages["classifier_s"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        typer.echo(f"online session: {labels} labels")
+        online_session = _lab_session(runtime, "online", subject_id)
+        options = {**common, "classifier_id": trained["classifier_id"], "label_budget": labels}
+        run_id, job_id = _live_run(runtime, online_session, "online", options)
+        online = _run(runtime, job_id, live_session)
+        stages["online_session_s"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        typer.echo(f"guided PPO from HF model {online['hf_model_id']}: {total_steps} steps")
+        job_id = _job(
+            runtime,
+            "guided_ppo",
+            {"task": "sssg", "hf_model_id": online["hf_model_id"], "seed": seed,
+             "total_steps": total_steps},
+        )  # fmt: skip
+        trained_rl = _run(runtime, job_id, guided_ppo)
+        stages["guided_ppo_s"] = time.perf_counter() - t
+
+        summary = {
+            "synthetic": True,
+            "accelerated": accelerated,
+            "virtual_quality": quality,
+            "calibration_actions": calibration["actions"],
+            "classifier_test_accuracy": trained["metrics"].get("test_accuracy"),
+            "live_decoding_accuracy": online["decoding_accuracy"],
+            "labels": online["labels"],
+            "online_actions": online["actions"],
+            "rejected_epochs": online["decoding_rejected"],
+            "hf_policy_spl": online["hf_policy_spl"],
+            "final_spl": trained_rl["final_spl"],
+            "steps": total_steps,
+            "latency_ms": run_latencies(runtime, run_id),
+            "wall_seconds": {**stages, "total_s": time.perf_counter() - started},
+            "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]},
+            "cpus": os.cpu_count(),
+        }
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        _plot(
+            out,
+            trained_rl.get("curve", []),
+            online["hf_policy_spl"],
+            _accuracy_trace(runtime, run_id),
+        )
+        typer.echo(json.dumps({k: summary[k] for k in list(summary)[:12]}, indent=2))
+        typer.echo(f"wrote {out / 'summary.json'} and {out / 'demo.png'}")
+    finally:
+        deadline = time.monotonic() + 10
+        for child in children:
+            child.terminate()
+        for child in children:
+            child.wait_or_kill(deadline)
+        runtime.engine.dispose()
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def bench_loop(
+    out: Annotated[Path, typer.Option(help="Output folder; writes loop.json.")],
+    qualities: Annotated[str, typer.Option(help="Virtual-subject qualities (comma list).")] = (
+        "0.4,0.7,1.0"
+    ),
+    labels: Annotated[int, typer.Option(min=1, help="Labels per accelerated session.")] = 1000,
+    calibration_actions: Annotated[int, typer.Option(min=20)] = 600,
+    paced_actions: Annotated[
+        int, typer.Option(min=0, help="Actions of the paced session (0: skip it).")
+    ] = 1000,
+    period_s: Annotated[float, typer.Option(min=0.05, help="Paced seconds per action.")] = 1.5,
+    sweep_seeds: Annotated[int, typer.Option(min=1, help="hf-sweep seeds to compare.")] = 3,
+) -> None:
+    """Closed loop: accelerated sessions per subject quality, a paced session's timeline."""
+    from benchmarks.bench_loop import run_benchmark
+
+    result = run_benchmark(
+        out,
+        qualities=[float(q) for q in qualities.split(",") if q.strip()],
+        labels=labels,
+        calibration_actions=calibration_actions,
+        paced_actions=paced_actions,
+        period_s=period_s,
+        sweep_seeds=sweep_seeds,
+    )
+    typer.echo(f"wrote {out / 'loop.json'} ({len(result['accelerated'])} accelerated sessions)")
+
+
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add ``demo`` and ``bench loop`` to the ``bgrl`` command."""
+    app.command("demo")(demo)
+    bench_app.command("loop")(bench_loop)
