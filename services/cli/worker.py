@@ -20,6 +20,8 @@ def worker(
 ) -> None:
     """Start one job worker with the platform's settings (BGRL_DATABASE_URL, BGRL_BROKER_URL,
     BGRL_ARTIFACT_DIR...); it runs one job at a time. Start several for more."""
+    from kombu.utils.url import maybe_sanitize_url
+
     from services.core.logging import configure_logging
     from services.core.queue import JOB_QUEUE, broker_url
     from services.core.settings import SettingsError, load_settings
@@ -42,7 +44,7 @@ def worker(
     celery = worker_app.main_app(settings)
     worker_app.load_handler("guided_ppo")  # import the learner now, not in the first job
     typer.echo(
-        f"worker {settings.owner_name}: broker {broker_url(settings).split('@')[-1]}, "
+        f"worker {settings.owner_name}: broker {maybe_sanitize_url(broker_url(settings))}, "
         f"artifacts {settings.resolved_artifact_dir}",
         err=True,
     )

@@ -310,14 +310,15 @@ def reap(session: Session, *, stale_queued_s: float | None = None) -> list[tuple
             select(Job.id, Job.kind).where(Job.status == "queued", Job.updated_at < cutoff)
         ).all()
         for job_id, kind in stale:
-            session.execute(
+            touched = session.execute(
                 update(Job)
-                .where(Job.id == job_id, Job.status == "queued")
+                .where(Job.id == job_id, Job.status == "queued", Job.updated_at < cutoff)
                 .values(updated_at=now)
                 .execution_options(synchronize_session=False)
-            )
-            to_send.append((job_id, kind))
-        session.commit()
+            ).rowcount
+            session.commit()
+            if touched == 1:  # another worker's reaper did not send it first
+                to_send.append((job_id, kind))
     return to_send
 
 
