@@ -177,13 +177,15 @@ def test_reaper_resends_stale_queued_jobs_and_finished_parents(
         session.commit()
         assert job_rows.claim_job(session, parent, "w", 30) is Claim.CLAIMED
         assert job_rows.wait_for_children(session, parent, "w") is True
-        child = Job(kind="reproduce_run", config={}, parent_id=parent, status="succeeded")
-        session.add(child)
+        done = Job(kind="reproduce_run", config={}, parent_id=parent, status="succeeded")
+        pending = Job(kind="reproduce_run", config={}, parent_id=parent, progress=0.5)
+        session.add_all([done, pending])
         session.commit()
-        assert sorted(job_rows.reap(session, stale_queued_s=50)) == sorted(
-            [(stale, "guided_ppo"), (parent, "reproduce")]
-        )
-        assert job_rows.reap(session, stale_queued_s=50) == [(parent, "reproduce")]
+        assert job_rows.reap(session, stale_queued_s=50) == [(stale, "guided_ppo")]
+        assert row(sessions, parent).progress == 0.75  # (1 + 0.5) / 2
+        session.execute(update(Job).where(Job.id == pending.id).values(status="failed"))
+        session.commit()
+        assert sorted(job_rows.reap(session, stale_queued_s=50)) == [(parent, "reproduce")]
         assert job_rows.claim_job(session, parent, "w2", 30) is Claim.CLAIMED
     assert row(sessions, parent).attempts == 1  # the wait gave the attempts back
 

@@ -251,8 +251,9 @@ def reap(session: Session, *, stale_queued_s: float | None = None) -> list[tuple
 
     * A ``running`` job whose lease expired goes back to ``queued`` (or to ``cancelled`` if
       cancel was asked, or ``failed`` if it has no attempts left) and is re-sent.
-    * A waiting parent (``running``, no lease) whose children are all final is re-sent so it
-      aggregates; if cancel was asked, its unfinished children are asked to cancel too.
+    * A waiting parent (``running``, no lease) gets its children's progress; once they are
+      all final it is re-sent so it aggregates; if cancel was asked, its unfinished children
+      are asked to cancel too.
     * With ``stale_queued_s``: a ``queued`` job untouched that long is re-sent (its message
       may have died with a worker before the claim); a duplicate is dropped by the claim.
 
@@ -295,6 +296,7 @@ def reap(session: Session, *, stale_queued_s: float | None = None) -> list[tuple
         )
     ).all()
     for job_id, kind, cancel in waiting:
+        _update_parent_progress(session, job_id)
         counts = children_status(session, job_id)
         unfinished = sum(n for status, n in counts.items() if status not in JOB_FINAL_STATUSES)
         if cancel and unfinished:
@@ -320,6 +322,20 @@ def reap(session: Session, *, stale_queued_s: float | None = None) -> list[tuple
             if touched == 1:  # another worker's reaper did not send it first
                 to_send.append((job_id, kind))
     return to_send
+
+
+def _update_parent_progress(session: Session, parent_id: str) -> None:
+    """A waiting parent's progress: its children's, a final child counting as done."""
+    rows = session.execute(select(Job.status, Job.progress).where(Job.parent_id == parent_id))
+    shares = [1.0 if status in JOB_FINAL_STATUSES else float(p) for status, p in rows]
+    if shares:
+        session.execute(
+            update(Job)
+            .where(Job.id == parent_id, Job.status == "running", Job.lease_owner.is_(None))
+            .values(progress=min(sum(shares) / len(shares), 0.99))
+            .execution_options(synchronize_session=False)
+        )
+        session.commit()
 
 
 def cancel_children(session: Session, parent_id: str) -> int:
