@@ -80,7 +80,8 @@ class PPOConfig:
     env_kwargs: dict[str, Any] = field(default_factory=lambda: {"reward_mode": "sparse"})
     """Keyword arguments of ``gymnasium.make`` (reward_mode, map_path, ...)."""
     seed: int = 0
-    """Seed of everything (network init, sampling, resets, minibatches)."""
+    """Seed of the run: the entropy of the ``SeedSequence`` whose children seed the network
+    init, sampling, minibatches and training resets (``services.learner.seeding``)."""
     total_steps: int = 40_000
     """Environment steps of training (the paper's budget)."""
     n_steps: int = 128
