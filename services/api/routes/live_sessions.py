@@ -108,7 +108,7 @@ def start(
         )
     if lab.kind in ("test", "online"):
         if body.classifier_id is None:
-            raise BadRequestError(f"a {lab.kind} session needs one", field="classifier_id")
+            raise BadRequestError(f"{lab.kind} sessions need a classifier", field="classifier_id")
         if db.get(Classifier, body.classifier_id) is None:
             raise BadRequestError(f"no classifier {body.classifier_id}", field="classifier_id")
     run = _latest_run(db, session_id)
