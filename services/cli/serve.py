@@ -1,12 +1,13 @@
 """``bgrl up`` (alias ``bgrl serve``): the whole platform on one machine, one command.
 
 Creates the data folder, brings the database to the current schema, then starts the api
-(8000), sim (8001) and EEG (8002) services as uvicorn processes and ``BGRL_WORKERS`` job
-workers. Every value comes from the services' settings (``BGRL_PORT``, ``BGRL_SIM_HOST``,
-``BGRL_EEG_PORT``...), validated before anything starts: a bad one is one line naming the
-variable. A worker that dies is restarted; if an HTTP service dies, everything stops. Ctrl-C
-or SIGTERM stops every process within 10 s (workers hand their running job back to the
-queue); the data folder keeps the database, broker and artifacts for the next start.
+(8000), sim (8001), EEG (8002) and learner (8003) services as uvicorn processes and
+``BGRL_WORKERS`` job workers. Every value comes from the services' settings (``BGRL_PORT``,
+``BGRL_SIM_HOST``, ``BGRL_EEG_PORT``...), validated before anything starts: a bad one is one
+line naming the variable. A worker that dies is restarted; if an HTTP service dies,
+everything stops. Ctrl-C or SIGTERM stops every process within 10 s (workers hand their
+running job back to the queue); the data folder keeps the database, broker and artifacts for
+the next start.
 """
 
 from __future__ import annotations
@@ -65,6 +66,11 @@ SERVICES = (
     ServiceSpec("api", "services.api.app:app", "services.api.settings:ApiSettings"),
     ServiceSpec("sim", "services.sim.app:app", "services.sim.settings:SimSettings"),
     ServiceSpec("eeg", "services.eeg.app:app", "services.eeg.settings:EEGSettings"),
+    ServiceSpec(
+        "learner",
+        "services.learner.service.app:app",
+        "services.learner.service.settings:LearnerSettings",
+    ),
 )
 
 
@@ -113,13 +119,15 @@ def _fail(message: str) -> typer.Exit:
 def up(
     only: Annotated[
         list[str] | None,
-        typer.Option(help="Start only these services: api, sim, eeg, worker (repeatable)."),
+        typer.Option(
+            help="Start only these services: api, sim, eeg, learner, worker (repeatable)."
+        ),
     ] = None,
     migrate: Annotated[
         bool, typer.Option(help="Bring the database to the current schema first.")
     ] = True,
 ) -> None:
-    """Start the platform: api, sim and EEG services and the job workers; Ctrl-C stops all."""
+    """Start the platform: api, sim, EEG, learner services and job workers; Ctrl-C stops all."""
     from services.core.logging import configure_logging
     from services.core.platform import PlatformSettings
 

@@ -88,12 +88,13 @@ def test_bad_setting_is_one_line_before_listening(
 
 @pytest.mark.slow
 def test_up_serves_restarts_a_dead_worker_and_sigterm_stops_everything(tmp_path: Path) -> None:
-    ports = {"api": free_port(), "sim": free_port(), "eeg": free_port()}
+    ports = {"api": free_port(), "sim": free_port(), "eeg": free_port(), "learner": free_port()}
     proc = bgrl_up(
         tmp_path,
         BGRL_PORT=str(ports["api"]),
         BGRL_SIM_PORT=str(ports["sim"]),
         BGRL_EEG_PORT=str(ports["eeg"]),
+        BGRL_LEARNER_PORT=str(ports["learner"]),
         BGRL_SIM_HOST="127.0.0.1",
         BGRL_WORKERS="1",
     )
@@ -120,7 +121,7 @@ def test_up_serves_restarts_a_dead_worker_and_sigterm_stops_everything(tmp_path:
             assert time.monotonic() < deadline, "the dead worker was not restarted"
             time.sleep(0.2)
         spawned = set(children(proc.pid))
-        assert len(spawned) == 4  # api, sim, eeg, one worker
+        assert len(spawned) == 5  # api, sim, eeg, learner, one worker
         asked = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)
@@ -130,7 +131,7 @@ def test_up_serves_restarts_a_dead_worker_and_sigterm_stops_everything(tmp_path:
         if proc.poll() is None:
             proc.kill()
     assert took < 10.0, f"stopping took {took:.1f} s"
-    for name in ("api", "sim", "eeg"):
+    for name in ("api", "sim", "eeg", "learner"):
         assert f"http://127.0.0.1:{ports[name]}  (docs: http://127.0.0.1:{ports[name]}/docs)" in out
     assert "worker-1 exited with code -9; restarting it" in (tmp_path / "err.log").read_text()
     assert [pid for pid in spawned if alive(pid)] == []
