@@ -14,9 +14,31 @@ eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject 
 @eeg_app.command("calibrate")
 def calibrate_command(
     recording: Annotated[
-        Path, typer.Argument(help="Calibration recording (BDF, EDF or FIF) with Status codes.")
+        Path,
+        typer.Argument(
+            help="Calibration recording: BDF, EDF, FIF, XDF, BrainVision .vhdr (its .vmrk "
+            "and .eeg beside it) or a zip of those three."
+        ),
     ],
     out: Annotated[Path, typer.Option(help="Folder for the classifier, metrics and report.")],
+    channel_map: Annotated[
+        Path | None,
+        typer.Option(
+            help="JSON file {device_channel: standard_name} of the rig (e.g. BioSemi A1..B32)."
+        ),
+    ] = None,
+    event_label: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--event-label",
+            help="KEY=correct|error (repeatable; replaces the defaults 1/2 and "
+            "'correct'/'error'): a Status code or an annotation/marker text.",
+        ),
+    ] = None,
+    stream: Annotated[str | None, typer.Option(help="XDF: name of the EEG stream.")] = None,
+    marker_stream: Annotated[
+        str | None, typer.Option(help="XDF: name of the marker stream.")
+    ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the split, initialisation and batches.")] = 0,
     max_passes: Annotated[
         int,
@@ -32,8 +54,16 @@ def calibrate_command(
     from services.eeg.io import RecordingError, read_recording
 
     torch.set_num_threads(1)  # this process only: one core, bit-reproducible runs
+    mapping = _read_channel_map(channel_map) if channel_map is not None else None
+    labels = _event_labels(event_label) if event_label else None
     try:
-        raw = read_recording(recording)
+        raw = read_recording(
+            recording,
+            channel_map=mapping,
+            labels=labels,
+            xdf_stream=stream,
+            xdf_marker_stream=marker_stream,
+        )
     except (RecordingError, FileNotFoundError) as exc:
         raise typer.BadParameter(str(exc), param_hint="RECORDING") from exc
     try:
@@ -56,6 +86,40 @@ def calibrate_command(
         f"ROC AUC {m['roc_auc']:.3f} on {m['n_test']} of {m['n_epochs']} epochs{tag}"
     )
     typer.echo(f"wrote {out / 'metrics.json'}")
+
+
+def _read_channel_map(path: Path) -> dict[str, str]:
+    """A rig's channel map from a JSON object file; ``BadParameter`` naming the problem."""
+    try:
+        mapping = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise typer.BadParameter(f"{path.name}: {exc}", param_hint="--channel-map") from exc
+    if not isinstance(mapping, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in mapping.items()
+    ):
+        raise typer.BadParameter(
+            f"{path.name}: expected a JSON object of channel names", param_hint="--channel-map"
+        )
+    return mapping
+
+
+def _event_labels(pairs: list[str]):
+    """``EventLabels`` from ``KEY=correct|error`` pairs (an integer KEY is a Status code)."""
+    from services.eeg.formats import EventLabels
+
+    codes: dict[int, str] = {}
+    descriptions: dict[str, str] = {}
+    for pair in pairs:
+        key, sep, label = pair.rpartition("=")
+        if not sep or not key or label not in ("correct", "error"):
+            raise typer.BadParameter(
+                f"{pair!r}: expected KEY=correct or KEY=error", param_hint="--event-label"
+            )
+        if key.strip().isdigit():
+            codes[int(key)] = label
+        else:
+            descriptions[key] = label
+    return EventLabels(codes=codes, descriptions=descriptions)
 
 
 @eeg_app.command("quality-sweep")

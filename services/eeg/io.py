@@ -1,8 +1,11 @@
-"""Recording files: 24-bit BDF writing, validated reading of BDF/EDF/FIF, events, sha256.
+"""Recording files: validated reading of BDF/EDF/FIF/BrainVision/XDF, events, sha256.
 
 The format of a file is read from its header (:func:`detect_format`), never from its name;
 a name that says otherwise is reported (:func:`format_mismatch`). EDF/BDF files whose size
 disagrees with their header (truncated uploads and copies) are refused with the reason.
+BrainVision and XDF are read by :mod:`services.eeg.formats`; any cap whose channels carry
+standard 10-20/10-10 names (directly or through the rig's channel map) and the ErrP's
+fronto-central sites is accepted (:mod:`services.eeg.channels`), at any rate from 128 Hz.
 
 Recordings are read lazily (``preload=False``) and validated, written and epoched in chunks,
 so no step holds a full-length float64 copy of a long recording (a 20-minute 64-channel
@@ -26,10 +29,21 @@ from mne.io.edf.edf import RawBDF, RawEDF
 
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
 from services.eeg.bdf import BDF_DIGITAL_RANGE, CHUNK_VALUES, write_bdf
-from services.eeg.virtual_subject import STIM_CHANNEL, SYNTHETIC_TAG, eeg_channel_names
+from services.eeg.channels import ChannelError, resolve_channels
+from services.eeg.formats import (
+    EventLabels,
+    FormatError,
+    apply_event_labels,
+    is_brainvision,
+    read_brainvision,
+    read_xdf,
+)
+from services.eeg.preprocessing import PreprocessingParams
+from services.eeg.virtual_subject import STIM_CHANNEL, SYNTHETIC_TAG
 
 __all__ = [
     "BDF_DIGITAL_RANGE",
+    "EventLabels",
     "RecordingError",
     "RecordingFormat",
     "action_events",
@@ -44,15 +58,24 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-RecordingFormat = Literal["bdf", "edf", "fif"]
-SUPPORTED_SUFFIXES = (".bdf", ".edf", ".fif")
-MIN_SFREQ = 256.0
+RecordingFormat = Literal["bdf", "edf", "fif", "brainvision", "xdf"]
+SUPPORTED_SUFFIXES = (".bdf", ".edf", ".fif", ".vhdr", ".zip", ".xdf", ".brainvision")
+"""``.zip``: a zipped BrainVision set; ``.brainvision``: the same as the EEG service stores it."""
+_FORMAT_SUFFIXES = {
+    "bdf": (".bdf",),
+    "edf": (".edf",),
+    "fif": (".fif",),
+    "brainvision": (".vhdr", ".zip", ".brainvision"),
+    "xdf": (".xdf",),
+}
+MIN_SFREQ = 128.0
 MAX_SFREQ = 20000.0
 MIN_DURATION_S = 5.0
 FLAT_STD_V = 1e-9
 """A channel whose standard deviation is below 1 nV is flat (disconnected or saturated)."""
 TRIGGER_MASK = 0xFF
 """Low byte of ``Status``: BioSemi amplifiers set status flags in the upper bits."""
+_XDF_MAGIC = b"XDF:"
 _BDF_MAGIC = b"\xffBIOSEMI"
 _EDF_MAGIC = b"0       "
 _FIF_FILE_ID = (100, 31, 20)
@@ -86,8 +109,10 @@ def is_synthetic(raw: mne.io.BaseRaw) -> bool:
 def detect_format(path: str | Path, *, name: str | None = None) -> RecordingFormat:
     """The format of a recording file, from its first bytes (the name is not consulted).
 
-    BDF starts with ``0xFF`` + ``"BIOSEMI"``, EDF with ``"0"`` and seven spaces, and FIF
-    with the file-id tag (kind 100, type 31, size 20, big-endian).
+    BDF starts with ``0xFF`` + ``"BIOSEMI"``, EDF with ``"0"`` and seven spaces, FIF
+    with the file-id tag (kind 100, type 31, size 20, big-endian), XDF with ``"XDF:"``,
+    a BrainVision header with ``"Brain Vision Data Exchange Header File"``; a zip holding
+    a ``.vhdr`` is a BrainVision set.
 
     Parameters
     ----------
@@ -99,12 +124,16 @@ def detect_format(path: str | Path, *, name: str | None = None) -> RecordingForm
     Raises
     ------
     RecordingError
-        If the header matches none of the three formats.
+        If the header matches none of the formats.
     """
     path = Path(path)
     shown = _display_name(path, name)
     with path.open("rb") as fh:
-        head = fh.read(16)
+        head = fh.read(64)
+    if head.startswith(_XDF_MAGIC):
+        return "xdf"
+    if is_brainvision(path, head):
+        return "brainvision"
     if head.startswith(_BDF_MAGIC):
         return "bdf"
     if head.startswith(_EDF_MAGIC):
@@ -112,18 +141,20 @@ def detect_format(path: str | Path, *, name: str | None = None) -> RecordingForm
     if len(head) >= 12 and struct.unpack(">iii", head[:12]) == _FIF_FILE_ID:
         return "fif"
     raise RecordingError(
-        f"{shown}: not a readable BDF, EDF or FIF file (its first bytes match none of them)"
+        f"{shown}: not a readable BDF, EDF, FIF, BrainVision or XDF file (its first bytes "
+        "match none of them)"
     )
 
 
 def format_mismatch(name: str, fmt: RecordingFormat) -> str | None:
     """A one-line note when ``name``'s suffix names another format than the content's."""
     suffix = Path(name).suffix.lower()
-    if suffix == f".{fmt}" or suffix not in SUPPORTED_SUFFIXES:
+    if suffix in _FORMAT_SUFFIXES[fmt] or suffix not in SUPPORTED_SUFFIXES:
         return None
+    shown_fmt = "BrainVision" if fmt == "brainvision" else fmt.upper()
     return (
-        f"{Path(name).name}: the file's header says {fmt.upper()}, not {suffix[1:].upper()}; "
-        f"it is read as {fmt.upper()}"
+        f"{Path(name).name}: the file's header says {shown_fmt}, not {suffix[1:].upper()}; "
+        f"it is read as {shown_fmt}"
     )
 
 
@@ -206,7 +237,23 @@ def _edf_header_fields(path: Path, shown: str) -> tuple[str, str]:
     )
 
 
-def _read_any(path: Path, fmt: RecordingFormat, shown: str, preload: bool) -> mne.io.BaseRaw:
+def _read_any(
+    path: Path,
+    fmt: RecordingFormat,
+    shown: str,
+    preload: bool,
+    labels: EventLabels,
+    xdf_streams: tuple[str | None, str | None],
+) -> mne.io.BaseRaw:
+    if fmt in ("brainvision", "xdf"):
+        try:
+            if fmt == "xdf":
+                return read_xdf(
+                    path, shown, labels, stream=xdf_streams[0], marker_stream=xdf_streams[1]
+                )
+            return apply_event_labels(read_brainvision(path, shown, preload=preload), labels)
+        except FormatError as exc:
+            raise RecordingError(_scrub_paths(str(exc), path, shown)) from exc
     if fmt != "fif":
         _check_edf_layout(path, fmt, shown)
     try:
@@ -228,7 +275,7 @@ def _read_any(path: Path, fmt: RecordingFormat, shown: str, preload: bool) -> mn
             if not description.startswith(SYNTHETIC_TAG):
                 description = f"{SYNTHETIC_TAG} (file header: {patient} / {recording})"
             raw.info["description"] = description
-    return raw
+    return apply_event_labels(raw, labels)
 
 
 def read_recording(
@@ -237,27 +284,44 @@ def read_recording(
     name: str | None = None,
     preload: bool = False,
     ch_names: list[str] | None = None,
+    channel_map: dict[str, str] | None = None,
+    labels: EventLabels | None = None,
+    xdf_stream: str | None = None,
+    xdf_marker_stream: str | None = None,
     min_sfreq: float = MIN_SFREQ,
     min_duration_s: float = MIN_DURATION_S,
 ) -> mne.io.BaseRaw:
-    """Read and validate an EEG recording (BDF, EDF or FIF, told apart by the header).
+    """Read and validate an EEG recording (BDF, EDF, FIF, BrainVision or XDF).
 
     Parameters
     ----------
     path : str | Path
-        The file. Its suffix must be ``.bdf``, ``.edf`` or ``.fif``; the format is read from
-        the header, and a suffix naming another format is logged as a warning (see
+        The file: ``.bdf``, ``.edf``, ``.fif``, ``.xdf``, a BrainVision ``.vhdr`` (its
+        ``.vmrk`` and ``.eeg`` beside it) or a ``.zip`` of those three. The format is read
+        from the content, and a suffix naming another format is logged as a warning (see
         :func:`format_mismatch`).
     name : str | None
         Name of the file in messages (e.g. the uploaded file's name); default the file's
         own name. Messages never contain directories.
     preload : bool
         Load all samples into memory (float64: 1.3 GB for 20 minutes of 64 channels at
-        2048 Hz). By default samples are read from the file when asked for, and validation
-        reads the file in chunks.
+        2048 Hz). By default BDF/EDF/FIF samples are read from the file when asked for,
+        and validation reads the file in chunks (BrainVision zips, XDF files and files
+        whose events come from annotations are loaded).
     ch_names : list of str | None
-        EEG channels that must be present (default: the 64 BioSemi names). Other channels
-        (e.g. EXG) may be present too; they are kept.
+        EEG channels (standard names) that must be present, e.g. a classifier's; by
+        default any cap of 8-256 standard-named channels with the ErrP's fronto-central
+        sites (:func:`services.eeg.channels.resolve_channels`). Other channels (e.g. EXG)
+        are kept, typed ``misc``.
+    channel_map : dict | None
+        The rig's ``{device_name: standard_name}``; the recording's channels are renamed.
+    labels : EventLabels | None
+        Which Status codes / annotation or marker texts are correct and error actions
+        (default: codes 1/2, texts ``correct``/``error``). Actions end up in ``Status`` as
+        codes 1 and 2 whatever their source.
+    xdf_stream, xdf_marker_stream : str | None
+        XDF only: names of the EEG and marker streams (default: the only stream of type
+        ``EEG`` / ``Markers``).
     min_sfreq : float
         Lowest acceptable sampling rate (Hz).
     min_duration_s : float
@@ -266,14 +330,15 @@ def read_recording(
     Returns
     -------
     raw : mne.io.BaseRaw
-        The recording, with ``Status`` typed as stim and the required channels typed EEG.
+        The recording, channels renamed to standard names, ``Status`` typed stim, the EEG
+        channels typed EEG and every other channel ``misc``.
 
     Raises
     ------
     RecordingError
-        Naming the problem: missing file, unknown format, a header that is none of BDF /
-        EDF / FIF, a truncated EDF/BDF file, unreadable file, sampling rate, missing
-        channels, missing or empty trigger channel, too short, NaN or flat channels.
+        Naming the problem: missing file, unknown format, content of no known format, a
+        truncated EDF/BDF file, unreadable file, sampling rate, missing or unmapped
+        channels, no action events, too short, NaN or flat channels.
     """
     path = Path(path)
     shown = _display_name(path, name)
@@ -289,9 +354,16 @@ def read_recording(
     note = format_mismatch(shown, fmt)
     if note:
         logger.warning(note)
-    raw = _read_any(path, fmt, shown, preload)
+    raw = _read_any(
+        path, fmt, shown, preload, labels or EventLabels(), (xdf_stream, xdf_marker_stream)
+    )
     validate_recording(
-        raw, ch_names=ch_names, min_sfreq=min_sfreq, min_duration_s=min_duration_s, name=shown
+        raw,
+        ch_names=ch_names,
+        channel_map=channel_map,
+        min_sfreq=min_sfreq,
+        min_duration_s=min_duration_s,
+        name=shown,
     )
     return raw
 
@@ -320,23 +392,35 @@ def validate_recording(
     raw: mne.io.BaseRaw,
     *,
     ch_names: list[str] | None = None,
+    channel_map: dict[str, str] | None = None,
     min_sfreq: float = MIN_SFREQ,
     min_duration_s: float = MIN_DURATION_S,
     name: str = "recording",
 ) -> None:
     """Check a recording in place; raises :class:`RecordingError` naming the problem.
 
-    See :func:`read_recording` for the rules. Channel types are fixed in place: ``Status``
-    becomes stim and the required channels EEG (EDF readers type every channel EEG).
-    Samples are read in chunks, so a lazily read recording stays on disk.
+    See :func:`read_recording` for the rules. Channels are renamed in place to their
+    standard names (through ``channel_map``) and typed: ``Status`` stim, the EEG channels
+    EEG, the others ``misc`` (EDF readers type every channel EEG). Samples are read in
+    chunks, so a lazily read recording stays on disk.
     """
     sfreq = float(raw.info["sfreq"])
     if not (min_sfreq <= sfreq <= MAX_SFREQ):
         raise RecordingError(
             f"{name}: sampling rate {sfreq:g} Hz is outside {min_sfreq:g}-{MAX_SFREQ:g} Hz"
         )
-    required = ch_names if ch_names is not None else eeg_channel_names()
-    missing = [ch for ch in required if ch not in raw.ch_names]
+    try:
+        PreprocessingParams().resampling(sfreq)
+    except ValueError as exc:
+        raise RecordingError(f"{name}: {exc}") from None
+    try:
+        channels = resolve_channels(raw.ch_names, channel_map, source=name)
+    except ChannelError as exc:
+        raise RecordingError(str(exc)) from None
+    if channels.renamed:
+        raw.rename_channels(channels.renamed, verbose="error")
+    required = list(ch_names) if ch_names is not None else channels.eeg
+    missing = [ch for ch in required if ch not in channels.eeg]
     if missing:
         shown = ", ".join(missing[:8]) + (" ..." if len(missing) > 8 else "")
         raise RecordingError(
@@ -344,11 +428,20 @@ def validate_recording(
             f"({shown}); found {len(raw.ch_names)} channels"
         )
     if STIM_CHANNEL not in raw.ch_names:
-        raise RecordingError(f"{name}: no {STIM_CHANNEL!r} trigger channel")
+        raise RecordingError(
+            f"{name}: no {STIM_CHANNEL!r} trigger channel, and no annotation or marker "
+            "mapped to an action (by default the texts 'correct' and 'error')"
+        )
+    eeg = set(channels.eeg)
+    wanted = {
+        ch: "stim" if ch == STIM_CHANNEL else "eeg" if ch in eeg else "misc" for ch in raw.ch_names
+    }
     types = dict(zip(raw.ch_names, raw.get_channel_types(), strict=True))
-    retype = {ch: "eeg" for ch in required if types[ch] != "eeg"}
-    if types[STIM_CHANNEL] != "stim":
-        retype[STIM_CHANNEL] = "stim"
+    retype = {
+        ch: kind
+        for ch, kind in wanted.items()
+        if types[ch] != kind and (kind != "misc" or types[ch] == "eeg")
+    }
     if retype:
         raw.set_channel_types(retype, verbose="error")
     duration = raw.n_times / sfreq
@@ -365,8 +458,8 @@ def validate_recording(
         raise RecordingError(f"{name}: flat channels (std < 1 nV): {', '.join(flat)}")
     if len(action_events(raw)) == 0:
         raise RecordingError(
-            f"{name}: {STIM_CHANNEL} holds no action trigger "
-            f"(codes {TRIGGER_CORRECT} = correct, {TRIGGER_ERROR} = error)"
+            f"{name}: no action events (Status codes {TRIGGER_CORRECT} = correct, "
+            f"{TRIGGER_ERROR} = error, or annotations/markers mapped to them by the labels)"
         )
 
 

@@ -21,19 +21,20 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import mne
 import numpy as np
-from mne_lsl.lsl import StreamInlet, local_clock, resolve_streams
+from mne_lsl.lsl import StreamInfo, StreamInlet, local_clock, resolve_streams
 from mne_lsl.player import PlayerLSL
 from mne_lsl.stream import StreamLSL
 from pydantic import ValidationError
 
 from services.core.markers import MARKER_STREAM_NAME, MARKER_STREAM_TYPE, ActionMarker
+from services.eeg.channels import resolve_channels
 from services.eeg.live import LiveIngest
 from services.eeg.preprocessing import PreprocessingParams
 
@@ -42,15 +43,26 @@ EEG_STREAM_TYPE = "EEG"
 
 __all__ = [
     "EEG_STREAM_NAME",
+    "SYNTHETIC_ELEMENT",
     "LslEegIngest",
     "MarkerInlet",
     "PulledMarkers",
     "RejectedMarker",
     "lsl_clock",
     "replay",
+    "stream_is_synthetic",
 ]
 
 logger = logging.getLogger(__name__)
+
+
+SYNTHETIC_ELEMENT = "synthetic"
+"""Element of an LSL stream's description that marks generated data (a virtual subject)."""
+
+
+def stream_is_synthetic(sinfo: StreamInfo) -> bool:
+    """Whether an LSL stream's description marks its data as generated."""
+    return not sinfo.desc.child(SYNTHETIC_ELEMENT).empty()
 
 
 def lsl_clock() -> float:
@@ -105,7 +117,12 @@ class LslEegIngest:
     name : str
         Name of the EEG stream to connect to.
     eeg_ch_names : sequence of str | None
-        Channels given to the preprocessor (default: every channel except ``Status``).
+        Channels (standard names) given to the preprocessor, e.g. a classifier's
+        (default: every EEG channel of the stream).
+    channel_map : mapping | None
+        The rig's ``{device_name: standard_name}`` (a target may be ``Status``); channels
+        it does not list are read as standard 10-20/10-10 names, case-insensitively
+        (:func:`services.eeg.channels.resolve_channels`).
     params : PreprocessingParams | None
         Preprocessing parameters (e.g. a classifier's).
     timeout : float
@@ -120,7 +137,9 @@ class LslEegIngest:
     RuntimeError
         If no stream named ``name`` appears within ``timeout``.
     ValueError
-        If the stream lacks channels the ingest needs (the inlet is closed again).
+        If the stream's channels do not fit (a mapped channel missing, too few EEG
+        channels, the ErrP's sites or a classifier's channels missing) or its rate cannot
+        be resampled; the message names them and the inlet is closed again.
 
     A chunk the ingest cannot take stops the ingest: :attr:`error` names the problem (it is
     logged once), and so does a stream whose acquisition stopped by itself.
@@ -131,6 +150,7 @@ class LslEegIngest:
         name: str = EEG_STREAM_NAME,
         *,
         eeg_ch_names: Sequence[str] | None = None,
+        channel_map: Mapping[str, str] | None = None,
         params: PreprocessingParams | None = None,
         timeout: float = 5.0,
         bufsize: float = 5.0,
@@ -147,10 +167,14 @@ class LslEegIngest:
         except RuntimeError as exc:
             raise RuntimeError(f"no LSL stream named {name!r} within {timeout:g} s") from exc
         try:
+            channels = resolve_channels(
+                self.stream.ch_names, channel_map, source=f"EEG stream {name!r}"
+            )
+            self.channels = channels
             self.ingest = LiveIngest(
-                self.stream.ch_names,
+                channels.names,
                 self.stream.info["sfreq"],
-                eeg_ch_names=eeg_ch_names,
+                eeg_ch_names=channels.eeg if eeg_ch_names is None else eeg_ch_names,
                 params=params,
                 **ingest_kwargs,
             )
@@ -170,6 +194,11 @@ class LslEegIngest:
                 logger.exception("LSL ingest of %r stopped", self.name)
                 self.ingest.mark_disconnected(self._failure)
         return data, timestamps
+
+    @property
+    def synthetic(self) -> bool:
+        """The stream's description marks its data as generated (a virtual subject)."""
+        return stream_is_synthetic(self.stream.sinfo)
 
     @property
     def error(self) -> str | None:

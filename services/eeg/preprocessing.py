@@ -3,16 +3,21 @@
 One causal pipeline serves both paths, so a classifier trained on a recording sees exactly
 the features it will see live (paper §EEG Classifier Training; docs/eeg.md):
 
-1. anti-alias low-pass at the input rate (Butterworth, ``antialias_order`` at
-   ``antialias_cutoff`` Hz), then keep every ``q``-th sample, ``q = sfreq_in / sfreq_out``
-   (2048 Hz / 16 = 128 Hz);
+1. down to ``sfreq_out``: when ``q = sfreq_in / sfreq_out`` is an integer (2048 Hz / 16 =
+   128 Hz), an anti-alias low-pass at the input rate (Butterworth, ``antialias_order`` at
+   ``antialias_cutoff`` Hz), then every ``q``-th sample; at any other rate (250, 500,
+   1000 Hz...), rational resampling by ``up / down`` (``sfreq_out / sfreq_in`` in lowest
+   terms, e.g. 64/125 at 250 Hz) with a causal polyphase FIR low-pass at
+   ``antialias_cutoff`` Hz (Kaiser window, as :func:`scipy.signal.resample_poly`),
+   computing only the output samples; its constant group delay is taken off the output
+   timestamps, so an epoch covers the same stretch of signal at every rate;
 2. band-pass ``l_freq``-``h_freq`` Hz at the output rate (Butterworth, ``filter_order``
    per band edge, as second-order sections);
 3. a ring buffer of filtered samples with their timestamps, from which the epoch
    ``[tmin, tmax]`` s after an action onset is cut.
 
-Both filters are causal IIR filters whose state is kept across chunks, so feeding a
-recording in pieces of any size gives the same samples as feeding it at once.
+Every filter is causal and keeps its state across chunks, so feeding a recording in
+pieces of any size gives the same samples as feeding it at once.
 :func:`epochs_from_raw` (calibration) runs the same :class:`OnlinePreprocessor` over a
 recording in chunks, exactly as live ingest does.
 
@@ -27,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -40,6 +46,8 @@ if TYPE_CHECKING:
 
 _TIE_EPS_S = 1e-6
 """Tolerance (s) that makes sample selection at an exact tie independent of float rounding."""
+MAX_RESAMPLING_FACTOR = 1000
+"""Largest ``up`` or ``down`` of a rational resampling (250 Hz -> 128 Hz is 64/125)."""
 
 
 class PreprocessingParams(BaseModel):
@@ -53,12 +61,13 @@ class PreprocessingParams(BaseModel):
         Butterworth order per band edge of the band-pass (the filter has ``2 *
         filter_order`` poles).
     sfreq_out : float
-        Sampling rate of the features in Hz (paper: 128 Hz). The input rate must be an
-        integer multiple of it.
+        Sampling rate of the features in Hz (paper: 128 Hz). The input rate may be any
+        rate at least this high (see :meth:`resampling`).
     antialias_cutoff : float
-        -3 dB cut-off in Hz of the anti-alias low-pass applied before decimation.
+        Cut-off in Hz of the anti-alias low-pass applied before resampling (-3 dB for the
+        Butterworth, -6 dB for the FIR).
     antialias_order : int
-        Butterworth order of the anti-alias low-pass.
+        Butterworth order of the anti-alias low-pass (integer ratios).
     tmin, tmax : float
         Epoch window in s relative to the action onset (paper: [0, 0.8] s).
     """
@@ -95,16 +104,38 @@ class PreprocessingParams(BaseModel):
         """Samples per epoch: ``round(tmax * sfreq_out) - round(tmin * sfreq_out) + 1``."""
         return round(self.tmax * self.sfreq_out) - round(self.tmin * self.sfreq_out) + 1
 
-    def decimation_factor(self, sfreq_in: float) -> int:
-        """Integer ratio ``sfreq_in / sfreq_out``; ``ValueError`` if it is not an integer."""
-        ratio = sfreq_in / self.sfreq_out
-        q = round(ratio)
-        if q < 1 or not math.isclose(ratio, q, rel_tol=0, abs_tol=1e-9):
+    def resampling(self, sfreq_in: float) -> tuple[int, int]:
+        """``(up, down)`` in lowest terms with ``sfreq_in * up / down == sfreq_out``.
+
+        ``ValueError`` if ``sfreq_in`` is below ``sfreq_out`` or not a ratio of integers
+        up to :data:`MAX_RESAMPLING_FACTOR` (rates given to the millihertz).
+        """
+        if not math.isfinite(sfreq_in) or sfreq_in < self.sfreq_out - 1e-9:
             raise ValueError(
-                f"sampling rate {sfreq_in} Hz is not an integer multiple of the feature "
-                f"rate {self.sfreq_out} Hz"
+                f"sampling rate {sfreq_in} Hz is below the feature rate {self.sfreq_out} Hz"
             )
-        return q
+        ratio = Fraction(round(self.sfreq_out * 1000), round(sfreq_in * 1000))
+        if ratio.denominator > MAX_RESAMPLING_FACTOR or not math.isclose(
+            float(ratio) * sfreq_in, self.sfreq_out, rel_tol=1e-9
+        ):
+            raise ValueError(
+                f"sampling rate {sfreq_in} Hz cannot be resampled to {self.sfreq_out} Hz by "
+                f"a ratio of integers up to {MAX_RESAMPLING_FACTOR}"
+            )
+        return ratio.numerator, ratio.denominator
+
+    def antialias_fir(self, sfreq_in: float) -> np.ndarray:
+        """FIR taps of the rational resampler's low-pass at ``up * sfreq_in`` (gain ``up``).
+
+        ``10 * max(up, down)`` taps each side of the centre and a Kaiser window (beta 5),
+        as :func:`scipy.signal.resample_poly`, with the cut-off at ``antialias_cutoff``.
+        """
+        up, down = self.resampling(sfreq_in)
+        half = 10 * max(up, down)
+        taps = signal.firwin(
+            2 * half + 1, self.antialias_cutoff, window=("kaiser", 5.0), fs=up * sfreq_in
+        )
+        return taps * up
 
     def antialias_sos(self, sfreq_in: float) -> np.ndarray:
         """Second-order sections of the anti-alias low-pass at the input rate."""
@@ -152,16 +183,67 @@ class _CausalSosStage:
         return y
 
 
+class _CausalPolyphase:
+    """Causal rational resampler by ``up / down`` (polyphase FIR) over channels.
+
+    Output sample ``m`` is ``sum_j h[j] * xup[m * down - j]`` where ``xup`` is the input
+    with ``up - 1`` zeros after every sample; only the non-zero products are computed.
+    The input before the first sample is taken as that sample (no step response), and
+    the state (the last input samples and the count) persists across chunks.
+    """
+
+    def __init__(self, taps: np.ndarray, up: int, down: int) -> None:
+        self.up, self.down = up, down
+        self.n_phase_taps = math.ceil(taps.size / up)
+        padded = np.zeros(self.n_phase_taps * up)
+        padded[: taps.size] = taps
+        # phases[p, i] = h[p + up * i]; reversed so a window of inputs in time order dots it
+        self._phases = padded.reshape(self.n_phase_taps, up).T[:, ::-1].copy()
+        self.delay_in = (taps.size - 1) / 2 / up
+        """Group delay in input samples."""
+        self._history: np.ndarray | None = None
+        self._n_in = 0
+        self._n_out = 0
+
+    def reset(self) -> None:
+        self._history = None
+        self._n_in = self._n_out = 0
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Resample ``x`` (n_channels, n_times); returns the new output samples and, for
+        each, its position in input samples relative to ``x[:, 0]`` (fractional)."""
+        n = x.shape[1]
+        if n == 0:
+            return x[:, :0], np.empty(0)
+        if self._history is None:
+            self._history = np.repeat(x[:, :1], self.n_phase_taps - 1, axis=1)
+        joined = np.concatenate([self._history, x], axis=1)
+        first_in = self._n_in
+        self._n_in += n
+        # output m needs input floor(m * down / up); all with that index below _n_in
+        stop = -(-self._n_in * self.up // self.down)
+        m = np.arange(self._n_out, stop)
+        self._n_out = stop
+        self._history = joined[:, joined.shape[1] - (self.n_phase_taps - 1) :]
+        if m.size == 0:
+            return x[:, :0], np.empty(0)
+        k = m * self.down
+        last = k // self.up - first_in + self.n_phase_taps - 1  # index in ``joined``
+        windows = np.lib.stride_tricks.sliding_window_view(joined, self.n_phase_taps, axis=1)
+        picked = windows[:, last - (self.n_phase_taps - 1)]  # (n_ch, n_out, n_phase_taps)
+        y = np.einsum("cmt,mt->cm", picked, self._phases[k % self.up])
+        return y, k / self.up - first_in
+
+
 class OnlinePreprocessor:
-    """Causal filter, decimator and timestamped ring buffer for one EEG stream.
+    """Causal filter, resampler and timestamped ring buffer for one EEG stream.
 
     Parameters
     ----------
     ch_names : sequence of str
         Channel names, in the column order of the samples passed to :meth:`push`.
     sfreq_in : float
-        Sampling rate of the incoming samples in Hz (an integer multiple of
-        ``params.sfreq_out``).
+        Sampling rate of the incoming samples in Hz (at least ``params.sfreq_out``).
     params : PreprocessingParams | None
         Filter and epoch parameters; defaults to the paper's.
     buffer_s : float
@@ -189,12 +271,18 @@ class OnlinePreprocessor:
         if len(set(self.ch_names)) != len(self.ch_names):
             raise ValueError("channel names must be unique")
         self.sfreq_in = float(sfreq_in)
-        self.decimation = self.params.decimation_factor(self.sfreq_in)
+        self.up, self.down = self.params.resampling(self.sfreq_in)
         if buffer_s <= self.params.tmax - self.params.tmin:
             raise ValueError(f"buffer_s ({buffer_s}) must exceed the epoch length")
         self._capacity = math.ceil(buffer_s * self.params.sfreq_out)
         n_ch = len(self.ch_names)
-        self._antialias = _CausalSosStage(self.params.antialias_sos(self.sfreq_in))
+        self._antialias: _CausalSosStage | None = None
+        self._resampler: _CausalPolyphase | None = None
+        if self.up == 1:  # integer ratio: Butterworth and every ``down``-th sample
+            self._antialias = _CausalSosStage(self.params.antialias_sos(self.sfreq_in))
+        else:
+            taps = self.params.antialias_fir(self.sfreq_in)
+            self._resampler = _CausalPolyphase(taps, self.up, self.down)
         self._bandpass = _CausalSosStage(self.params.bandpass_sos())
         self._data = np.empty((n_ch, 2 * self._capacity))
         self._times = np.empty(2 * self._capacity)
@@ -227,13 +315,16 @@ class OnlinePreprocessor:
 
     def reset(self) -> None:
         """Forget filter state and buffered data (after a discontinuity in the stream)."""
-        self._antialias.reset()
+        if self._antialias is not None:
+            self._antialias.reset()
+        if self._resampler is not None:
+            self._resampler.reset()
         self._bandpass.reset()
         self._n_in = 0
         self._start = self._stop = 0
 
     def push(self, samples: np.ndarray, first_timestamp: float) -> None:
-        """Filter a chunk of samples and append the decimated result to the buffer.
+        """Filter a chunk of samples and append the resampled result to the buffer.
 
         Parameters
         ----------
@@ -253,17 +344,19 @@ class OnlinePreprocessor:
         x = np.ascontiguousarray(samples.T, dtype=np.float64)
         if not np.all(np.isfinite(x)):
             raise ValueError("samples contain NaN or infinite values")
-        y = self._antialias(x)
-        offset = (-self._n_in) % self.decimation
-        y = np.ascontiguousarray(y[:, offset :: self.decimation])
+        if self._resampler is not None:
+            y, positions = self._resampler(x)
+            positions = positions - self._resampler.delay_in
+        else:
+            assert self._antialias is not None
+            offset = (-self._n_in) % self.down
+            y = np.ascontiguousarray(self._antialias(x)[:, offset :: self.down])
+            positions = offset + self.down * np.arange(y.shape[1])
         self._n_in += n
         if y.shape[1] == 0:
             return
         z = self._bandpass(y)
-        times = first_timestamp + (offset + self.decimation * np.arange(z.shape[1])) / (
-            self.sfreq_in
-        )
-        self._append(z, times)
+        self._append(z, first_timestamp + positions / self.sfreq_in)
 
     def _append(self, z: np.ndarray, times: np.ndarray) -> None:
         k = z.shape[1]

@@ -53,6 +53,6 @@ def test_cli_calibrate_rejects_bad_file(tmp_path) -> None:
     out = tmp_path / "model"
     result = runner.invoke(app, ["eeg", "calibrate", str(bad), "--out", str(out)])
     assert result.exit_code != 0
-    assert "bad.bdf: not a readable BDF, EDF or FIF file" in result.output
+    assert "bad.bdf: not a readable BDF, EDF, FIF, BrainVision or XDF file" in result.output
     assert str(tmp_path) not in result.output
     assert not (out / "metrics.json").exists()

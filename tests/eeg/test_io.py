@@ -92,13 +92,20 @@ def test_validation_errors_name_the_problem(raw, tmp_path):
     with pytest.raises(RecordingError, match="unsupported format"):
         read_recording(tmp_path / "notes.txt")
     (tmp_path / "junk.bdf").write_bytes(b"not a bdf file at all" * 20)
-    with pytest.raises(RecordingError, match=r"junk\.bdf: not a readable BDF, EDF or FIF file"):
+    with pytest.raises(
+        RecordingError, match=r"junk\.bdf: not a readable BDF, EDF, FIF, BrainVision or XDF file"
+    ):
         read_recording(tmp_path / "junk.bdf")
 
-    with pytest.raises(RecordingError, match="sampling rate 128 Hz"):
-        read_recording(_save(raw.copy().resample(128.0, verbose="error"), tmp_path))
-    with pytest.raises(RecordingError, match=r"1 of 64 required EEG channels missing \(Cz\)"):
+    with pytest.raises(RecordingError, match=r"sampling rate 100 Hz is outside 128-20000 Hz"):
+        read_recording(_save(raw.copy().resample(100.0, verbose="error"), tmp_path))
+    with pytest.raises(
+        RecordingError,
+        match=r"missing the fronto-central sites the ErrP is decoded from: Cz \(required",
+    ):
         read_recording(_save(raw.copy().drop_channels(["Cz"]), tmp_path))
+    with pytest.raises(RecordingError, match=r"1 of 2 required EEG channels missing \(Iz\)"):
+        read_recording(_save(raw.copy().drop_channels(["Iz"]), tmp_path), ch_names=["Cz", "Iz"])
     with pytest.raises(RecordingError, match="no 'Status' trigger channel"):
         read_recording(_save(raw.copy().drop_channels([STIM_CHANNEL]), tmp_path))
     with pytest.raises(RecordingError, match=r"only 3\.00 s long"):
@@ -114,7 +121,7 @@ def test_validation_errors_name_the_problem(raw, tmp_path):
         read_recording(_save(nan, tmp_path))
     silent = raw.copy()
     silent._data[-1] = 0.0
-    with pytest.raises(RecordingError, match="no action trigger"):
+    with pytest.raises(RecordingError, match="no action events"):
         read_recording(_save(silent, tmp_path))
 
 

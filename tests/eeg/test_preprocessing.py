@@ -46,8 +46,10 @@ def test_invalid_params_and_inputs_are_refused() -> None:
         PreprocessingParams(l_freq=1.0, h_freq=70.0)
     with pytest.raises(ValueError, match="tmax"):
         PreprocessingParams(tmin=0.5, tmax=0.2)
-    with pytest.raises(ValueError, match="integer multiple"):
-        OnlinePreprocessor(["Cz"], 500.0)
+    with pytest.raises(ValueError, match=r"below the feature rate 128\.0 Hz"):
+        OnlinePreprocessor(["Cz"], 100.0)
+    with pytest.raises(ValueError, match="by a ratio of integers up to 1000"):
+        OnlinePreprocessor(["Cz"], 1000.001)
     pre = OnlinePreprocessor(["Cz", "Pz"], SFREQ)
     with pytest.raises(ValueError, match="shape"):
         pre.push(np.zeros((10, 3)), 0.0)

@@ -1,0 +1,366 @@
+"""Recording formats beside BDF/EDF/FIF: BrainVision and XDF; action labels from events.
+
+* **BrainVision** (BrainAmp, actiCHamp...): a ``.vhdr`` header with its ``.vmrk`` markers and
+  ``.eeg`` samples. Read from the ``.vhdr`` path (the two others beside it) or from a zip
+  holding the three (how the EEG service takes an upload: one file).
+* **XDF** (LabRecorder): the EEG stream is chosen by name (or the only stream of type
+  ``EEG``), its channel labels and units from the stream description; actions come from a
+  marker stream (by name, or the only ``Markers`` stream) or from a ``Status`` channel.
+
+Whatever the source of the events (``Status`` codes, EDF+/BrainVision annotations, XDF
+markers), :class:`EventLabels` says which ones are correct and error actions, and they
+become the ``Status`` codes 1 (correct) and 2 (error) every later step reads.
+"""
+
+from __future__ import annotations
+
+import configparser
+import json
+import re
+import shutil
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Literal
+
+import mne
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
+from services.eeg.virtual_subject import STIM_CHANNEL, SYNTHETIC_TAG
+
+__all__ = [
+    "BRAINVISION_MAGIC",
+    "EventLabels",
+    "FormatError",
+    "apply_event_labels",
+    "read_brainvision",
+    "read_xdf",
+]
+
+Label = Literal["correct", "error"]
+BRAINVISION_MAGIC = (b"Brain Vision Data Exchange Header File", b"BrainVision Data Exchange")
+MAX_UNZIPPED_BYTES = 4 << 30
+"""Largest BrainVision set read out of a zip (4 GiB: 20 minutes of 256 channels at 1 kHz)."""
+_TRIGGER = {"correct": TRIGGER_CORRECT, "error": TRIGGER_ERROR}
+_CODE_DESCRIPTION = re.compile(r"^(?:S|R)?\s*(\d+)$")
+"""``"S  1"`` (a BrainVision stimulus marker), ``"R  2"`` (response) or a bare ``"1"``."""
+_VOLT_SCALE = {
+    "v": 1.0,
+    "volt": 1.0,
+    "volts": 1.0,
+    "mv": 1e-3,
+    "millivolt": 1e-3,
+    "millivolts": 1e-3,
+    "uv": 1e-6,
+    "µv": 1e-6,
+    "μv": 1e-6,
+    "microvolt": 1e-6,
+    "microvolts": 1e-6,
+    "nv": 1e-9,
+    "nanovolts": 1e-9,
+}
+
+
+class FormatError(ValueError):
+    """A BrainVision/XDF file or its events cannot be used; the message says why."""
+
+
+class EventLabels(BaseModel):
+    """Which events are correct and which error actions (others are ignored).
+
+    Attributes
+    ----------
+    codes : dict
+        Trigger code -> label, for the ``Status`` channel, BrainVision stimulus markers
+        (``S  1``) and numeric annotations. Default: 1 correct, 2 error.
+    descriptions : dict
+        Annotation / XDF marker text -> label, compared case-insensitively, on the whole
+        description and on the part after its last ``/`` (BrainVision's ``Comment/error``).
+        Default: ``correct`` and ``error``.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    codes: dict[int, Label] = Field(
+        default_factory=lambda: {TRIGGER_CORRECT: "correct", TRIGGER_ERROR: "error"}
+    )
+    descriptions: dict[str, Label] = Field(
+        default_factory=lambda: {"correct": "correct", "error": "error"}
+    )
+
+    @property
+    def is_default_codes(self) -> bool:
+        return self.codes == {TRIGGER_CORRECT: "correct", TRIGGER_ERROR: "error"}
+
+    def trigger_for(self, description: str) -> int | None:
+        """Status code (1/2) of an annotation or marker text, or None when not an action."""
+        text = description.strip()
+        lowered = {key.strip().lower(): value for key, value in self.descriptions.items()}
+        for candidate in (text, text.rsplit("/", 1)[-1].strip()):
+            if candidate.lower() in lowered:
+                return _TRIGGER[lowered[candidate.lower()]]
+            match = _CODE_DESCRIPTION.match(candidate)
+            if match and int(match.group(1)) in self.codes:
+                return _TRIGGER[self.codes[int(match.group(1))]]
+        return None
+
+    def summary(self) -> str:
+        """The mapping in one line, for messages."""
+        codes = ", ".join(f"{code} = {label}" for code, label in sorted(self.codes.items()))
+        texts = ", ".join(f"{text!r} = {label}" for text, label in self.descriptions.items())
+        return f"codes {codes}; descriptions {texts}"
+
+
+def _with_status(raw: mne.io.BaseRaw, status: np.ndarray) -> mne.io.BaseRaw:
+    """``raw`` (loaded) with ``status`` as its ``Status`` stim channel (replaced or added)."""
+    raw.load_data(verbose="error")
+    if STIM_CHANNEL in raw.ch_names:
+        raw.drop_channels([STIM_CHANNEL])
+    info = mne.create_info([STIM_CHANNEL], raw.info["sfreq"], ["stim"])
+    stim = mne.io.RawArray(status[None, :], info, first_samp=raw.first_samp, verbose="error")
+    stim.set_meas_date(raw.info["meas_date"])
+    raw.add_channels([stim], force_update_info=True)
+    return raw
+
+
+def apply_event_labels(raw: mne.io.BaseRaw, labels: EventLabels) -> mne.io.BaseRaw:
+    """Make ``Status`` hold the actions as codes 1 (correct) / 2 (error).
+
+    A ``Status`` channel is used when present (its codes mapped by ``labels.codes``; with
+    the default mapping it is left as it is, not even loaded). Without one, the
+    annotations (EDF+, BrainVision, FIF) become a ``Status`` channel with a one-sample
+    pulse per action annotation; with no action annotation either, ``raw`` is returned
+    as it is (and refused for lacking a ``Status`` channel).
+    """
+    if STIM_CHANNEL in raw.ch_names:
+        if labels.is_default_codes:
+            return raw
+        raw.load_data(verbose="error")
+        old = raw.get_data(picks=[STIM_CHANNEL])[0].astype(np.int64) & 0xFF
+        new = np.zeros_like(old)
+        for code, label in labels.codes.items():
+            new[old == code] = _TRIGGER[label]
+        return _with_status(raw, new.astype(np.float64))
+    status = np.zeros(raw.n_times)
+    sfreq = raw.info["sfreq"]
+    for annotation in raw.annotations:
+        trigger = labels.trigger_for(str(annotation["description"]))
+        if trigger is None:
+            continue
+        sample = round((annotation["onset"] - raw.first_time) * sfreq)
+        if 0 <= sample < raw.n_times:
+            status[sample] = trigger
+    return _with_status(raw, status) if status.any() else raw
+
+
+# ----------------------------------------------------------------------------- BrainVision
+
+
+def _referenced_files(vhdr_text: str, shown: str) -> tuple[str, str]:
+    """The ``DataFile`` and ``MarkerFile`` a BrainVision header names."""
+    body = vhdr_text.split("\n", 1)[1] if "\n" in vhdr_text else ""
+    parser = configparser.ConfigParser(interpolation=None, strict=False)
+    try:
+        parser.read_string(body)
+        common = parser["Common Infos"]
+        return Path(common["DataFile"]).name, Path(common["MarkerFile"]).name
+    except (configparser.Error, KeyError) as exc:
+        raise FormatError(
+            f"{shown}: malformed BrainVision header (no DataFile/MarkerFile in "
+            f"[Common Infos]: {exc})"
+        ) from exc
+
+
+def _read_vhdr(vhdr: Path, shown: str, preload: bool) -> mne.io.BaseRaw:
+    text = vhdr.read_text(encoding="utf-8", errors="replace")
+    data_file, marker_file = _referenced_files(text, shown)
+    absent = [name for name in (data_file, marker_file) if not (vhdr.parent / name).is_file()]
+    if absent:
+        raise FormatError(
+            f"{shown}: the header refers to {' and '.join(absent)}, not found beside it "
+            "(keep the .vhdr, .vmrk and .eeg together; upload them as one zip)"
+        )
+    try:
+        return mne.io.read_raw_brainvision(vhdr, preload=preload, verbose="error")
+    except Exception as exc:
+        raise FormatError(f"{shown}: not a readable BrainVision set ({exc})") from exc
+
+
+def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io.BaseRaw:
+    """Read a BrainVision set from its ``.vhdr`` or from a zip holding the three files.
+
+    A zip must hold exactly one ``.vhdr``; only it and the two files it names are taken
+    out (into a temporary folder, read into memory, then removed).
+    """
+    if not zipfile.is_zipfile(path):
+        return _read_vhdr(path, shown, preload)
+    with zipfile.ZipFile(path) as archive:
+        members = {Path(info.filename).name: info for info in archive.infolist()}
+        headers = [name for name in members if name.lower().endswith(".vhdr")]
+        if len(headers) != 1:
+            raise FormatError(
+                f"{shown}: a BrainVision zip holds one .vhdr with its .vmrk and .eeg; "
+                f"found {len(headers)} .vhdr files"
+            )
+        text = archive.read(members[headers[0]]).decode("utf-8", "replace")
+        wanted = [headers[0], *_referenced_files(text, shown)]
+        absent = [name for name in wanted if name not in members]
+        if absent:
+            raise FormatError(f"{shown}: the zip lacks {', '.join(absent)} (named by the .vhdr)")
+        size = sum(members[name].file_size for name in wanted)
+        if size > MAX_UNZIPPED_BYTES:
+            raise FormatError(
+                f"{shown}: {size} bytes unzipped; at most {MAX_UNZIPPED_BYTES} are read"
+            )
+        with tempfile.TemporaryDirectory(prefix="bgrl-vhdr-") as folder:
+            for name in wanted:
+                with archive.open(members[name]) as src, (Path(folder) / name).open("wb") as dst:
+                    shutil.copyfileobj(src, dst, 1 << 20)
+            return _read_vhdr(Path(folder) / headers[0], shown, preload=True)
+
+
+def is_brainvision(path: Path, head: bytes) -> bool:
+    """A BrainVision header, or a zip holding a ``.vhdr``."""
+    if head.startswith(BRAINVISION_MAGIC):
+        return True
+    if not head.startswith(b"PK\x03\x04"):
+        return False
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return any(name.lower().endswith(".vhdr") for name in archive.namelist())
+    except zipfile.BadZipFile:
+        return False
+
+
+# ----------------------------------------------------------------------------- XDF
+
+
+def _first(value: object, default: object = None) -> object:
+    """pyxdf wraps every description value in a list."""
+    if isinstance(value, list):
+        return value[0] if value else default
+    return default if value is None else value
+
+
+def _stream_label(stream: dict) -> str:
+    info = stream["info"]
+    return f"{_first(info.get('name'), '?')!r} (type {_first(info.get('type'), '?')})"
+
+
+def _choose(streams: list[dict], name: str | None, stype: str, shown: str, what: str) -> dict:
+    if name is not None:
+        found = [s for s in streams if _first(s["info"].get("name")) == name]
+        if not found:
+            listed = ", ".join(_stream_label(s) for s in streams)
+            raise FormatError(f"{shown}: no {what} stream named {name!r}; it has {listed}")
+        return found[0]
+    found = [s for s in streams if str(_first(s["info"].get("type"), "")).lower() == stype]
+    if len(found) != 1:
+        listed = ", ".join(_stream_label(s) for s in found or streams)
+        raise FormatError(
+            f"{shown}: {len(found)} streams of type {stype!r}; name the {what} stream "
+            f"(streams: {listed})"
+        )
+    return found[0]
+
+
+def _channel_descriptions(stream: dict, shown: str) -> list[dict]:
+    desc = _first(stream["info"].get("desc")) or {}
+    channels = _first(desc.get("channels") if isinstance(desc, dict) else None) or {}
+    entries = channels.get("channel", []) if isinstance(channels, dict) else []
+    n = int(_first(stream["info"]["channel_count"]))
+    if len(entries) != n:
+        raise FormatError(
+            f"{shown}: EEG stream {_stream_label(stream)} describes {len(entries)} of its {n} "
+            "channels (channel labels are needed to find the ErrP sites)"
+        )
+    return entries
+
+
+def _marker_triggers(
+    markers: dict, times: np.ndarray, labels: EventLabels
+) -> list[tuple[int, int]]:
+    """(sample, code) of every action marker inside the EEG stream's time span."""
+    from services.core.markers import ActionMarker
+
+    out = []
+    period = np.median(np.diff(times)) if times.size > 1 else 0.0
+    for value, stamp in zip(markers["time_series"], markers["time_stamps"], strict=True):
+        text = str(value[0] if isinstance(value, list | tuple | np.ndarray) else value)
+        trigger: int | None
+        try:
+            trigger = ActionMarker.from_lsl(text).trigger() or None
+        except (ValueError, json.JSONDecodeError):
+            trigger = labels.trigger_for(text)
+        if trigger is None or not (times[0] - period / 2 <= stamp <= times[-1] + period / 2):
+            continue
+        out.append((int(np.abs(times - stamp).argmin()), trigger))
+    return out
+
+
+def read_xdf(
+    path: Path,
+    shown: str,
+    labels: EventLabels,
+    *,
+    stream: str | None = None,
+    marker_stream: str | None = None,
+) -> mne.io.RawArray:
+    """An XDF file's EEG stream as a Raw in volts, with a ``Status`` channel of actions.
+
+    Parameters
+    ----------
+    stream, marker_stream : str | None
+        Names of the EEG and marker streams; default the only stream of type ``EEG``,
+        and the only ``Markers`` stream (none: the EEG stream's own ``Status`` channel).
+
+    Channel units come from the description (``microvolts`` when a channel gives none,
+    the LSL convention for EEG). Actions are placed on the EEG sample nearest to each
+    marker's (clock-synchronised) timestamp; markers outside the EEG stream are dropped.
+    """
+    import pyxdf
+
+    from services.eeg.virtual_stream import SYNTHETIC_ELEMENT
+
+    try:
+        streams, _ = pyxdf.load_xdf(str(path), verbose=False)
+    except Exception as exc:
+        reason = f"{type(exc).__name__}: {exc}"
+        raise FormatError(f"{shown}: not a readable XDF file ({reason})") from exc
+    eeg = _choose(streams, stream, "eeg", shown, "EEG")
+    sfreq = float(_first(eeg["info"]["nominal_srate"]))
+    if sfreq <= 0:
+        raise FormatError(f"{shown}: EEG stream {_stream_label(eeg)} has no regular rate")
+    data = np.asarray(eeg["time_series"], dtype=np.float64)
+    times = np.asarray(eeg["time_stamps"], dtype=np.float64)
+    if data.ndim != 2 or data.shape[0] < 2:
+        raise FormatError(f"{shown}: EEG stream {_stream_label(eeg)} holds no samples")
+    entries = _channel_descriptions(eeg, shown)
+    names = [str(_first(entry.get("label"), f"ch{i}")) for i, entry in enumerate(entries)]
+    scale = np.ones(len(names))
+    for i, entry in enumerate(entries):
+        unit = str(_first(entry.get("unit"), "microvolts")).strip().lower()
+        if names[i] != STIM_CHANNEL and unit in _VOLT_SCALE:
+            scale[i] = _VOLT_SCALE[unit]
+    data = data * scale
+    status = np.zeros(data.shape[0])
+    if STIM_CHANNEL in names:
+        status = data[:, names.index(STIM_CHANNEL)].copy()
+        data = np.delete(data, names.index(STIM_CHANNEL), axis=1)
+        names.remove(STIM_CHANNEL)
+    has_markers = any(str(_first(s["info"].get("type"), "")).lower() == "markers" for s in streams)
+    use_markers = marker_stream is not None or has_markers
+    if use_markers:
+        chosen = _choose(streams, marker_stream, "markers", shown, "marker")
+        status = np.zeros(data.shape[0])
+        for sample, code in _marker_triggers(chosen, times, labels):
+            status[sample] = code
+    desc = _first(eeg["info"].get("desc")) or {}
+    synthetic = isinstance(desc, dict) and SYNTHETIC_ELEMENT in desc
+    info = mne.create_info([*names, STIM_CHANNEL], sfreq, ["misc"] * len(names) + ["stim"])
+    if synthetic:
+        info["description"] = f"{SYNTHETIC_TAG} ({_first(desc[SYNTHETIC_ELEMENT], '')})"
+    raw = mne.io.RawArray(np.vstack([data.T, status[None, :]]), info, verbose="error")
+    return raw if use_markers else apply_event_labels(raw, labels)
