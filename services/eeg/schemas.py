@@ -15,6 +15,7 @@ from services.core.schemas import StrictRequest
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 """A job's status; the last three are final."""
+ChannelName = Annotated[str, Field(min_length=1, max_length=64)]
 FINAL_JOB_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 
 HEX_ID = "^[0-9a-f]+$"
@@ -25,8 +26,9 @@ class RecordingPublic(BaseModel):
 
     id: str = Field(description="The file's sha256 (hex).")
     filename: str = Field(description="Name the file was uploaded under (a label only).")
-    format: Literal["bdf", "edf", "fif"] = Field(
-        description="Format detected from the file's header (not from its name)."
+    format: Literal["bdf", "edf", "fif", "brainvision", "xdf"] = Field(
+        description="Format detected from the file's content (not from its name); "
+        "brainvision: a zip of the .vhdr, .vmrk and .eeg."
     )
     sha256: str
     size_bytes: int
@@ -134,6 +136,14 @@ class LiveConnect(StrictRequest):
         max_length=200,
         description="Also classify every marker of this LSL marker stream (the sim's is "
         "BrainNav-Markers); otherwise markers come through POST /live/markers.",
+    )
+    channel_map: dict[ChannelName, ChannelName] | None = Field(
+        None,
+        max_length=512,
+        description="The rig's {device channel name: standard 10-20/10-10 name} (or "
+        "'Status' for the trigger channel); unlisted channels are read as standard names, "
+        "case-insensitively. A mapped channel missing from the stream, or a cap without "
+        "Fz, Cz and one of FCz/FC1/FC2, is refused with the reason.",
     )
 
 

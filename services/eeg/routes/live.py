@@ -75,6 +75,7 @@ def connect_live(body: LiveConnect, service: ServiceDep) -> LiveStatus:
         source = lsl.LslEegIngest(
             body.stream_name,
             eeg_ch_names=clf.ch_names,
+            channel_map=body.channel_map,
             params=clf.params,
             timeout=settings.lsl_timeout_s,
         )
