@@ -39,6 +39,8 @@ TASK_NAMES: dict[str, str] = {
     "reproduce_run": "bgrl.jobs.reproduce_run",
     "eeg_calibration": "bgrl.jobs.eeg_calibration",
     "live_session": "bgrl.jobs.live_session",
+    "bids_export": "bgrl.jobs.bids_export",
+    "session_replay": "bgrl.jobs.session_replay",
 }
 """Job kind -> Celery task name (the api sends by name; only workers import the tasks)."""
 

@@ -31,6 +31,8 @@ HANDLERS: dict[str, str] = {
     "reproduce_run": "services.worker.training:reproduce_run",
     "eeg_calibration": "services.worker.calibration:eeg_calibration",
     "live_session": "services.worker.live_session:live_session",
+    "bids_export": "services.worker.bids:bids_export",
+    "session_replay": "services.worker.replay:session_replay",
 }
 """Handler of each job kind, imported on first use (a worker that only trains never loads
 the EEG pipeline, which takes seconds to import)."""

@@ -38,7 +38,16 @@ from services.api.schemas.jobs import (
     JobStatus,
 )
 from services.core.db.base import utcnow
-from services.core.db.models import JOB_FINAL_STATUSES, Artifact, HFModel, Job, Recording
+from services.core.db.models import (
+    JOB_FINAL_STATUSES,
+    Artifact,
+    Classifier,
+    HFModel,
+    Job,
+    LabSession,
+    Recording,
+    Subject,
+)
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.queue import enqueue_job
 
@@ -65,6 +74,16 @@ def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[st
     if hf_model_id is not None and db.get(HFModel, hf_model_id) is None:
         raise BadRequestError(
             f"no HF model with id {values['hf_model_id']}", field="config.hf_model_id"
+        )
+    for name, model in (("subject_id", Subject), ("session_id", LabSession)):
+        if name in values and db.get(model, values[name]) is None:
+            raise BadRequestError(f"no {name[:-3]} with id {values[name]}", field=f"config.{name}")
+    if (
+        values.get("classifier_id") is not None
+        and db.get(Classifier, values["classifier_id"]) is None
+    ):
+        raise BadRequestError(
+            f"no classifier with id {values['classifier_id']}", field="config.classifier_id"
         )
     if kind == "eeg_calibration":
         recording = db.get(Recording, values["recording_id"])

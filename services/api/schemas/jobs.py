@@ -16,7 +16,7 @@ from services.api.schemas.common import MAX_ROW_ID, PublicModel
 from services.core.db.models import JOB_STATUSES
 from services.core.schemas import StrictRequest
 
-JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration"]
+JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration", "bids_export", "session_replay"]
 """Kinds a user may submit (``reproduce_run`` jobs are created by a reproduce job)."""
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
@@ -186,10 +186,33 @@ class EEGCalibrationConfig(StrictRequest):
     report: bool = Field(True, description="Also write the calibration report.")
 
 
+class BIDSExportConfig(StrictRequest):
+    """Export a subject's sessions as a BIDS dataset (a zip artifact of kind ``bids``)."""
+
+    subject_id: int = Field(ge=1, le=MAX_ROW_ID)
+
+
+class SessionReplayConfig(StrictRequest):
+    """Replay an online session through the live decoder and the learner (a new pi_HF)."""
+
+    session_id: int = Field(ge=1, le=MAX_ROW_ID)
+    classifier_id: int | None = Field(
+        None,
+        ge=1,
+        le=MAX_ROW_ID,
+        description="Decode with this classifier (default: the session's).",
+    )
+    label_budget: int | None = Field(
+        None, ge=1, le=100_000, description="Labels of the new pi_HF (default: the session's)."
+    )
+
+
 CONFIG_MODELS: dict[str, type[StrictRequest]] = {
     "guided_ppo": GuidedPPOConfig,
     "reproduce": ReproduceConfig,
     "eeg_calibration": EEGCalibrationConfig,
+    "bids_export": BIDSExportConfig,
+    "session_replay": SessionReplayConfig,
 }
 
 
