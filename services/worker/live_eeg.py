@@ -21,6 +21,7 @@ from typing import Any
 
 from mne_lsl.lsl import local_clock
 from sqlalchemy import select
+from websockets.exceptions import WebSocketException
 
 from services.core.db.models import Artifact, Classifier, Job
 from services.core.markers import ActionMarker
@@ -36,7 +37,7 @@ EPOCH_END_S = 0.8
 """End of the epoch after a marker (the paper's [0, 0.8] s)."""
 WARMUP_S = 3.0
 """Samples pushed after (re)connecting before the next marker (the filter settles in 1 s)."""
-LAG_S = 0.1
+LAG_S = 0.2
 """The real-time virtual subject generates this far behind the clock."""
 FEED_EVERY_S = 0.02
 
@@ -110,7 +111,7 @@ class EegDecoder:
             try:
                 self._attach_once()
                 return
-            except (OSError, ServiceCallError, RuntimeError, TimeoutError) as exc:
+            except (OSError, ServiceCallError, RuntimeError, WebSocketException) as exc:
                 if isinstance(exc, ServiceCallError) and exc.status_code in (400, 404, 422):
                     raise
                 if time.monotonic() + backoff > deadline:
@@ -179,7 +180,7 @@ class EegDecoder:
             if exc.status_code != 409:  # 409: no live source (the EEG service restarted)
                 raise
             return self._lost(f"EEG live source gone ({exc.detail})"), None
-        except (OSError, RuntimeError, TimeoutError) as exc:
+        except (OSError, RuntimeError, WebSocketException) as exc:
             return self._lost(f"EEG ingest failed ({type(exc).__name__}: {exc})"), None
         if not self.accelerated and self.source is not None:
             with self._lock:

@@ -60,7 +60,7 @@ class LoopPlatform:
         for name, port in self.ports.items():
             os.environ[f"BGRL_{name.upper()}_URL"] = f"http://127.0.0.1:{port}"
         os.environ["BGRL_SERVICE_TOKEN"] = TOKEN
-        os.environ["BGRL_LIVE_RETRY_S"] = "60"
+        os.environ["BGRL_LIVE_RETRY_S"] = "300"  # a restart takes long on a loaded machine
         settings = WorkerSettings(
             data_dir=self.data_dir, job_lease_s=30, job_heartbeat_s=0.5, service_token=TOKEN
         )
