@@ -68,7 +68,8 @@ def start_services(data_dir: Path, token: str) -> tuple[dict[str, str], list[Any
         for name, app in SERVICES.items():
             port = _free_port()
             urls[name] = f"http://127.0.0.1:{port}"
-            cmd = [sys.executable, "-m", "uvicorn", app, "--host", "127.0.0.1", "--port", str(port)]
+            cmd = [sys.executable, "-m", "uvicorn", app, "--host", "127.0.0.1", "--port", str(port),
+                   "--no-access-log", "--log-level", "warning"]  # fmt: skip
             child = Child(name, cmd)
             child.start()
             children.append(child)
