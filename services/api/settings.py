@@ -55,6 +55,11 @@ class ApiSettings(PlatformSettings):
         description="Base URL of the EEG service that validates uploaded recordings (empty: "
         "recordings stay pending).",
     )
+    sim_url: str | None = Field(
+        "http://127.0.0.1:8001",
+        description="Base URL of the sim service whose frames the live pages relay (empty: "
+        "no frames).",
+    )
     eeg_timeout_s: float = Field(
         120.0, gt=0, le=3600, description="How long a recording's validation may take."
     )

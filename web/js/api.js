@@ -155,3 +155,9 @@ export function jobEventsUrl(jobId) {
   const id = encodeURIComponent(jobId);
   return `${scheme}://${location.host}/api/v1/jobs/${id}/events?token=${encodeURIComponent(token())}`;
 }
+
+/** The websocket relaying a live session's robot frames (the sim is not reachable directly). */
+export function framesUrl(sessionId) {
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  return `${scheme}://${location.host}/api/v1/sessions/${sessionId}/frames?token=${encodeURIComponent(token())}`;
+}

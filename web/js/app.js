@@ -5,6 +5,8 @@ import { h } from "./dom.js";
 import { classifierPage } from "./pages/classifier.js";
 import { jobPage } from "./pages/job.js";
 import { jobsPage } from "./pages/jobs.js";
+import { displayPage } from "./pages/display.js";
+import { livePage } from "./pages/live.js";
 import { modelsPage } from "./pages/models.js";
 import { sessionsPage } from "./pages/sessions.js";
 import { signinPage } from "./pages/signin.js";
@@ -15,6 +17,8 @@ const ROUTES = [
   [/^\/(?:subjects)?$/, "subjects", subjectsPage],
   [/^\/subjects\/(\d+)$/, "subjects", subjectPage],
   [/^\/sessions$/, "sessions", sessionsPage],
+  [/^\/sessions\/(\d+)\/live$/, "sessions", livePage],
+  [/^\/sessions\/(\d+)\/display$/, "sessions", displayPage],
   [/^\/jobs$/, "jobs", jobsPage],
   [/^\/jobs\/([A-Za-z0-9_-]+)$/, "jobs", jobPage],
   [/^\/models$/, "models", modelsPage],

@@ -75,6 +75,8 @@ for _page in PAGES:
     router.add_api_route(_page, index, methods=["GET"])
 
 
+@router.get("/sessions/{session_id}/live")
+@router.get("/sessions/{session_id}/display")
 @router.get("/subjects/{subject_id}")
 @router.get("/jobs/{job_id}")
 @router.get("/classifiers/{classifier_id}")

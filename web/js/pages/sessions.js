@@ -127,6 +127,10 @@ function editDialog(session, subjectCode, rigs, canEdit, onDone) {
     h("p", {}, statusBadge(session.status), ` ${fmtDateTime(session.scheduled_at)}, `,
       `${session.duration_minutes} min`),
     session.notes ? h("p", { class: "pre" }, session.notes) : null,
+    ["calibration", "test", "online"].includes(session.kind) && session.status !== "scheduled"
+      ? h("p", {}, h("a", { href: `/sessions/${session.id}/live` }, "Live view"), " · ",
+        h("a", { href: `/sessions/${session.id}/display`, target: "_blank" }, "Subject display"))
+      : null,
   ];
   if (!canEdit || session.status !== "scheduled") {
     dialog.append(...header, close);

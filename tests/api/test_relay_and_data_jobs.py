@@ -1,0 +1,38 @@
+"""The frame relay's refusals (before any sim is contacted) and the data jobs' configs."""
+
+from __future__ import annotations
+
+import pytest
+from starlette.websockets import WebSocketDisconnect
+
+from tests.api.conftest import Api
+
+
+def _close_code(api: Api, path: str) -> int:
+    with pytest.raises(WebSocketDisconnect) as refused, api.client.websocket_connect(path) as ws:
+        ws.receive_json()
+    return refused.value.code
+
+
+def test_frame_relay_checks_token_and_session_before_accept(api: Api) -> None:
+    token = api.as_("viewer")["Authorization"].removeprefix("Bearer ")
+    assert _close_code(api, "/api/v1/sessions/1/frames") == 4401
+    assert _close_code(api, "/api/v1/sessions/1/frames?token=nope") == 4401
+    assert _close_code(api, f"/api/v1/sessions/999/frames?token={token}") == 4404
+
+
+def test_data_jobs_name_an_unknown_subject_or_session(api: Api) -> None:
+    staff = api.as_("staff")
+    for kind, config, name in (
+        ("bids_export", {"subject_id": 77}, "config.subject_id"),
+        ("session_replay", {"session_id": 77}, "config.session_id"),
+    ):
+        response = api.client.post(
+            "/api/v1/jobs", json={"kind": kind, "config": config}, headers=staff
+        )
+        assert response.status_code == 422, response.text
+        assert response.json()["field"] == name
+    response = api.client.post(
+        "/api/v1/jobs", json={"kind": "bids_export", "config": {"subject": 1}}, headers=staff
+    )
+    assert response.status_code == 422
