@@ -291,7 +291,7 @@ def _marker_triggers(
         text = str(value[0] if isinstance(value, list | tuple | np.ndarray) else value)
         trigger: int | None
         try:
-            trigger = ActionMarker.from_lsl(text).trigger() or None
+            trigger = ActionMarker.from_lsl(text).trigger or None
         except (ValueError, json.JSONDecodeError):
             trigger = labels.trigger_for(text)
         if trigger is None or not (times[0] - period / 2 <= stamp <= times[-1] + period / 2):

@@ -1,0 +1,226 @@
+"""Files as labs have them: BrainVision, XDF, EDF+ annotations, mapped event labels.
+
+Every file is written by its format's own writer (pybv, mne.export, the XDF writer of
+tests/eeg/xdf_writer.py) from a SYNTHETIC virtual-subject recording and read back.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import mne
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from services.core.markers import ActionMarker
+from services.eeg.app import create_app
+from services.eeg.formats import EventLabels
+from services.eeg.io import RecordingError, action_events, detect_format, read_recording
+from services.eeg.settings import EEGSettings
+from services.eeg.virtual_subject import STIM_CHANNEL
+from tests.eeg.caps import CAP_8, LABELS, virtual_recording
+from tests.eeg.xdf_writer import XdfStream, write_xdf
+
+SFREQ = 500.0
+CODES = [1 if ok else 2 for ok in LABELS]
+
+
+@pytest.fixture(scope="module")
+def raw() -> mne.io.RawArray:
+    return virtual_recording(SFREQ, CAP_8, seed=4)
+
+
+def _onsets(raw: mne.io.BaseRaw) -> np.ndarray:
+    return action_events(raw)[:, 0] - raw.first_samp
+
+
+def _write_vhdr(raw, folder: Path, events: list[dict], name: str = "sub01") -> Path:
+    import pybv
+
+    pybv.write_brainvision(
+        data=raw.get_data(picks=CAP_8),
+        sfreq=raw.info["sfreq"],
+        ch_names=CAP_8,
+        fname_base=name,
+        folder_out=folder,
+        events=events,
+        unit="µV",
+    )
+    return folder / f"{name}.vhdr"
+
+
+def _zip(files: list[Path], path: Path) -> Path:
+    with zipfile.ZipFile(path, "w") as archive:
+        for file in files:
+            archive.write(file, f"export/{file.name}")
+    return path
+
+
+def test_brainvision_stimulus_codes_from_vhdr_and_zip(raw, tmp_path):
+    onsets = _onsets(raw)
+    events = [{"onset": int(s), "description": c} for s, c in zip(onsets, CODES, strict=True)]
+    vhdr = _write_vhdr(raw, tmp_path, events)
+    assert detect_format(vhdr) == "brainvision"
+    back = read_recording(vhdr)
+    np.testing.assert_array_equal(_onsets(back), onsets)
+    np.testing.assert_array_equal(action_events(back)[:, 2], CODES)
+    assert back.ch_names == [*CAP_8, STIM_CHANNEL]
+    assert back.get_channel_types() == ["eeg"] * 8 + ["stim"]
+    np.testing.assert_allclose(back.get_data(picks=CAP_8), raw.get_data(picks=CAP_8), atol=1e-7)
+
+    archive = _zip(sorted(tmp_path.glob("sub01.*")), tmp_path / "sub01.zip")
+    assert detect_format(archive) == "brainvision"
+    zipped = read_recording(archive)
+    np.testing.assert_array_equal(zipped.get_data(), back.get_data())
+
+
+def test_brainvision_comment_annotations_and_a_lab_mapping(raw, tmp_path):
+    onsets = _onsets(raw)
+    texts = ["hit" if ok else "miss" for ok in LABELS]
+    events = [
+        {"onset": int(s), "description": t, "type": "Comment"}
+        for s, t in zip(onsets, texts, strict=True)
+    ]
+    vhdr = _write_vhdr(raw, tmp_path, events)
+    with pytest.raises(RecordingError, match="no 'Status' trigger channel, and no annotation"):
+        read_recording(vhdr)
+    labels = EventLabels(descriptions={"HIT": "correct", "miss": "error"})
+    back = read_recording(vhdr, labels=labels)
+    np.testing.assert_array_equal(_onsets(back), onsets)
+    np.testing.assert_array_equal(action_events(back)[:, 2], CODES)
+
+
+def test_brainvision_sets_missing_files_are_refused(raw, tmp_path):
+    vhdr = _write_vhdr(raw, tmp_path, [{"onset": 10, "description": 1}])
+    (tmp_path / "sub01.eeg").unlink()
+    with pytest.raises(
+        RecordingError,
+        match=r"^sub01\.vhdr: the header refers to sub01\.eeg, not found beside it",
+    ):
+        read_recording(vhdr)
+    lone = _zip([vhdr, tmp_path / "sub01.vmrk"], tmp_path / "lone.zip")
+    with pytest.raises(RecordingError, match=r"^lone\.zip: the zip lacks sub01\.eeg"):
+        read_recording(lone)
+    empty = tmp_path / "other.zip"
+    with zipfile.ZipFile(empty, "w") as archive:
+        archive.writestr("notes.txt", "hello")
+    with pytest.raises(RecordingError, match="not a readable BDF, EDF, FIF, BrainVision or XDF"):
+        read_recording(empty)
+
+
+def test_edf_plus_annotations_become_actions(raw, tmp_path):
+    plain = raw.copy().drop_channels([STIM_CHANNEL])
+    onsets = _onsets(raw)
+    plain.set_annotations(
+        mne.Annotations(
+            onsets / SFREQ, [0.0] * len(onsets), ["correct" if ok else "error" for ok in LABELS]
+        )
+    )
+    path = tmp_path / "annotated.edf"
+    mne.export.export_raw(path, plain, fmt="edf", physical_range=(-2e-3, 2e-3), verbose="error")
+    back = read_recording(path)
+    np.testing.assert_array_equal(_onsets(back), onsets)
+    np.testing.assert_array_equal(action_events(back)[:, 2], CODES)
+
+
+def test_status_codes_by_a_lab_mapping(raw, tmp_path):
+    from services.eeg.io import write_bdf
+
+    relabelled = raw.copy()
+    status = relabelled._data[-1]
+    relabelled._data[-1] = np.select([status == 1, status == 2], [11, 12], 0)
+    path = write_bdf(relabelled, tmp_path / "codes.bdf")
+    with pytest.raises(RecordingError, match="no action events"):
+        read_recording(path)
+    back = read_recording(path, labels=EventLabels(codes={11: "correct", 12: "error"}))
+    np.testing.assert_array_equal(_onsets(back), _onsets(raw))
+    np.testing.assert_array_equal(action_events(back)[:, 2], CODES)
+
+
+def _xdf(raw, path: Path, markers: list[str], *, t0: float = 5021.25, extra: list | None = None):
+    n = raw.n_times
+    eeg = XdfStream(
+        "actiCHamp-1",
+        "EEG",
+        t0 + np.arange(n) / SFREQ,
+        raw.get_data(picks=CAP_8).T * 1e6,
+        SFREQ,
+        [{"label": ch.upper(), "unit": "microvolts", "type": "EEG"} for ch in CAP_8],
+    )
+    onsets = _onsets(raw)
+    stream = XdfStream("BrainNav-Markers", "Markers", t0 + onsets / SFREQ + 0.0004, markers)
+    return write_xdf(path, [eeg, stream, *(extra or [])])
+
+
+def test_xdf_eeg_and_marker_streams(raw, tmp_path):
+    action_markers = [
+        ActionMarker(
+            session_id="s1", episode=0, step=i, action=0, correct=ok, timestamp=0.0
+        ).to_lsl()
+        for i, ok in enumerate(LABELS)
+    ]
+    path = _xdf(raw, tmp_path / "session.xdf", action_markers)
+    assert detect_format(path) == "xdf"
+    back = read_recording(path)
+    assert back.ch_names == [*CAP_8, STIM_CHANNEL]
+    assert back.info["sfreq"] == SFREQ
+    np.testing.assert_array_equal(_onsets(back), _onsets(raw))
+    np.testing.assert_array_equal(action_events(back)[:, 2], CODES)
+    np.testing.assert_allclose(back.get_data(picks=CAP_8), raw.get_data(picks=CAP_8), atol=1e-10)
+
+    texts = tmp_path / "texts.xdf"
+    _xdf(raw, texts, ["correct" if ok else "error" for ok in LABELS])
+    np.testing.assert_array_equal(action_events(read_recording(texts))[:, 2], CODES)
+
+
+def test_xdf_stream_choice_by_name(raw, tmp_path):
+    other = XdfStream("Keyboard", "Markers", np.array([5022.0]), ["space"])
+    path = _xdf(raw, tmp_path / "two.xdf", ["correct"] * len(LABELS), extra=[other])
+    with pytest.raises(
+        RecordingError,
+        match=r"two\.xdf: 2 streams of type 'markers'; name the marker stream \(streams: "
+        r"'BrainNav-Markers' \(type Markers\), 'Keyboard' \(type Markers\)\)",
+    ):
+        read_recording(path)
+    back = read_recording(path, xdf_marker_stream="BrainNav-Markers", xdf_stream="actiCHamp-1")
+    assert len(action_events(back)) == len(LABELS)
+    with pytest.raises(RecordingError, match=r"no EEG stream named 'BioSemi'; it has"):
+        read_recording(path, xdf_stream="BioSemi", xdf_marker_stream="BrainNav-Markers")
+
+
+@pytest.fixture
+def client(tmp_path):
+    settings = EEGSettings(data_dir=tmp_path / "data", max_upload_bytes=50 << 20)
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
+def test_upload_route_takes_brainvision_zips_and_xdf(raw, tmp_path, client):
+    onsets = _onsets(raw)
+    events = [{"onset": int(s), "description": c} for s, c in zip(onsets, CODES, strict=True)]
+    vhdr = _write_vhdr(raw, tmp_path, events)
+    archive = _zip(sorted(tmp_path.glob("sub01.*")), tmp_path / "sub01.zip")
+    response = client.post("/recordings", files={"file": ("sub01.zip", archive.read_bytes())})
+    assert response.status_code == 201, response.text
+    body = response.json()
+    assert (body["format"], body["n_channels"], body["sfreq"]) == ("brainvision", 9, SFREQ)
+    assert (body["n_actions"], body["n_errors"]) == (len(LABELS), CODES.count(2))
+
+    lone = client.post("/recordings", files={"file": ("sub01.vhdr", vhdr.read_bytes())})
+    assert lone.status_code == 422
+    assert lone.json()["detail"] == (
+        "sub01.vhdr: the header refers to sub01.eeg and sub01.vmrk, not found beside it "
+        "(keep the .vhdr, .vmrk and .eeg together; upload them as one zip)"
+    )
+
+    xdf = _xdf(raw, tmp_path / "session.xdf", ["correct" if ok else "error" for ok in LABELS])
+    response = client.post(
+        "/recordings", params={"filename": "session.xdf"}, content=xdf.read_bytes()
+    )
+    assert response.status_code == 201, response.text
+    assert (response.json()["format"], response.json()["n_actions"]) == ("xdf", len(LABELS))
+    stored = sorted((tmp_path / "data").rglob("*.brainvision"))
+    assert len(stored) == 1
+    assert len(action_events(read_recording(stored[0]))) == len(LABELS)
