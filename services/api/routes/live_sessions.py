@@ -15,7 +15,15 @@ from sqlalchemy.orm import Session
 
 from services.api import audit
 from services.api.crud import get_or_404
-from services.api.deps import CeleryDep, DbDep, PageDep, RowId, StaffUser, get_current_user
+from services.api.deps import (
+    CeleryDep,
+    DbDep,
+    PageDep,
+    RowId,
+    SettingsDep,
+    StaffUser,
+    get_current_user,
+)
 from services.api.routes.jobs import _enqueue
 from services.core.db.live import (
     LiveDecision,
@@ -97,7 +105,12 @@ def _run_or_404(db: Session, session_id: int) -> LiveRun:
 
 @router.post("/{session_id}/start", status_code=201)
 def start(
-    session_id: RowId, body: LiveOptions, user: StaffUser, db: DbDep, celery: CeleryDep
+    session_id: RowId,
+    body: LiveOptions,
+    user: StaffUser,
+    db: DbDep,
+    celery: CeleryDep,
+    settings: SettingsDep,
 ) -> LiveRunPublic:
     """Start (or resume, after a failure) the session's live loop as a ``live_session`` job."""
     lab = get_or_404(db, LabSession, session_id, "session_id")
@@ -133,7 +146,7 @@ def start(
         config={"session_id": session_id, "run_id": run.id, **options},
         status="queued",
         submitter_id=user.id,
-        max_attempts=3,
+        max_attempts=settings.job_max_attempts,
     )
     db.add(job)
     db.flush()
