@@ -29,6 +29,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from contextlib import suppress
 from dataclasses import dataclass
 from typing import Literal
 
@@ -187,6 +188,7 @@ class LiveIngest:
         self._last_ts: float | None = None
         self._last_arrival: float | None = None
         self._last_status = 0
+        self._listeners: list[Callable[[np.ndarray, np.ndarray], None]] = []
         self._disconnected_at: float | None = None
         self._bad_since: float | None = None
         self.n_samples = 0
@@ -247,6 +249,17 @@ class LiveIngest:
             ):
                 self._ingest(part_x, part_t, arrival)
             self._last_arrival = arrival
+        for listener in list(self._listeners):
+            listener(samples, timestamps)
+
+    def add_listener(self, listener: Callable[[np.ndarray, np.ndarray], None]) -> None:
+        """Call ``listener(samples, timestamps)`` with every chunk after it was checked
+        (e.g. a live recorder; it must not raise)."""
+        self._listeners.append(listener)
+
+    def remove_listener(self, listener: Callable[[np.ndarray, np.ndarray], None]) -> None:
+        with suppress(ValueError):
+            self._listeners.remove(listener)
 
     def _ingest(self, x: np.ndarray, t: np.ndarray, arrival: float) -> None:
         period = 1.0 / self.sfreq

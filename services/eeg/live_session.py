@@ -29,6 +29,7 @@ SUBSCRIBER_QUEUE = 1000
 """Feedback messages buffered per websocket client; a client that lags further loses the
 oldest ones."""
 JOIN_TIMEOUT_S = 5.0
+NO_CLASSIFIER = "no classifier bound to the live source (markers are only recorded)"
 
 
 class EegSource(Protocol):
@@ -85,13 +86,14 @@ class FeedbackHub:
 
 
 class LiveSession:
-    """The live source bound to one classifier; :meth:`close` releases everything."""
+    """The live source bound to one classifier (or none: recording only); :meth:`close`
+    releases everything."""
 
     def __init__(
         self,
         ingest: LiveIngest,
-        classifier: ErrPClassifier,
-        classifier_id: str,
+        classifier: ErrPClassifier | None,
+        classifier_id: str | None,
         source: Literal["lsl", "websocket"],
         *,
         stream_name: str | None = None,
@@ -111,6 +113,7 @@ class LiveSession:
         self._stop = threading.Event()
         self._marker_thread: threading.Thread | None = None
         self._on_close: list[Callable[[], None]] = []
+        self._marker_listeners: list[Callable[[ActionMarker], None]] = []
         self.close_reason: str | None = None
 
     @property
@@ -137,8 +140,10 @@ class LiveSession:
             "step": marker.step if marker else None,
             "session_id": marker.session_id if marker else None,
             "classifier_id": self.classifier_id,
-            "synthetic": self.classifier.synthetic,
+            "synthetic": self.classifier.synthetic if self.classifier else self.synthetic,
         }
+        if self.classifier is None:
+            return Feedback(status="rejected", reason=NO_CLASSIFIER, **common)
         if not result.ok:
             return Feedback(status="rejected", reason=result.reason, **common)
         p_error = float(self.classifier.predict_proba(result.epoch)[0])
@@ -151,6 +156,10 @@ class LiveSession:
 
     def classify_marker(self, marker: ActionMarker, wait_s: float) -> Feedback:
         """Wait up to ``wait_s`` for the epoch after ``marker`` and decode it."""
+        for listener in list(self._marker_listeners):
+            listener(marker)
+        if self.classifier is None:
+            return self.decode(EpochResult(marker.timestamp, "rejected"), marker)
         result = self.ingest.wait_epoch(marker.timestamp, timeout_s=wait_s, stop=self._stop)
         return self.decode(result, marker)
 
@@ -183,6 +192,14 @@ class LiveSession:
 
         self._marker_thread = threading.Thread(target=run, name="lsl-markers", daemon=True)
         self._marker_thread.start()
+
+    def add_marker_listener(self, listener: Callable[[ActionMarker], None]) -> None:
+        """Call ``listener(marker)`` with every marker classified (e.g. a live recorder)."""
+        self._marker_listeners.append(listener)
+
+    def remove_marker_listener(self, listener: Callable[[ActionMarker], None]) -> None:
+        with suppress(ValueError):
+            self._marker_listeners.remove(listener)
 
     def on_close(self, callback: Callable[[], None]) -> None:
         """Call ``callback`` (once) when the session is closed."""

@@ -121,14 +121,21 @@ class Feedback(BaseModel):
     onset: float | None = None
     step: int | None = None
     session_id: str | None = None
-    classifier_id: str
+    classifier_id: str | None = Field(
+        description="Null when the live source has no classifier (recording only)."
+    )
     synthetic: bool
 
 
 class LiveConnect(StrictRequest):
     """Connect an LSL EEG stream for live decoding."""
 
-    classifier_id: str = Field(min_length=1, max_length=64)
+    classifier_id: str | None = Field(
+        None,
+        min_length=1,
+        max_length=64,
+        description="Classifier decoding the markers; none: record only (calibration).",
+    )
     stream_name: str = Field("BrainNav-EEG", min_length=1, max_length=200)
     marker_stream: str | None = Field(
         None,
@@ -156,6 +163,33 @@ class StreamIssuePublic(BaseModel):
     detail: str
 
 
+class LiveRecordingStart(StrictRequest):
+    """Start recording the live stream and its markers."""
+
+    name: str = Field(
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$",
+        description="Name of the recording (its file is <name>.bdf); the name of an "
+        "interrupted recording continues it.",
+    )
+
+
+class LiveRecordingPublic(BaseModel):
+    """A live recording in progress."""
+
+    name: str
+    started_at: str
+    resumed: bool = Field(description="It continues a recording interrupted by a crash.")
+    n_channels: int
+    sfreq: float
+    n_samples: int = Field(description="Samples received (flushed to disk or buffered).")
+    duration_s: float
+    n_markers: int
+    synthetic: bool
+    error: str | None = Field(None, description="Why it stopped taking data, if it did.")
+
+
 class LiveStatus(BaseModel):
     """The live source and what its integrity checks found."""
 
@@ -173,6 +207,14 @@ class LiveStatus(BaseModel):
         default_factory=list, description="The last 100 issues, oldest first."
     )
     issues_dropped: int = Field(0, description="Older issues no longer listed.")
+    recording: LiveRecordingPublic | None = Field(
+        None, description="The live recording in progress, if any."
+    )
+    unfinished_recordings: list[str] = Field(
+        default_factory=list,
+        description="Recordings interrupted by a crash: DELETE /live/recording?name= "
+        "finalises one, POST /live/recording with its name continues it.",
+    )
 
 
 class IngestHeader(StrictRequest):

@@ -42,6 +42,7 @@ from services.eeg.io import (
     RecordingError,
     action_events,
     detect_format,
+    file_sha256,
     format_mismatch,
     is_synthetic,
     read_recording,
@@ -62,6 +63,28 @@ def utc_now() -> str:
 
 def _valid_id(value: str) -> bool:
     return 0 < len(value) <= 64 and value.isascii() and value.isalnum()
+
+
+def _metadata(
+    raw, sha: str, filename: str, fmt: str, size_bytes: int, notes: list[str]
+) -> RecordingPublic:
+    """What the service stores about a validated recording."""
+    events = action_events(raw)
+    return RecordingPublic(
+        id=sha,
+        filename=filename,
+        format=fmt,
+        sha256=sha,
+        size_bytes=size_bytes,
+        sfreq=float(raw.info["sfreq"]),
+        n_channels=len(raw.ch_names),
+        duration_s=raw.n_times / raw.info["sfreq"],
+        n_actions=len(events),
+        n_errors=int(np.sum(events[:, 2] == 2)),
+        synthetic=is_synthetic(raw),
+        uploaded_at=utc_now(),
+        notes=notes,
+    )
 
 
 class RecordingStore:
@@ -120,22 +143,8 @@ class RecordingStore:
                 raw = read_recording(named, name=shown)
             except RecordingError as exc:
                 raise InvalidRecordingError(str(exc), field="file") from None
-            events = action_events(raw)
-            meta = RecordingPublic(
-                id=sha,
-                filename=shown,
-                format=fmt,
-                sha256=sha,
-                size_bytes=upload.stored.size_bytes,
-                sfreq=float(raw.info["sfreq"]),
-                n_channels=len(raw.ch_names),
-                duration_s=raw.n_times / raw.info["sfreq"],
-                n_actions=len(events),
-                n_errors=int(np.sum(events[:, 2] == 2)),
-                synthetic=is_synthetic(raw),
-                uploaded_at=utc_now(),
-                notes=[note] if (note := format_mismatch(shown, fmt)) else [],
-            )
+            note = format_mismatch(shown, fmt)
+            meta = _metadata(raw, sha, shown, fmt, upload.stored.size_bytes, [note] if note else [])
             del raw
             named.replace(self.folder / f"{sha}.{fmt}")
         finally:
@@ -143,6 +152,30 @@ class RecordingStore:
         write_json_atomic(existing, meta.model_dump())
         logger.info("stored recording %s (%s, %s)", sha[:12], fmt, shown)
         return meta, True
+
+    def add_bdf(
+        self, path: Path, *, filename: str, ch_names: list[str], notes: list[str]
+    ) -> RecordingPublic:
+        """Validate a BDF the service wrote (a live recording) and keep it under its sha256.
+
+        ``ch_names`` are the EEG channels it must hold. The file is moved into the store; a
+        file that is not a usable recording is a 422 naming the reason and stays where it is.
+        """
+        sha = file_sha256(path)
+        existing = self.folder / f"{sha}.json"
+        if existing.is_file():
+            path.unlink()
+            return RecordingPublic.model_validate_json(existing.read_text())
+        try:
+            raw = read_recording(path, name=filename, ch_names=ch_names)
+        except RecordingError as exc:
+            raise InvalidRecordingError(str(exc), field="name") from None
+        meta = _metadata(raw, sha, filename, "bdf", path.stat().st_size, notes)
+        del raw
+        path.replace(self.folder / f"{sha}.bdf")
+        write_json_atomic(existing, meta.model_dump())
+        logger.info("stored recording %s (live recording %s)", sha[:12], filename)
+        return meta
 
 
 class ClassifierStore:

@@ -426,7 +426,7 @@ class VirtualIngestClient:
         cls,
         source: VirtualEEGSource,
         eeg_url: str,
-        classifier_id: str,
+        classifier_id: str | None,
         *,
         headers: dict[str, str] | None = None,
         chunk_s: float = 0.5,
@@ -434,14 +434,17 @@ class VirtualIngestClient:
     ) -> VirtualIngestClient:
         """Open ``WS /live/ingest`` of the EEG service at ``eeg_url`` (``http://host:port``).
 
-        ``headers`` are sent with the handshake (e.g. ``{"X-Service-Token": token}``).
+        ``classifier_id`` None: nothing is decoded, the stream can only be recorded
+        (calibration). ``headers`` are sent with the handshake (e.g.
+        ``{"X-Service-Token": token}``).
         """
         from urllib.parse import quote
 
         from websockets.sync.client import connect
 
         base = eeg_url.rstrip("/").replace("http://", "ws://", 1).replace("https://", "wss://", 1)
-        url = f"{base}/live/ingest?classifier_id={quote(classifier_id)}"
+        query = f"?classifier_id={quote(classifier_id)}" if classifier_id else ""
+        url = f"{base}/live/ingest{query}"
         connection = connect(
             url, additional_headers=headers, open_timeout=open_timeout_s, max_size=None
         )

@@ -9,7 +9,8 @@ drives the subject (an ErrP after an error). A marker must arrive within ``lag_s
 timestamp for its response to be whole; a later one is counted in ``late_markers``.
 
 The stream is marked synthetic: its LSL description has a ``synthetic`` element holding the
-source's ``SYNTHETIC ...`` description (:func:`stream_is_synthetic` reads it), and the EEG
+source's ``SYNTHETIC ...`` description (:func:`services.eeg.lsl.stream_is_synthetic` reads
+it), and the EEG
 service carries the flag into its live recordings.
 
 :meth:`VirtualLslStream.drop` stops the outlet (as a crashed amplifier app would) and
@@ -30,22 +31,21 @@ import numpy as np
 from mne_lsl.lsl import StreamInfo, StreamOutlet
 
 from services.core.markers import MARKER_STREAM_NAME
-from services.eeg.lsl import EEG_STREAM_NAME, EEG_STREAM_TYPE, MarkerInlet, lsl_clock
+from services.eeg.lsl import (
+    EEG_STREAM_NAME,
+    EEG_STREAM_TYPE,
+    SYNTHETIC_ELEMENT,
+    MarkerInlet,
+    lsl_clock,
+)
 from services.eeg.virtual_source import DEFAULT_SFREQ, VirtualEEGSource
 
 logger = logging.getLogger(__name__)
 
-SYNTHETIC_ELEMENT = "synthetic"
-"""Element of the LSL stream description that marks generated data."""
 MARKER_POLL_S = 0.002
 """Marker stream polling period (s); a marker reaches the subject within a few ms."""
 RECONNECT_S = 1.0
 """How long the marker thread waits for the marker stream before trying again."""
-
-
-def stream_is_synthetic(sinfo: StreamInfo) -> bool:
-    """Whether an LSL stream's description marks its data as generated."""
-    return not sinfo.desc.child(SYNTHETIC_ELEMENT).empty()
 
 
 class VirtualLslStream:

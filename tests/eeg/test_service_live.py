@@ -167,11 +167,12 @@ def test_malformed_first_ingest_message_closes_with_4422(client, first, reason):
     assert client.get("/live").json()["connected"] is False
 
 
-def test_missing_classifier_query_closes_with_4422(client):
-    with pytest.raises(WebSocketDisconnect) as info, client.websocket_connect("/live/ingest"):
-        pass
-    assert info.value.code == 4422
-    assert info.value.reason.startswith("classifier_id: Field required")
+def test_bad_classifier_query_closes_with_4422(client):
+    url = "/live/ingest?classifier_id=" + "x" * 65
+    with client.websocket_connect(url) as ws:
+        message = ws.receive_json()
+        assert message["message"] == "classifier_id: String should have at most 64 characters"
+        assert _disconnect_code(ws)[0] == 4422
 
 
 def test_second_ingest_websocket_replaces_the_first(client):
@@ -208,8 +209,9 @@ class FakeEegSource:
     """Stands in for LslEegIngest: an ingest the test feeds directly."""
 
     instances: ClassVar[list[FakeEegSource]] = []
+    synthetic = False
 
-    def __init__(self, name, *, eeg_ch_names, params, timeout):
+    def __init__(self, name, *, eeg_ch_names, params, timeout, channel_map=None):
         self.ingest = LiveIngest(STREAM, SFREQ, eeg_ch_names=eeg_ch_names, params=params)
         self.closed = False
         FakeEegSource.instances.append(self)

@@ -18,7 +18,9 @@ from services.eeg.virtual_source import IngestError, VirtualEEGSource, VirtualIn
 from services.eeg.virtual_subject import SYNTHETIC_TAG, SyntheticRecording
 
 SFREQ = 256.0
-EEG = ["FCz", "Cz", "Pz"]
+EEG = ["Fz", "FC1", "FCz", "FC2", "C3", "Cz", "C4", "Pz"]
+WITHOUT_FCZ = ["Fz", "FC1", "FC2", "C3", "Cz", "C4", "Pz", "Oz"]
+"""A cap the platform accepts, but not for a classifier trained with FCz."""
 CLASSIFIER = "plumbing"
 PERIOD_S = 1.5
 
@@ -181,7 +183,7 @@ def test_accelerated_ingest_decodes_every_marker_through_the_live_path(client):
 
 
 def test_ingest_refusal_is_raised_with_the_reason(client):
-    source = VirtualEEGSource(quality=0.5, seed=0, sfreq=SFREQ, channels=["Cz", "Pz"])
+    source = VirtualEEGSource(quality=0.5, seed=0, sfreq=SFREQ, channels=WITHOUT_FCZ)
     url = f"/live/ingest?classifier_id={CLASSIFIER}"
     with client.websocket_connect(url) as ws, pytest.raises(IngestError, match="FCz"):
         VirtualIngestClient(source, AsgiConnection(ws))

@@ -16,7 +16,13 @@ from services.core.markers import MARKER_STREAM_TYPE, ActionMarker
 from services.eeg.app import create_app
 from services.eeg.settings import EEGSettings
 from services.eeg.virtual_stream import VirtualLslStream
-from tests.eeg.test_virtual_source import CLASSIFIER, EEG, SFREQ, save_untrained_classifier
+from tests.eeg.test_virtual_source import (
+    CLASSIFIER,
+    EEG,
+    SFREQ,
+    WITHOUT_FCZ,
+    save_untrained_classifier,
+)
 
 
 def _wait(condition, timeout_s: float, what: str) -> None:
@@ -104,7 +110,7 @@ def test_markers_drive_the_live_subject_and_a_drop_is_reported_and_recovered(cli
 def test_a_stream_without_the_classifiers_channels_is_refused_with_the_reason(client, names):
     eeg_name, _ = names
     with VirtualLslStream(
-        quality=0.5, seed=0, sfreq=SFREQ, channels=["Cz", "Pz"], name=eeg_name, marker_stream=None
+        quality=0.5, seed=0, sfreq=SFREQ, channels=WITHOUT_FCZ, name=eeg_name, marker_stream=None
     ):
         response = client.post("/live", json={"classifier_id": CLASSIFIER, "stream_name": eeg_name})
     assert response.status_code == 422
@@ -117,7 +123,7 @@ def test_a_stream_without_the_classifiers_channels_is_refused_with_the_reason(cl
 def test_the_stream_is_marked_synthetic_and_follows_the_lsl_clock(names):
     from mne_lsl.lsl import StreamInlet, resolve_streams
 
-    from services.eeg.virtual_stream import stream_is_synthetic
+    from services.eeg.lsl import stream_is_synthetic
 
     eeg_name, _ = names
     with VirtualLslStream(

@@ -2,15 +2,17 @@
 
 HTTP: ``POST /live`` (connect an LSL EEG stream, optionally the sim's marker stream),
 ``GET /live`` (status, detected issues, background errors), ``DELETE /live``,
-``POST /live/markers`` (classify the epoch after one action marker).
+``POST /live/markers`` (classify the epoch after one action marker), ``POST`` and
+``DELETE /live/recording`` (record the live stream and its markers; store it as a BDF).
 
 Websockets (close codes, all with a reason):
 
 * ``WS /live/feedback`` sends every decoded :class:`~services.eeg.schemas.Feedback`.
-* ``WS /live/ingest?classifier_id=`` takes sample chunks from devices without LSL: first
-  message ``{"ch_names": [...], "sfreq": 2048}``, then ``{"first_timestamp", "samples"}``
+* ``WS /live/ingest?classifier_id=`` takes sample chunks from devices without LSL (without
+  ``classifier_id``: recording only): first message ``{"ch_names": [...], "sfreq": 2048,
+  "synthetic": false}``, then ``{"first_timestamp", "samples"}``
   messages, each answered ``{"ok": true, "n_samples": N}`` or ``{"ok": false, "error"}``.
-  An unknown classifier closes with 4404 after the handshake; a missing or bad query
+  An unknown classifier closes with 4404 after the handshake; a bad query
   parameter, or a first message that is not JSON or not a valid header, closes with 4422;
   a second ingest connection (or ``POST``/``DELETE /live``) replaces this one, which is
   closed with 4410.
@@ -42,7 +44,16 @@ from services.eeg.deps import ServiceDep, get_service
 from services.eeg.errors import LiveSourceError, NoLiveSourceError
 from services.eeg.live import LiveIngest
 from services.eeg.live_session import LiveSession
-from services.eeg.schemas import Feedback, IngestChunk, IngestHeader, LiveConnect, LiveStatus
+from services.eeg.schemas import (
+    Feedback,
+    IngestChunk,
+    IngestHeader,
+    LiveConnect,
+    LiveRecordingPublic,
+    LiveRecordingStart,
+    LiveStatus,
+    RecordingPublic,
+)
 from services.eeg.state import EEGService
 
 router = APIRouter(prefix="/live", tags=["live"])
@@ -56,7 +67,11 @@ MAX_REASON = 120
 
 def _status(service: EEGService) -> LiveStatus:
     session = service.live
-    return session.status() if session is not None else LiveStatus(connected=False)
+    status = session.status() if session is not None else LiveStatus(connected=False)
+    recorder = service.recorder
+    status.recording = service.recording_status(recorder) if recorder is not None else None
+    status.unfinished_recordings = service.unfinished_recordings()
+    return status
 
 
 @router.post("")
@@ -64,19 +79,20 @@ def connect_live(body: LiveConnect, service: ServiceDep) -> LiveStatus:
     """Connect an LSL EEG stream, checked against the classifier's channels and rate.
 
     With ``marker_stream``, every marker of that LSL stream is classified as it arrives and
-    the feedback goes to ``WS /live/feedback``. Replaces the current live source.
+    the feedback goes to ``WS /live/feedback``. Without ``classifier_id`` nothing is decoded:
+    the stream and its markers can only be recorded (calibration). Replaces the current
+    live source.
     """
     from services.eeg import lsl
-    from services.eeg.virtual_stream import stream_is_synthetic
 
     settings = service.settings
-    clf = service.classifiers.get(body.classifier_id)
+    clf = service.classifiers.get(body.classifier_id) if body.classifier_id else None
     try:
         source = lsl.LslEegIngest(
             body.stream_name,
-            eeg_ch_names=clf.ch_names,
+            eeg_ch_names=clf.ch_names if clf else None,
             channel_map=body.channel_map,
-            params=clf.params,
+            params=clf.params if clf else None,
             timeout=settings.lsl_timeout_s,
         )
     except (RuntimeError, ValueError) as exc:
@@ -88,11 +104,12 @@ def connect_live(body: LiveConnect, service: ServiceDep) -> LiveStatus:
         "lsl",
         stream_name=body.stream_name,
         eeg_source=source,
-        synthetic=stream_is_synthetic(source.stream.sinfo),
+        synthetic=source.synthetic,
     )
     try:
         try:
-            clf.check_compatible(source.ingest.eeg_ch_names, source.ingest.sfreq)
+            if clf is not None:
+                clf.check_compatible(source.ingest.eeg_ch_names, source.ingest.sfreq)
         except ValueError as exc:
             raise LiveSourceError(
                 f"stream {body.stream_name!r}: {exc}", field="stream_name"
@@ -122,6 +139,30 @@ def disconnect_live(service: ServiceDep) -> LiveStatus:
     """Disconnect the live source (an ingest websocket is closed with 4410)."""
     service.set_live(None, "disconnected by DELETE /live")
     return _status(service)
+
+
+@router.post("/recording", status_code=201)
+def start_recording(body: LiveRecordingStart, service: ServiceDep) -> LiveRecordingPublic:
+    """Record the live stream and every marker to disk as they arrive (flushed each second).
+
+    The name of a recording interrupted by a crash continues it. 409 while another
+    recording runs or when there is no live source.
+    """
+    return service.start_recording(body.name)
+
+
+@router.delete("/recording")
+def stop_recording(
+    service: ServiceDep,
+    name: Annotated[
+        str | None, Query(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+    ] = None,
+) -> RecordingPublic:
+    """Stop the live recording and store it as a BDF (Status: 1 correct, 2 error).
+
+    With ``name`` and no recording in progress, finalise that interrupted recording.
+    """
+    return service.stop_recording(name)
 
 
 @router.post("/markers")
@@ -206,7 +247,8 @@ def _ingest_chunk(ingest: LiveIngest, message: dict[str, Any]) -> dict[str, Any]
 
 @router.websocket("/ingest")
 async def ingest_socket(
-    websocket: WebSocket, classifier_id: Annotated[str, Query(min_length=1, max_length=64)]
+    websocket: WebSocket,
+    classifier_id: Annotated[str | None, Query(min_length=1, max_length=64)] = None,
 ) -> None:
     """Sample chunks from a device without LSL (protocol in the module docstring)."""
     service = get_service(websocket)
@@ -215,7 +257,11 @@ async def ingest_socket(
         return
     await websocket.accept()
     try:
-        clf = await asyncio.to_thread(service.classifiers.get, classifier_id)
+        clf = (
+            await asyncio.to_thread(service.classifiers.get, classifier_id)
+            if classifier_id
+            else None
+        )
     except ServiceError as exc:
         code = CLOSE_NOT_FOUND if exc.status_code == 404 else CLOSE_BAD_REQUEST
         await _close(websocket, code, str(exc))
@@ -226,9 +272,13 @@ async def ingest_socket(
             return
         header = _parse_header(first)
         ingest = LiveIngest(
-            header.ch_names, header.sfreq, eeg_ch_names=clf.ch_names, params=clf.params
+            header.ch_names,
+            header.sfreq,
+            eeg_ch_names=clf.ch_names if clf else None,
+            params=clf.params if clf else None,
         )
-        clf.check_compatible(ingest.eeg_ch_names, header.sfreq)
+        if clf is not None:
+            clf.check_compatible(ingest.eeg_ch_names, header.sfreq)
     except ValueError as exc:
         await _close(websocket, CLOSE_BAD_REQUEST, str(exc))
         return
