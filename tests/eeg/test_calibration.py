@@ -215,3 +215,28 @@ def test_should_stop_cancels_between_passes_and_leaves_nothing(tmp_path) -> None
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(CalibrationCancelled, match="before it started"):
         calibrate(_toy_epochs(60), should_stop=lambda: True)
+
+
+def test_a_classifier_stays_bound_to_its_cap_and_rate(tmp_path) -> None:
+    """Trained on a 32-channel cap at 500 Hz: other caps and rates are refused by reason."""
+    from services.eeg.preprocessing import epochs_from_raw
+    from tests.eeg.caps import CAP_8, CAP_32, virtual_recording
+
+    raw = virtual_recording(500.0, CAP_32, labels=[True, False] * 20, seed=8)
+    epochs = epochs_from_raw(raw)
+    assert epochs.X.shape == (40, 32, 103)
+    split = Split(np.arange(30), np.arange(30, 36), np.arange(36, 40))
+    clf = train_classifier(epochs, split=split, config=TrainingConfig(max_passes=1)).classifier
+    clf.save(tmp_path)
+    loaded = ErrPClassifier.load(tmp_path)
+    assert (loaded.ch_names, loaded.sfreq_in) == (CAP_32, 500.0)
+    loaded.check_compatible(CAP_32, 500.0)
+    with pytest.raises(
+        ValueError, match=r"sampling rate 250\.0 Hz does not match the classifier's 500\.0 Hz"
+    ):
+        loaded.check_compatible(CAP_32, 250.0)
+    with pytest.raises(ValueError, match=r"missing \['Fp1', 'AF3', 'F7', 'F3', 'FC5'"):
+        loaded.check_compatible(CAP_8, 500.0)
+    np.testing.assert_allclose(
+        loaded.predict_proba(epochs.X[36:]), clf.predict_proba(epochs.X[36:]), atol=1e-6
+    )

@@ -244,3 +244,51 @@ def test_flat_check_is_exact_under_a_large_dc_offset(raw):
     shifted._data[k] = 0.03 + 0.5e-9 * rng.standard_normal(shifted.n_times)
     with pytest.raises(RecordingError, match=r"flat channels \(std < 1 nV\): Cz"):
         validate_recording(shifted, name="x")
+
+
+@pytest.mark.parametrize(
+    ("sfreq", "cap"),
+    [(250.0, "8"), (500.0, "32"), (1000.0, "8"), (2048.0, "64"), (500.0, "8")],
+)
+def test_any_cap_and_rate_is_read_and_epoched(sfreq, cap, tmp_path):
+    """An OpenBCI-like 250 Hz, BrainAmp-like 500/1000 Hz and BioSemi 2048 Hz recording."""
+    from services.eeg.preprocessing import epochs_from_raw
+    from tests.eeg.caps import CAP_8, CAP_32, CAP_64, LABELS, virtual_recording
+
+    names = {"8": CAP_8, "32": CAP_32, "64": CAP_64}[cap]
+    raw = virtual_recording(sfreq, names, seed=5)
+    path = write_bdf(raw, tmp_path / "rec.bdf")
+    back = read_recording(path)
+    assert back.info["sfreq"] == sfreq
+    assert back.ch_names == [*names, STIM_CHANNEL]
+    assert back.get_channel_types() == ["eeg"] * len(names) + ["stim"]
+    epochs = epochs_from_raw(back)
+    assert epochs.X.shape == (len(LABELS), len(names), 103)
+    assert epochs.ch_names == names
+    assert epochs.sfreq_in == sfreq
+    np.testing.assert_array_equal(epochs.y, [0 if ok else 1 for ok in LABELS])
+
+
+def test_device_names_and_other_channels_through_a_rig_map(tmp_path):
+    """ActiView's A1..B32 names read through the rig's map; EXG kept but not decoded."""
+    from services.eeg.channels import builtin_channel_map
+    from tests.eeg.caps import CAP_64, virtual_recording
+
+    raw = virtual_recording(512.0, CAP_64, seed=6)
+    mapping = builtin_channel_map("biosemi64")
+    raw.rename_channels({std: dev for dev, std in mapping.items()})
+    exg = mne.io.RawArray(
+        np.random.default_rng(0).standard_normal((1, raw.n_times)) * 1e-5,
+        mne.create_info(["EXG1"], 512.0, ["eeg"]),
+        verbose="error",
+    )
+    raw.add_channels([exg], force_update_info=True)
+    path = write_bdf(raw, tmp_path / "actiview.bdf")
+    # only A1 and A2 read as standard names (the ear lobes): without the map it is refused
+    with pytest.raises(RecordingError, match=r"2 channels with standard 10-20/10-10 names"):
+        read_recording(path)
+    back = read_recording(path, channel_map=mapping)
+    assert back.ch_names == [*CAP_64, STIM_CHANNEL, "EXG1"]
+    assert back.get_channel_types() == ["eeg"] * 64 + ["stim", "misc"]
+    with pytest.raises(RecordingError, match=r"the channel map names channels .*: A65"):
+        read_recording(path, channel_map={**mapping, "A65": "Iz"})

@@ -199,3 +199,57 @@ def test_lsl_loopback_replay_yields_clean_epochs():
     assert ingest.issues == [] or all(i.kind == "disconnect" for i in ingest.issues)
     assert all(r.ok for r in results[1:]), [r.reason for r in results]
     assert results[-1].epoch.shape == (64, ingest.params.n_times_epoch)
+
+
+def test_rational_rate_stream_gives_the_offline_epochs():
+    """A 250 Hz 8-channel stream (OpenBCI-like) through the integrity-checked ingest."""
+    from tests.eeg.caps import CAP_8, LABELS, virtual_recording
+
+    raw = virtual_recording(250.0, CAP_8, seed=9)
+    offline = epochs_from_raw(raw)
+    ingest = LiveIngest(raw.ch_names, 250.0, settle_s=1.0)
+    assert ingest.eeg_ch_names == CAP_8
+    data = raw.get_data()
+    for start in range(0, raw.n_times, 25):
+        part = data[:, start : start + 25].T
+        ingest.push_chunk(part, first_timestamp=300.0 + start / 250.0)
+    triggers = ingest.pop_triggers()
+    assert [t.code for t in triggers] == [1 if ok else 2 for ok in LABELS]
+    live = np.stack([ingest.epoch_for(t.timestamp).epoch for t in triggers])
+    np.testing.assert_allclose(live, offline.X, atol=1e-9)
+
+
+@pytest.mark.lsl
+def test_lsl_stream_with_device_names_needs_the_rig_map():
+    lsl = pytest.importorskip("services.eeg.lsl")
+    try:
+        lsl.lsl_clock()
+    except Exception as exc:  # liblsl missing or unusable on this machine
+        pytest.skip(f"liblsl cannot run here: {exc}")
+    from tests.eeg.caps import CAP_8, virtual_recording
+
+    raw = virtual_recording(500.0, CAP_8, seed=3)
+    device = {ch: f"E{i + 1}" for i, ch in enumerate(CAP_8)}
+    raw.rename_channels({**device, STIM_CHANNEL: "TRIG"})
+    rig_map = {**{dev: std for std, dev in device.items()}, "TRIG": "Status"}
+    name = f"bgrl-test-map-{time.monotonic_ns()}"
+    player = lsl.replay(raw, name=name, chunk_size=25)
+    try:
+        with pytest.raises(ValueError, match=r"EEG stream '.*': 0 channels with standard"):
+            lsl.LslEegIngest(name, timeout=5.0)
+        with pytest.raises(
+            ValueError, match=r"the channel map names channels the source does not have: E9"
+        ):
+            lsl.LslEegIngest(name, channel_map={**rig_map, "E9": "Oz"}, timeout=5.0)
+        wrong = {**rig_map, "E6": "Oz"}  # Cz wired to the wrong site: Cz is missing
+        with pytest.raises(ValueError, match=r"missing the fronto-central sites .*: Cz \("):
+            lsl.LslEegIngest(name, channel_map=wrong, timeout=5.0)
+        with lsl.LslEegIngest(name, channel_map=rig_map, timeout=5.0) as source:
+            assert source.ingest.eeg_ch_names == CAP_8
+            assert source.ingest.stream_ch_names == [*CAP_8, STIM_CHANNEL]
+            deadline = time.monotonic() + 5.0
+            while source.ingest.n_samples < 500 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert source.ingest.n_samples >= 500
+    finally:
+        player.stop()

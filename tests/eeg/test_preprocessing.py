@@ -167,3 +167,70 @@ def test_reset_forgets_state() -> None:
     pre.push(np.ones((4096, 1)), 0.0)
     pre.reset()
     assert pre.n_buffered == 0 and pre.latest_timestamp is None
+
+
+@pytest.mark.parametrize(
+    ("sfreq", "up", "down"),
+    [(250.0, 64, 125), (500.0, 32, 125), (1000.0, 16, 125), (2048.0, 1, 16), (128.0, 1, 1)],
+)
+def test_offline_equals_online_at_every_rate(sfreq, up, down) -> None:
+    """The calibration path and a live stream in odd chunks agree at any rate >= 128 Hz."""
+    from services.eeg.preprocessing import epochs_from_raw
+    from tests.eeg.caps import CAP_8, LABELS, virtual_recording
+
+    raw = virtual_recording(sfreq if sfreq >= 250 else 1000.0, CAP_8, seed=2)
+    if sfreq == 128.0:
+        raw = _resampled_copy(raw, 128.0)
+    pre = OnlinePreprocessor(CAP_8, sfreq)
+    assert (pre.up, pre.down) == (up, down)
+    offline = epochs_from_raw(raw)
+    assert offline.X.shape == (len(LABELS), 8, 103)
+    np.testing.assert_array_equal(offline.y, [0 if ok else 1 for ok in LABELS])
+    data, names = _eeg(raw)
+    samples, _ = _onsets(raw)
+    live = OnlinePreprocessor(names, sfreq, buffer_s=10.0)
+    rng = np.random.default_rng(int(sfreq))
+    got: dict[int, np.ndarray] = {}
+    i = 0
+    while i < data.shape[1]:
+        n = int(rng.integers(1, 400))
+        live.push(data[:, i : i + n].T, 77.5 + i / sfreq)
+        i += n
+        for k, s in enumerate(samples):
+            if k not in got and (epoch := live.epoch_at(77.5 + s / sfreq)) is not None:
+                got[k] = epoch
+    online = np.stack([got[k] for k in range(len(samples))])
+    assert np.max(np.abs(online - offline.X)) <= AGREEMENT_RTOL * np.max(np.abs(offline.X))
+
+
+def _resampled_copy(raw, sfreq: float):
+    """``raw`` at ``sfreq`` (EEG by resample_poly, action pulses on the nearest sample)."""
+    import mne
+    from scipy import signal
+
+    ratio = sfreq / raw.info["sfreq"]
+    up, down = round(sfreq), round(raw.info["sfreq"])
+    eeg = signal.resample_poly(raw.get_data(picks="eeg"), up, down, axis=1)
+    samples, codes = _onsets(raw)
+    status = np.zeros(eeg.shape[1])
+    status[np.round(samples * ratio).astype(int)] = codes
+    names = [raw.ch_names[i] for i in mne.pick_types(raw.info, eeg=True)]
+    info = mne.create_info([*names, "Status"], sfreq, ["eeg"] * len(names) + ["stim"])
+    return mne.io.RawArray(np.vstack([eeg, status[None]]), info, verbose="error")
+
+
+def test_rational_resampling_is_delay_compensated_and_rate_independent() -> None:
+    """A 6 Hz burst comes out the same (timing and amplitude) from 250, 500 and 1000 Hz."""
+    outputs = {}
+    for sfreq in (250.0, 500.0, 1000.0):
+        t = np.arange(round(8 * sfreq)) / sfreq
+        burst = np.sin(2 * np.pi * 6 * t) * np.exp(-0.5 * ((t - 5.0) / 0.15) ** 2) * 1e-5
+        pre = OnlinePreprocessor(["Cz"], sfreq, buffer_s=20.0)
+        pre.push(burst[:, None], 0.0)
+        times = pre._times[pre._start : pre._stop]
+        keep = (times >= 3.0) & (times < 7.0)
+        np.testing.assert_allclose(times[keep][:2], [3.0, 3.0 + 1 / 128], atol=1e-9)
+        outputs[sfreq] = pre._data[0, pre._start : pre._stop][keep]
+    peak = np.max(np.abs(outputs[1000.0]))
+    assert np.max(np.abs(outputs[250.0] - outputs[1000.0])) < 0.01 * peak
+    assert np.max(np.abs(outputs[500.0] - outputs[1000.0])) < 0.01 * peak
