@@ -28,7 +28,8 @@ INCOMING_KIND = "incoming"
 UPLOAD_OPENAPI = {
     "requestBody": {
         "required": True,
-        "description": "The recording (BDF, EDF or FIF): either a multipart form with the "
+        "description": "The recording (BDF, EDF, FIF, XDF, or a zip of a BrainVision "
+        ".vhdr/.vmrk/.eeg set): either a multipart form with the "
         "file in the field `file`, or the file's bytes as the body (any other content type; "
         "name it with `?filename=`).",
         "content": {

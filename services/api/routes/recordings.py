@@ -122,7 +122,9 @@ async def upload(
     filename: Annotated[
         str | None,
         Query(
-            max_length=255, description="File name (.bdf, .edf or .fif); needed with a raw body."
+            max_length=255,
+            description="File name (.bdf, .edf, .fif, .xdf, or .zip for a BrainVision set); "
+            "needed with a raw body.",
         ),
     ] = None,
 ) -> RecordingPublic:

@@ -22,7 +22,7 @@ router = APIRouter(prefix="/recordings", tags=["recordings"])
     responses={
         200: {"model": RecordingPublic, "description": "Already stored (same sha256)."},
         413: {"description": "Larger than BGRL_EEG_MAX_UPLOAD_BYTES."},
-        415: {"description": "Not a BDF, EDF or FIF file (by its header)."},
+        415: {"description": "Not a BDF, EDF, FIF, BrainVision (zip) or XDF file (by content)."},
         422: {"description": "Not a usable recording; the detail names the problem."},
     },
 )
@@ -40,7 +40,7 @@ async def upload_recording(
         ),
     ] = None,
 ) -> RecordingPublic | JSONResponse:
-    """Validate and store a BDF/EDF/FIF recording under its sha256.
+    """Validate and store a BDF/EDF/FIF/BrainVision (zip)/XDF recording under its sha256.
 
     Send a multipart form with the file in the field ``file``, or the file's bytes as the
     body. 201 when stored, 200 when the same file is already stored.
