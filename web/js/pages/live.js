@@ -81,20 +81,25 @@ export async function livePage(root, { canEdit }, sessionId) {
   });
   const stopDecisions = followEvents(get, sessionId, "decisions", (items) => {
     for (const decision of items) {
-      const entry = steps.get(decision.step);
-      if (!entry) continue; // its marker arrives with the next poll
-      entry.decision = decision;
-      renderRow(decision.step);
+      const entry = { ...(steps.get(decision.step) || {}), decision };
+      steps.set(decision.step, entry);
+      if (entry.marker) renderRow(decision.step); // else drawn when its marker arrives
     }
   });
 
   let stopButton = null;
+  let form = null;
+  function showControls(active) {
+    if (stopButton) stopButton.hidden = !active;
+    if (form) form.hidden = active || session.status !== "scheduled";
+  }
   async function refresh() {
     let live;
     try {
       live = await get(`/api/v1/sessions/${sessionId}/live`);
     } catch {
       stats.replaceChildren(...statRow("Status", "not started"));
+      showControls(false);
       return;
     }
     const latency = live.latency.epoch_end_to_decision || {};
@@ -105,9 +110,8 @@ export async function livePage(root, { canEdit }, sessionId) {
       ...statRow("Labels", live.label_budget ? `${live.labels} / ${live.label_budget}` : String(live.labels)),
       ...statRow("Decision latency p50 / p99", latency.n ? `${latency.p50_ms} / ${latency.p99_ms} ms` : "–"),
     );
-    if (stopButton) stopButton.hidden = !["queued", "running"].includes(live.run.status);
+    showControls(["queued", "running"].includes(live.run.status));
   }
-  await refresh();
   const timer = setInterval(refresh, 1000);
 
   const frames = followFrames(sessionId, img, {
@@ -115,13 +119,13 @@ export async function livePage(root, { canEdit }, sessionId) {
     onFrame: (frame) => {
       const marker = frame.state.last_marker;
       if (marker) {
-        current.textContent = `Step ${marker.step}: ${ACTIONS[marker.action]} (oracle: ${label(marker.correct)})`;
+        current.textContent = `Now: ${ACTIONS[marker.action]} (oracle: ${label(marker.correct)}), sim step ${marker.step}`;
       }
     },
   });
   window.bgrlLiveView = { frames, steps }; // for the browser tests: drop the connection
 
-  const controls = h("div", { class: "actions" });
+  const controls = h("div", { class: "live-controls" });
   if (canEdit) {
     stopButton = h("button", { type: "button", class: "btn" }, "Stop");
     stopButton.addEventListener("click", async () => {
@@ -133,11 +137,10 @@ export async function livePage(root, { canEdit }, sessionId) {
         message.error(err);
       }
     });
-    controls.append(stopButton);
-    if (session.status === "scheduled") {
-      controls.append(startForm(session, message, () => message.show("Session started.")));
-    }
+    form = startForm(session, message, () => message.show("Session started."));
+    controls.append(stopButton, form);
   }
+  await refresh();
   addEventListener("pagehide", () => {
     frames.stop(); stopMarkers(); stopDecisions(); clearInterval(timer);
   });
