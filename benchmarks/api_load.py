@@ -47,6 +47,8 @@ def latency_summary(latencies_ms: list[float]) -> dict[str, float | int]:
 IDLE_RECONNECT_S = 4.0
 """A connection idle this long is reopened before use (uvicorn closes idle ones after 5 s)."""
 REQUEST_TIMEOUT_S = 30.0
+"""A request not answered this long after its scheduled time counts as an error (one that
+found no free connection by then is not sent at all), so an overloaded run still ends."""
 
 
 class Connection:
@@ -125,11 +127,19 @@ async def _drive(
 
     async def one(route: str, scheduled: float) -> None:
         late_ms.append(1000 * (time.perf_counter() - scheduled))
-        conn = await pool.get()
-        kind = "200"
         try:
-            status = await asyncio.wait_for(conn.get(requests[route]), REQUEST_TIMEOUT_S)
-            kind = str(status)
+            conn = await asyncio.wait_for(
+                pool.get(), scheduled + REQUEST_TIMEOUT_S - time.perf_counter()
+            )
+        except TimeoutError:  # never sent: no connection came free in time
+            errors[route]["not sent within timeout"] = (
+                errors[route].get("not sent within timeout", 0) + 1
+            )
+            latencies[route].append(1000 * (time.perf_counter() - scheduled))
+            return
+        try:
+            remaining = max(0.001, scheduled + REQUEST_TIMEOUT_S - time.perf_counter())
+            kind = str(await asyncio.wait_for(conn.get(requests[route]), remaining))
         except (OSError, ValueError, asyncio.IncompleteReadError, TimeoutError) as exc:
             kind = type(exc).__name__
             conn.close()
