@@ -53,6 +53,47 @@ def test_cli_calibrate_rejects_bad_file(tmp_path) -> None:
     out = tmp_path / "model"
     result = runner.invoke(app, ["eeg", "calibrate", str(bad), "--out", str(out)])
     assert result.exit_code != 0
-    assert "bad.bdf: not a readable BDF, EDF, FIF, BrainVision or XDF file" in result.output
+    shown = " ".join(line.strip("│ ") for line in result.output.splitlines())
+    assert "bad.bdf: not a readable BDF, EDF, FIF, BrainVision or XDF" in " ".join(shown.split())
     assert str(tmp_path) not in result.output
     assert not (out / "metrics.json").exists()
+
+
+@pytest.mark.slow
+def test_cli_calibrate_brainvision_with_a_rig_map_and_lab_labels(tmp_path) -> None:
+    """A BrainAmp-like 500 Hz 8-channel .vhdr with device names and "hit"/"miss" comments."""
+    import pybv
+
+    from tests.eeg.caps import CAP_8, virtual_recording
+
+    labels = [True, False] * 15
+    raw = virtual_recording(500.0, CAP_8, labels=labels, seed=12)
+    status = raw.get_data(picks="Status")[0]
+    onsets = np.flatnonzero(np.diff(status, prepend=0) > 0)
+    pybv.write_brainvision(
+        data=raw.get_data(picks=CAP_8),
+        sfreq=500.0,
+        ch_names=[f"Ch{i + 1}" for i in range(8)],
+        fname_base="s01",
+        folder_out=tmp_path,
+        events=[
+            {"onset": int(s), "description": "hit" if ok else "miss", "type": "Comment"}
+            for s, ok in zip(onsets, labels, strict=True)
+        ],
+    )
+    rig = tmp_path / "rig.json"
+    rig.write_text(json.dumps({f"Ch{i + 1}": ch for i, ch in enumerate(CAP_8)}))
+    out = tmp_path / "model"
+    args = ["eeg", "calibrate", str(tmp_path / "s01.vhdr"), "--out", str(out)]
+    options = ["--max-passes", "1", "--no-report", "--no-onnx"]
+    refused = runner.invoke(app, [*args, *options, "--event-label", "hit=correct"])
+    assert refused.exit_code == 2
+    assert "0 channels with standard 10-20/10-10" in " ".join(refused.output.split())
+    bad = runner.invoke(app, [*args, "--channel-map", str(rig), "--event-label", "hit=ok"])
+    assert bad.exit_code == 2 and "expected KEY=correct or KEY=error" in bad.output
+    labelled = ["--event-label", "hit=correct", "--event-label", "miss=error"]
+    result = runner.invoke(app, [*args, *options, "--channel-map", str(rig), *labelled])
+    assert result.exit_code == 0, result.output
+    config = json.loads((out / "classifier.json").read_text())
+    assert (config["ch_names"], config["sfreq_in"]) == (CAP_8, 500.0)
+    assert json.loads((out / "metrics.json").read_text())["n_epochs"] == 30
