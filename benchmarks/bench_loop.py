@@ -22,7 +22,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from services.cli.demo import _lab_session, _live_run, _run, run_latencies, start_services
+from services.cli.demo import (
+    _lab_session,
+    _live_run,
+    _run,
+    cpu_seconds,
+    run_latencies,
+    start_services,
+)
 
 
 def _runtime(folder: Path) -> Any:
@@ -46,12 +53,20 @@ def _subject(runtime: Any, code: str) -> int:
         return subject.id
 
 
-def _classifier(runtime: Any, subject_id: int, quality: float, actions: int) -> dict[str, Any]:
+def _classifier(
+    runtime: Any, subject_id: int, quality: float, actions: int, max_passes: int | None
+) -> dict[str, Any]:
     from services.worker.calibration import eeg_calibration
     from services.worker.live_session import live_session
 
     session_id = _lab_session(runtime, "calibration", subject_id)
-    options = {"accelerated": True, "virtual_quality": quality, "n_actions": actions}
+    options: dict[str, Any] = {
+        "accelerated": True,
+        "virtual_quality": quality,
+        "n_actions": actions,
+    }
+    if max_passes is not None:
+        options["calibration_max_passes"] = max_passes
     _, job_id = _live_run(runtime, session_id, "calibration", options)
     calibration = _run(runtime, job_id, live_session)
     return _run(runtime, calibration["calibration_job_id"], eeg_calibration)
@@ -78,6 +93,7 @@ def run_benchmark(
     paced_actions: int,
     period_s: float,
     sweep_seeds: int,
+    max_passes: int | None = None,
 ) -> dict[str, Any]:
     """Run both parts (see the module docstring); returns and writes the result."""
     from services.worker.live_session import live_session
@@ -103,7 +119,7 @@ def run_benchmark(
         for k, quality in enumerate(qualities):
             started = time.perf_counter()
             subject_id = _subject(runtime, f"BENCH-{k}-{secrets.token_hex(2)}")
-            trained = _classifier(runtime, subject_id, quality, calibration_actions)
+            trained = _classifier(runtime, subject_id, quality, calibration_actions, max_passes)
             classifiers[quality] = trained["classifier_id"]
             session_id = _lab_session(runtime, "online", subject_id)
             options = {
@@ -130,6 +146,7 @@ def run_benchmark(
                 "seconds_per_label": round(online_s / max(online["labels"], 1), 4),
                 "latency_ms": run_latencies(runtime, run_id),
                 "wall_seconds": round(time.perf_counter() - started, 1),
+                "cpu_seconds_so_far": cpu_seconds(children),
             }
             result["accelerated"].append(row)
             print(json.dumps({k: v for k, v in row.items() if k != "latency_ms"}), flush=True)
@@ -151,6 +168,7 @@ def run_benchmark(
             }
             print(json.dumps(result["paced"]), flush=True)
         result["load_average_1min_end"] = os.getloadavg()[0]
+        result["cpu_seconds"] = cpu_seconds(children)
         (out / "loop.json").write_text(json.dumps(result, indent=2))
         return result
     finally:

@@ -81,6 +81,23 @@ def start_services(data_dir: Path, token: str) -> tuple[dict[str, str], list[Any
     return urls, children
 
 
+def cpu_seconds(children: list[Any]) -> dict[str, float]:
+    """CPU time (user + system, s) used so far by this process and each service child: on
+    a shared machine, the wall time a run would take on idle cores is bounded by these."""
+    import resource
+
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    out = {"demo": round(own.ru_utime + own.ru_stime, 1)}
+    ticks = os.sysconf("SC_CLK_TCK")
+    for child in children:
+        try:
+            fields = Path(f"/proc/{child.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            out[child.name] = round((int(fields[11]) + int(fields[12])) / ticks, 1)
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
+
+
 def _lab_session(runtime: Any, kind: str, subject_id: int) -> int:
     from services.core.db.base import utcnow
     from services.core.db.models import LabSession
@@ -327,6 +344,7 @@ def demo(
             "latency_ms": run_latencies(runtime, run_id),
             "wall_seconds": {**stages, "total_s": time.perf_counter() - started},
             "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]},
+            "cpu_seconds": cpu_seconds(children),
             "cpus": os.cpu_count(),
         }
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -361,6 +379,7 @@ def bench_loop(
     ] = 1000,
     period_s: Annotated[float, typer.Option(min=0.05, help="Paced seconds per action.")] = 1.5,
     sweep_seeds: Annotated[int, typer.Option(min=1, help="hf-sweep seeds to compare.")] = 3,
+    max_passes: Annotated[int | None, typer.Option(min=1, help="Calibration passes.")] = None,
 ) -> None:
     """Closed loop: accelerated sessions per subject quality, a paced session's timeline."""
     from benchmarks.bench_loop import run_benchmark
@@ -373,6 +392,7 @@ def bench_loop(
         paced_actions=paced_actions,
         period_s=period_s,
         sweep_seeds=sweep_seeds,
+        max_passes=max_passes,
     )
     typer.echo(f"wrote {out / 'loop.json'} ({len(result['accelerated'])} accelerated sessions)")
 

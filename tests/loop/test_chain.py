@@ -102,6 +102,29 @@ def test_online_session_labels_to_its_budget_and_registers_the_hf_model(
         assert guided.result["hf_policy_spl"] == model.metrics["hf_policy_spl"]
 
 
+def test_test_session_reports_the_live_accuracy_against_the_oracle(
+    loop: LoopPlatform, classifier_id: int
+) -> None:
+    session_id = loop.lab_session("test")
+    options = {"accelerated": True, "classifier_id": classifier_id, "n_actions": 20}
+    run_id, job_id = loop.live_job(session_id, options)
+    assert run_job(loop.runtime, job_id, live_session) == "succeeded"
+    with loop.runtime.sessions() as db:
+        run = db.get(LiveRun, run_id)
+        assert run is not None and run.result is not None and run.status == "completed"
+        rows = db.execute(
+            select(LiveDecision.status, LiveDecision.feedback, LiveDecision.oracle_correct).where(
+                LiveDecision.run_id == run_id
+            )
+        ).all()
+    accepted = [r for r in rows if r.status == "ok"]
+    hits = sum((r.feedback == "correct") == r.oracle_correct for r in accepted)
+    assert (run.result["actions"], run.result["decisions"]) == (20, 20)
+    assert run.result["accepted"] == len(accepted)
+    assert run.result["accuracy"] == (hits / len(accepted) if accepted else None)
+    assert count(loop, FeedbackLabel, session_id=session_id) == 0
+
+
 def wait_for(check, timeout: float = 300.0) -> None:
     deadline = time.monotonic() + timeout
     while not check():
