@@ -10,7 +10,9 @@ the decoding side's :class:`~services.eeg.preprocessing.OnlinePreprocessor`. It 
 * **clock jumps**: timestamps go backwards, or jump forwards by more than the wall-clock
   time that passed between the two chunks plus ``clock_jump_s``;
 * **disconnects**: :meth:`LiveIngest.mark_disconnected` (LSL stream lost, websocket closed)
-  or no data for ``stale_after_s`` (checked by :meth:`LiveIngest.check_stale`);
+  or no data for ``stale_after_s`` (checked by :meth:`LiveIngest.check_stale`); data that
+  resume with the next expected timestamp were only late: the issue is closed and nothing
+  is marked bad;
 * **bad samples**: NaN or infinite values in a chunk.
 
 Each problem is recorded as a :class:`StreamIssue` (the last :data:`MAX_ISSUES` are kept,
@@ -269,8 +271,12 @@ class LiveIngest:
             expected = self._last_ts + period
             delta = t[0] - expected
             if self._disconnected_at is not None:
-                self._close_disconnect(t[0])
-                self._restart(t[0], self._last_ts)
+                # Data resuming exactly where they stopped were late, not lost (a stall, or
+                # an accelerated source between pushes): the filters carry on.
+                lost = abs(delta) > self.gap_tolerance_s
+                self._close_disconnect(t[0], bad=lost)
+                if lost:
+                    self._restart(t[0], self._last_ts)
             elif delta < -self.gap_tolerance_s:
                 self._issue(
                     "clock_jump", t[0], self._last_ts, f"timestamps went back by {-delta:.4f} s"
@@ -343,8 +349,9 @@ class LiveIngest:
             self.issues_dropped += 1
         self._issues.append(issue)
 
-    def _close_disconnect(self, resumed_at: float) -> None:
-        """Close the open disconnect issue at ``resumed_at`` and mark the outage bad."""
+    def _close_disconnect(self, resumed_at: float, *, bad: bool = True) -> None:
+        """Close the open disconnect issue at ``resumed_at``; mark the outage bad if
+        ``bad`` (samples were lost)."""
         issue = self._open_disconnect
         if issue is None:
             return
@@ -354,7 +361,8 @@ class LiveIngest:
             if self._issues[i] is issue:  # still kept (not dropped)
                 self._issues[i] = closed
                 break
-        self._bad.append((issue.start, resumed_at, f"disconnect: {issue.detail}"))
+        if bad:
+            self._bad.append((issue.start, resumed_at, f"disconnect: {issue.detail}"))
 
     def _restart(self, first_ts: float, bad_from: float | None) -> None:
         """Start a new preprocessing segment; data from ``bad_from`` until settled are bad."""

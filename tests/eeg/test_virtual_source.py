@@ -3,6 +3,8 @@ driven by action markers, the accelerated ingest driver and marker/epoch alignme
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -215,3 +217,26 @@ def test_injected_latency_is_recovered_by_marker_epoch_alignment_within_one_samp
     ]
     recovered_s = lags[int(np.argmax(scores))] / 128.0
     assert abs(recovered_s - 0.0625) <= 1 / 128.0
+
+
+def test_a_pause_between_accelerated_pushes_is_reported_but_loses_no_epoch(client):
+    """No data for longer than ``stale_after_s`` shows as a disconnect; data resuming at the
+    next expected timestamp close it without marking anything bad (nothing was lost)."""
+    source = VirtualEEGSource(quality=0.5, seed=3, sfreq=SFREQ, channels=EEG)
+    markers = [_marker(i, correct=True, t0=2.0) for i in range(3)]
+    with client.websocket_connect(f"/live/ingest?classifier_id={CLASSIFIER}") as ws:
+        ingest_client = VirtualIngestClient(source, AsgiConnection(ws))
+        ingest = client.app.state.service.live.ingest
+        ingest.stale_after_s = 0.05
+        ingest_client.push_epoch(markers[0])
+        time.sleep(0.2)  # the runner is busy elsewhere
+        status = client.get("/live").json()
+        assert status["connected"] is False
+        assert [i["kind"] for i in status["issues"]] == ["disconnect"]
+        ingest_client.push_epoch(markers[1])
+        ingest_client.push_epoch(markers[2])
+        status = client.get("/live").json()
+        assert status["connected"] is True
+        assert status["issues"][0]["end"] is not None
+        results = [ingest.epoch_for(m.timestamp) for m in markers]
+        assert [r.status for r in results] == ["ok", "ok", "ok"], [r.reason for r in results]
