@@ -147,3 +147,36 @@ def test_the_stream_is_marked_synthetic_and_follows_the_lsl_clock(names):
     np.testing.assert_allclose(np.diff(stamps), 1.0 / SFREQ, atol=1e-6)
     # About lag_s behind the LSL clock, like an amplifier's buffer.
     assert 0.0 < local_clock() - stamps[-1] < 2.0
+
+
+def test_bgrl_subject_stream_without_a_file_streams_the_live_subject(names):
+    from typer.testing import CliRunner
+
+    from services.cli.main import app
+
+    eeg_name, marker_name = names
+    result = CliRunner().invoke(
+        app,
+        [
+            "subject",
+            "stream",
+            "--quality",
+            "0.7",
+            "--seed",
+            "3",
+            "--name",
+            eeg_name,
+            "--marker-stream",
+            marker_name,
+            "--duration",
+            "1",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert (
+        f"streaming the virtual subject (SYNTHETIC, quality 0.7, seed 3, 256 Hz) as LSL stream "
+        f"{eeg_name!r}, following markers of {marker_name!r}" in result.output
+    )
+    stopped = result.output.strip().splitlines()[-1]
+    assert stopped.startswith("stopped: ") and stopped.endswith(" samples, 0 markers")
+    assert int(stopped.split()[1]) > 128  # about 1 s minus the lag at 256 Hz
