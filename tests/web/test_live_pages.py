@@ -14,6 +14,7 @@ accuracy has a known value. The full chain (runner, EEG, learner) is tested in t
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -228,4 +229,22 @@ def test_live_view_and_display_show_frames_feedback_and_reconnect(
     assert {item["step"] for item in shown["items"]} <= set(range(STEPS))
     live.screenshot(path=str(screenshot_dir / "live.png"), full_page=True)
     display.screenshot(path=str(screenshot_dir / "display.png"))
+    assert watch.errors_except() == []
+
+
+def test_subject_page_links_the_live_view_and_starts_a_bids_export(
+    context: tuple, server: Server
+) -> None:
+    ctx, watch = context
+    subjects = server.call("GET", "/api/v1/subjects", params={"code": "LIVE-1"})["items"]
+    assert subjects, "runs after the live test, which creates subject LIVE-1"
+    subject = subjects[0]
+    page = open_as(ctx, server, "staff", f"/subjects/{subject['id']}")
+    page.get_by_role("button", name="Export as BIDS").click()
+    link = page.get_by_role("link", name=re.compile(r"^job [0-9a-f]{8}$"))
+    link.wait_for()
+    job_id = link.get_attribute("href").rsplit("/", 1)[-1]
+    job = server.call("GET", f"/api/v1/jobs/{job_id}")
+    assert job["kind"] == "bids_export" and job["config"] == {"subject_id": subject["id"]}
+    assert page.get_by_role("link", name="Live view").count() == 0  # the session is scheduled
     assert watch.errors_except() == []

@@ -1,6 +1,6 @@
 // One subject: notes, and its sessions, recordings, classifiers, HF models and jobs.
 
-import { all, get, patch } from "../api.js";
+import { all, get, patch, post } from "../api.js";
 import {
   downloadButton, field, fmtBytes, fmtDateTime, fmtNumber, h, messageBox, statusBadge, table,
 } from "../dom.js";
@@ -35,6 +35,27 @@ function section(title, content) {
   return h("section", {}, h("h2", {}, title), content);
 }
 
+/** Staff: export the subject's sessions as BIDS (a job; its zip downloads from the job page). */
+function bidsExport(subject) {
+  const message = messageBox();
+  const button = h("button", { type: "button", class: "btn" }, "Export as BIDS");
+  button.addEventListener("click", async () => {
+    message.clear();
+    button.disabled = true;
+    try {
+      const job = await post("/api/v1/jobs", { kind: "bids_export", config: { subject_id: subject.id } });
+      message.replaceChildren("Export started: ", h("a", { href: `/jobs/${job.id}` }, `job ${job.id.slice(0, 8)}`),
+        " (the zip downloads from there when it is done).");
+      message.hidden = false;
+    } catch (err) {
+      message.error(err);
+    } finally {
+      button.disabled = false;
+    }
+  });
+  return h("div", { class: "bids-export" }, button, " ", message);
+}
+
 export async function subjectPage(root, { canEdit }, subjectId) {
   const subject = await get(`/api/v1/subjects/${subjectId}`);
   document.title = `Subject ${subject.code} · Brain-guided RL platform`;
@@ -60,11 +81,17 @@ export async function subjectPage(root, { canEdit }, subjectId) {
     h("h1", {}, `Subject ${subject.code}`),
     h("p", { class: "muted" }, `Registered ${fmtDateTime(subject.created_at)}`),
     notesForm(subject, canEdit),
+    canEdit ? bidsExport(subject) : null,
     section(
       "Sessions",
       table(sessions, [
         { label: "When", cell: (s) => fmtDateTime(s.scheduled_at) },
         { label: "Kind", cell: (s) => s.kind },
+        {
+          label: "Live",
+          cell: (s) => (["calibration", "test", "online"].includes(s.kind) && s.status !== "scheduled"
+            ? h("a", { href: `/sessions/${s.id}/live` }, "Live view") : "–"),
+        },
         { label: "Minutes", cell: (s) => s.duration_minutes },
         { label: "Rig", cell: (s) => rigName.get(s.rig_id) || "–" },
         { label: "Status", cell: (s) => statusBadge(s.status) },
