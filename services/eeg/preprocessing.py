@@ -40,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy import signal
 
 from services.core.actions import TRIGGER_ERROR
+from services.eeg.filters import CausalPolyphase, CausalSosStage
 
 if TYPE_CHECKING:
     import mne
@@ -158,83 +159,6 @@ class EpochUnavailableError(LookupError):
     """The requested epoch starts before the oldest sample still buffered."""
 
 
-class _CausalSosStage:
-    """A causal SOS filter over channels whose state persists across chunks.
-
-    The state is initialised from the first sample (steady state for a constant input),
-    so a DC offset at the start of a stream causes no step response.
-    """
-
-    def __init__(self, sos: np.ndarray) -> None:
-        self.sos = sos
-        self._zi_unit = signal.sosfilt_zi(sos)  # (n_sections, 2)
-        self._zi: np.ndarray | None = None
-
-    def reset(self) -> None:
-        self._zi = None
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        """Filter ``x`` of shape (n_channels, n_times) along time."""
-        if x.shape[1] == 0:
-            return x
-        if self._zi is None:
-            self._zi = self._zi_unit[:, None, :] * x[None, :, 0, None]
-        y, self._zi = signal.sosfilt(self.sos, x, axis=1, zi=self._zi)
-        return y
-
-
-class _CausalPolyphase:
-    """Causal rational resampler by ``up / down`` (polyphase FIR) over channels.
-
-    Output sample ``m`` is ``sum_j h[j] * xup[m * down - j]`` where ``xup`` is the input
-    with ``up - 1`` zeros after every sample; only the non-zero products are computed.
-    The input before the first sample is taken as that sample (no step response), and
-    the state (the last input samples and the count) persists across chunks.
-    """
-
-    def __init__(self, taps: np.ndarray, up: int, down: int) -> None:
-        self.up, self.down = up, down
-        self.n_phase_taps = math.ceil(taps.size / up)
-        padded = np.zeros(self.n_phase_taps * up)
-        padded[: taps.size] = taps
-        # phases[p, i] = h[p + up * i]; reversed so a window of inputs in time order dots it
-        self._phases = padded.reshape(self.n_phase_taps, up).T[:, ::-1].copy()
-        self.delay_in = (taps.size - 1) / 2 / up
-        """Group delay in input samples."""
-        self._history: np.ndarray | None = None
-        self._n_in = 0
-        self._n_out = 0
-
-    def reset(self) -> None:
-        self._history = None
-        self._n_in = self._n_out = 0
-
-    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Resample ``x`` (n_channels, n_times); returns the new output samples and, for
-        each, its position in input samples relative to ``x[:, 0]`` (fractional)."""
-        n = x.shape[1]
-        if n == 0:
-            return x[:, :0], np.empty(0)
-        if self._history is None:
-            self._history = np.repeat(x[:, :1], self.n_phase_taps - 1, axis=1)
-        joined = np.concatenate([self._history, x], axis=1)
-        first_in = self._n_in
-        self._n_in += n
-        # output m needs input floor(m * down / up); all with that index below _n_in
-        stop = -(-self._n_in * self.up // self.down)
-        m = np.arange(self._n_out, stop)
-        self._n_out = stop
-        self._history = joined[:, joined.shape[1] - (self.n_phase_taps - 1) :]
-        if m.size == 0:
-            return x[:, :0], np.empty(0)
-        k = m * self.down
-        last = k // self.up - first_in + self.n_phase_taps - 1  # index in ``joined``
-        windows = np.lib.stride_tricks.sliding_window_view(joined, self.n_phase_taps, axis=1)
-        picked = windows[:, last - (self.n_phase_taps - 1)]  # (n_ch, n_out, n_phase_taps)
-        y = np.einsum("cmt,mt->cm", picked, self._phases[k % self.up])
-        return y, k / self.up - first_in
-
-
 class OnlinePreprocessor:
     """Causal filter, resampler and timestamped ring buffer for one EEG stream.
 
@@ -276,14 +200,14 @@ class OnlinePreprocessor:
             raise ValueError(f"buffer_s ({buffer_s}) must exceed the epoch length")
         self._capacity = math.ceil(buffer_s * self.params.sfreq_out)
         n_ch = len(self.ch_names)
-        self._antialias: _CausalSosStage | None = None
-        self._resampler: _CausalPolyphase | None = None
+        self._antialias: CausalSosStage | None = None
+        self._resampler: CausalPolyphase | None = None
         if self.up == 1:  # integer ratio: Butterworth and every ``down``-th sample
-            self._antialias = _CausalSosStage(self.params.antialias_sos(self.sfreq_in))
+            self._antialias = CausalSosStage(self.params.antialias_sos(self.sfreq_in))
         else:
             taps = self.params.antialias_fir(self.sfreq_in)
-            self._resampler = _CausalPolyphase(taps, self.up, self.down)
-        self._bandpass = _CausalSosStage(self.params.bandpass_sos())
+            self._resampler = CausalPolyphase(taps, self.up, self.down)
+        self._bandpass = CausalSosStage(self.params.bandpass_sos())
         self._data = np.empty((n_ch, 2 * self._capacity))
         self._times = np.empty(2 * self._capacity)
         self._n_in = 0
