@@ -186,3 +186,36 @@ def test_bids_export_job_stores_a_zip_artifact(loop: LoopPlatform, online: dict[
     assert sessions and all(s["source"].startswith("recording") for s in sessions)
     assert "dataset_description.json" in names and "participants.tsv" in names
     assert all(s["path"] in names for s in sessions)
+
+
+def test_bgrl_bids_export_writes_the_dataset(
+    loop: LoopPlatform, online: dict[str, int], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from typer.testing import CliRunner
+
+    from services.cli.main import app
+
+    monkeypatch.setenv("BGRL_DATA_DIR", str(loop.data_dir))
+    out = tmp_path / "ds"
+    result = CliRunner().invoke(
+        app,
+        [
+            "bids",
+            "export",
+            "--subject",
+            SUBJECT,
+            "--out",
+            str(out),
+            "--zip",
+            str(tmp_path / "ds.zip"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert [s["session_id"] for s in summary["sessions"]] == [online["session_id"]]
+    assert (out / summary["sessions"][0]["path"]).is_file()
+    assert zipfile.ZipFile(tmp_path / "ds.zip").namelist()
+    again = CliRunner().invoke(
+        app, ["bids", "export", "--subject", "NOBODY", "--out", str(tmp_path / "x")]
+    )
+    assert again.exit_code == 1 and "no subject with code 'NOBODY'" in again.output
