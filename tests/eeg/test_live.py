@@ -253,3 +253,46 @@ def test_lsl_stream_with_device_names_needs_the_rig_map():
             assert source.ingest.n_samples >= 500
     finally:
         player.stop()
+
+
+@pytest.mark.lsl
+def test_post_live_takes_the_rig_channel_map(tmp_path):
+    """POST /live refuses a device-named stream with the reason and takes it with its map."""
+    from fastapi.testclient import TestClient
+
+    from services.eeg.app import create_app
+    from services.eeg.settings import EEGSettings
+
+    lsl = pytest.importorskip("services.eeg.lsl")
+    try:
+        lsl.lsl_clock()
+    except Exception as exc:  # liblsl missing or unusable on this machine
+        pytest.skip(f"liblsl cannot run here: {exc}")
+    from tests.eeg.caps import CAP_8, virtual_recording
+
+    raw = virtual_recording(500.0, CAP_8, seed=4)
+    raw.rename_channels({ch: f"E{i + 1}" for i, ch in enumerate(CAP_8)})
+    rig_map = {f"E{i + 1}": ch for i, ch in enumerate(CAP_8)}
+    name = f"bgrl-app-map-{time.monotonic_ns()}"
+    player = lsl.replay(raw, name=name, chunk_size=25)
+    settings = EEGSettings(data_dir=tmp_path, lsl_timeout_s=5.0)
+    try:
+        with TestClient(create_app(settings)) as client:
+            bad = client.post("/live", json={"stream_name": name, "channel_map": {"E1": ""}})
+            assert bad.status_code == 422
+            assert bad.json()["message"] == (
+                "channel_map.E1: String should have at least 1 character"
+            )
+            refused = client.post("/live", json={"stream_name": name})
+            assert refused.status_code == 422
+            assert refused.json() == {
+                "detail": f"EEG stream {name!r}: 0 channels with standard 10-20/10-10 names; "
+                "8 to 256 are needed (give the rig a channel map when the amplifier names "
+                "its channels otherwise)",
+                "field": "stream_name",
+            }
+            mapped = client.post("/live", json={"stream_name": name, "channel_map": rig_map})
+            assert mapped.status_code == 200, mapped.text
+            assert client.app.state.service.live.ingest.eeg_ch_names == CAP_8
+    finally:
+        player.stop()
