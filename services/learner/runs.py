@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 import traceback
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import closing
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -22,7 +22,13 @@ import gymnasium as gym
 import numpy as np
 
 from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
-from services.learner.feedback import HFPolicy, HFResult, OracleFeedbackSource, collect_feedback
+from services.learner.feedback import (
+    FeedbackRecord,
+    HFPolicy,
+    HFResult,
+    OracleFeedbackSource,
+    collect_feedback,
+)
 from services.learner.ppo import Callback, PPOConfig, train
 from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
 from services.learner.specs import N_VSSG_EVAL_STARTS, TASK_ENV_IDS, RunSpec
@@ -143,15 +149,29 @@ def episode_stats(
     return rows
 
 
-def learn_hf_policy(env: gym.Env, accuracy: float, seed: int, n_labels: int) -> HFResult:
+def learn_hf_policy(
+    env: gym.Env,
+    accuracy: float,
+    seed: int,
+    n_labels: int,
+    *,
+    on_label: Callable[[FeedbackRecord], None] | None = None,
+) -> HFResult:
     """Stage 2 from simulated feedback at accuracy C, on the run's label streams.
 
     The labels depend on ``seed`` only (not on method, treatment or PPO settings), so every
-    study guides the runs of one seed with the same pi_HF.
+    study guides the runs of one seed with the same pi_HF. ``on_label`` is called after
+    each label (a job worker checks for cancel there; raising stops the collection).
     """
     seeds = RunSeeds(seed)
     source = OracleFeedbackSource(accuracy, seed=seeds.int_seed(Stream.LABEL_NOISE))
-    return collect_feedback(env, source, n_labels, seed=seeds.int_seed(Stream.LABEL_COLLECTION))
+    return collect_feedback(
+        env,
+        source,
+        n_labels,
+        seed=seeds.int_seed(Stream.LABEL_COLLECTION),
+        on_label=on_label,
+    )
 
 
 def run_one(
@@ -162,6 +182,7 @@ def run_one(
     checkpoint_every: int = 10,
     model_path: str | Path | None = None,
     hf_policy: HFPolicy | None = None,
+    on_label: Callable[[FeedbackRecord], None] | None = None,
 ) -> RunRecord:
     """Execute one run (stage 2 for hf_sparse, then stage 3) and return its record.
 
@@ -169,7 +190,8 @@ def run_one(
     worker reports progress, stops on cancel and resumes from the checkpoint); with
     ``model_path`` the trained policy is exported there as TorchScript. A given
     ``hf_policy`` (e.g. learned from a subject's decoded EEG in an online session) guides
-    an hf_sparse run instead of stage 2's simulated feedback.
+    an hf_sparse run instead of stage 2's simulated feedback; ``on_label`` goes to stage 2's
+    label collection (see :func:`learn_hf_policy`).
     """
     start = time.perf_counter()
     config: PPOConfig = spec.ppo_config()
@@ -181,7 +203,9 @@ def run_one(
     elif spec.method == "hf_sparse":
         assert spec.accuracy is not None  # RunSpec guarantees it for hf_sparse
         with closing(gym.make(config.env_id, **config.env_kwargs)) as label_env:
-            hf = learn_hf_policy(label_env, spec.accuracy, spec.seed, spec.n_labels)
+            hf = learn_hf_policy(
+                label_env, spec.accuracy, spec.seed, spec.n_labels, on_label=on_label
+            )
             hf_policy = hf.policy
             hf_policy_spl = evaluate_spl(label_env, hf_policy.act, config.eval_seeds)
         hf_summary = hf.summary()

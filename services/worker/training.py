@@ -176,6 +176,7 @@ def train_spec(
             checkpoint_every=checkpoint_every,
             model_path=model_path,
             hf_policy=hf_policy,
+            on_label=lambda _record: context.check_stop(),  # cancel during stage 2 too
         )
         context.check_stop()
         weights = weights_sha256(model_path)

@@ -103,6 +103,22 @@ def test_cancel_stops_a_running_job_within_5_s(fs_platform: Platform, workers: l
     assert job.lease_owner is None and job.steps_done < 200_000
 
 
+def test_cancel_stops_hf_label_collection_within_5_s(fs_platform: Platform, workers: list) -> None:
+    config = {**GUIDED, "method": "hf_sparse", "accuracy": 0.7, "n_labels": 1000}
+    job_id = fs_platform.submit("guided_ppo", {**config, "total_steps": 200_000})
+    fs_platform.wait(job_id, lambda job: job.status == "running", poll=0.05)
+    # past loading the map's oracle (not interruptible; seconds on a loaded machine), into
+    # the 1000-label collection, which takes longer than this
+    time.sleep(2.0)
+    asked = time.monotonic()
+    fs_platform.set(job_id, cancel_requested=True)
+    job = fs_platform.wait(job_id, {"cancelled", "failed", "succeeded"}, timeout=10, poll=0.05)
+    took = time.monotonic() - asked
+    assert job.status == "cancelled"
+    assert took < 5.0, f"cancel took {took:.1f} s"
+    assert job.steps_done == 0  # stopped in stage 2, before PPO's first step
+
+
 def test_reproduce_fans_out_and_writes_the_reproduction(
     fs_platform: Platform, workers: list
 ) -> None:
