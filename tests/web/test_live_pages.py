@@ -128,7 +128,12 @@ class SteppedSession:
             json={"subject_id": subject["id"], "kind": "online",
                   "scheduled_at": start.isoformat(), "duration_minutes": 30},
         )  # fmt: skip
-        self.sim = httpx.Client(base_url=server.sim_url, headers={"X-Service-Token": TOKEN})  # type: ignore[attr-defined]
+        # the first session builds the map's oracle: seconds, more on a loaded machine
+        self.sim = httpx.Client(
+            base_url=server.sim_url,  # type: ignore[attr-defined]
+            headers={"X-Service-Token": TOKEN},
+            timeout=120.0,
+        )
         created = self.sim.post("/sessions", json={"task": "sssg", "seed": 5}).json()
         self.sim_id = created["id"]
         self.observation = created["observation"]
