@@ -13,7 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
 from sqlalchemy import select, update
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer
 
 from services.api import audit
 from services.api.crud import get_or_404, paginate
@@ -138,7 +138,12 @@ def list_jobs(
     parent_id: Annotated[str | None, Query(max_length=32)] = None,
 ) -> Page[JobPublic]:
     """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs)."""
-    query = select(Job).order_by(Job.created_at.desc(), Job.id)
+    # the curve (up to hundreds of points) and tracebacks are not in the list's items
+    query = (
+        select(Job)
+        .options(defer(Job.curve), defer(Job.traceback))
+        .order_by(Job.created_at.desc(), Job.id)
+    )
     if status_ is not None:
         query = query.where(Job.status == status_)
     if kind is not None:
