@@ -18,12 +18,14 @@ import importlib
 import importlib.util
 import logging
 import os
+import secrets
 import signal
 import subprocess
 import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Any
 
 import typer
@@ -111,6 +113,25 @@ class Child:
             self.proc.wait()
 
 
+SERVICE_TOKEN_FILE = "service-token"
+"""File in the data folder keeping the internal service token ``bgrl up`` generated."""
+
+
+def kept_service_token(path: Path) -> str:
+    """The token kept in ``path``, generated (URL-safe, 256 bits, mode 600) on first use."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        token = path.read_text().strip()
+        if len(token) < 16:
+            raise _fail(f"{path} holds no usable service token: delete it for a new one") from None
+        return token
+    token = secrets.token_urlsafe(32)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(token + "\n")
+    return token
+
+
 def _fail(message: str) -> typer.Exit:
     typer.echo(f"error: {message}", err=True)
     return typer.Exit(2)
@@ -149,6 +170,11 @@ def up(
 
     data_dir = platform.ensure_data_dir().resolve()
     typer.echo(f"data folder {data_dir}")
+    if platform.service_token is None:
+        # one door: sim, EEG and learner take calls only from the platform's own processes
+        token_file = data_dir / SERVICE_TOKEN_FILE
+        os.environ["BGRL_SERVICE_TOKEN"] = kept_service_token(token_file)
+        typer.echo(f"internal services take the X-Service-Token kept in {token_file}")
     if migrate:
         from services.core.db.migrate import upgrade_database
 

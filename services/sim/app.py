@@ -69,6 +69,7 @@ def create_app(settings: SimSettings | None = None) -> FastAPI:
         lifespan=lifespan,
         routers=[m.router for m in (service, sessions, oracle, images, paced, stream)],
         health=service.health_fields,
+        service_token=settings.service_token,
     )
     app.state.settings = settings
     return app

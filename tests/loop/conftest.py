@@ -146,6 +146,7 @@ class LoopPlatform:
 
 @pytest.fixture(scope="module")
 def loop(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopPlatform]:
+    saved_env = dict(os.environ)  # the platform sets BGRL_* for its in-process runtime
     platform = LoopPlatform(tmp_path_factory.mktemp("loop"))
     try:
         for name in APPS:
@@ -155,3 +156,5 @@ def loop(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopPlatform]:
         yield platform
     finally:
         platform.close()
+        os.environ.clear()
+        os.environ.update(saved_env)  # later tests must not inherit the service token

@@ -110,6 +110,12 @@ def test_up_serves_restarts_a_dead_worker_and_sigterm_stops_everything(tmp_path:
                 assert proc.poll() is None, (tmp_path / "err.log").read_text()[-3000:]
                 assert time.monotonic() < deadline, f"{name} did not answer"
                 time.sleep(0.5)
+        # one door: the internal services answer only calls with the kept service token
+        token = (tmp_path / "data" / "service-token").read_text().strip()
+        assert oct((tmp_path / "data" / "service-token").stat().st_mode & 0o777) == "0o600"
+        maps = f"http://127.0.0.1:{ports['sim']}/maps"
+        assert httpx.get(maps, timeout=10).status_code == 401
+        assert httpx.get(maps, headers={"X-Service-Token": token}, timeout=10).status_code == 200
         workers = [pid for pid, cmd in children(proc.pid).items() if " worker " in cmd]
         assert len(workers) == 1
         os.kill(workers[0], signal.SIGKILL)
