@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 from celery import Celery
-from fastapi import Depends, Path, Query
+from fastapi import Depends, Path, Query, WebSocket
 from fastapi.security import OAuth2PasswordBearer
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
@@ -21,6 +21,7 @@ from services.api.settings import ApiSettings
 from services.core.artifacts import ArtifactStore
 from services.core.db.base import utcnow
 from services.core.db.models import ApiToken, User
+from services.core.websockets import CLOSE_UNAUTHORIZED
 
 TOKEN_URL = "/api/v1/auth/token"
 ROLE_RANK = {"viewer": 0, "staff": 1, "admin": 2}
@@ -75,6 +76,28 @@ def authenticate(db: Session, token: str, jwt_key: str) -> User:
     if user is None or not user.active:
         raise UnauthorizedError("account unknown or deactivated", field="token")
     return user
+
+
+def websocket_token(websocket: WebSocket, token: str | None) -> str | None:
+    """The user's token of a websocket: ``?token=`` (browsers cannot set headers on
+    websockets) or an ``Authorization: Bearer`` header."""
+    header = websocket.headers.get("authorization", "")
+    if token is None and header.lower().startswith("bearer "):
+        return header[7:].strip()
+    return token
+
+
+def websocket_sign_in_refusal(
+    db: Session, websocket: WebSocket, token: str | None
+) -> tuple[int, str] | None:
+    """``(close code, reason)`` if the websocket's user is not signed in, else None."""
+    if not token:
+        return CLOSE_UNAUTHORIZED, "not signed in: pass ?token= or an Authorization header"
+    try:
+        authenticate(db, token, websocket.app.state.jwt_key)
+    except UnauthorizedError as exc:
+        return CLOSE_UNAUTHORIZED, str(exc)
+    return None
 
 
 def get_current_user(

@@ -28,6 +28,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.core.errors import ServiceError
 from services.core.logging import request_id
+from services.core.websockets import CLOSE_UNAUTHORIZED
 
 log = logging.getLogger("bgrl.http")
 
@@ -173,7 +174,9 @@ class _ServiceToken:
             await self.app(scope, receive, send)
             return
         if scope["type"] == "websocket":
-            await send({"type": "websocket.close", "code": 4401, "reason": "service token"})
+            await send(
+                {"type": "websocket.close", "code": CLOSE_UNAUTHORIZED, "reason": "service token"}
+            )
             return
         body = json.dumps(
             {"detail": "missing or wrong X-Service-Token", "field": SERVICE_TOKEN_HEADER}

@@ -7,6 +7,8 @@ from urllib.parse import urlsplit
 
 from starlette.requests import HTTPConnection
 
+CLOSE_UNAUTHORIZED = 4401
+"""Close code for a missing or wrong token (a user's, or the internal service token)."""
 CLOSE_ORIGIN_REFUSED = 4403
 """Close code sent before ``accept`` when the Origin is not allowed."""
 CLOSE_NOT_FOUND = 4404

@@ -8,27 +8,21 @@ from typing import Annotated
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 
-from services.api.deps import authenticate
-from services.api.errors import UnauthorizedError
+from services.api.deps import websocket_sign_in_refusal, websocket_token
 from services.api.schemas.jobs import JobPublic
 from services.core.db.models import JOB_FINAL_STATUSES, Job
 from services.core.websockets import CLOSE_NOT_FOUND, CLOSE_ORIGIN_REFUSED, origin_allowed
 
 router = APIRouter(tags=["jobs"])
 
-CLOSE_UNAUTHORIZED = 4401
 POLL_S = 0.5
 
 
 def _check(websocket: WebSocket, token: str | None, job_id: str) -> tuple[int, str] | None:
     """``(close code, reason)`` if the connection is refused, else None."""
-    if not token:
-        return CLOSE_UNAUTHORIZED, "not signed in: pass ?token= or an Authorization header"
     with websocket.app.state.sessions() as db:
-        try:
-            authenticate(db, token, websocket.app.state.jwt_key)
-        except UnauthorizedError as exc:
-            return CLOSE_UNAUTHORIZED, str(exc)
+        if (refused := websocket_sign_in_refusal(db, websocket, token)) is not None:
+            return refused
         if db.get(Job, job_id) is None:
             return CLOSE_NOT_FOUND, f"no job with id {job_id}"
     return None
@@ -55,9 +49,7 @@ async def job_events(
     if not origin_allowed(websocket, websocket.app.state.settings.allowed_origins):
         await websocket.close(code=CLOSE_ORIGIN_REFUSED, reason="origin not allowed")
         return
-    header = websocket.headers.get("authorization", "")
-    if token is None and header.lower().startswith("bearer "):
-        token = header[7:].strip()
+    token = websocket_token(websocket, token)
     refused = await run_in_threadpool(_check, websocket, token, job_id)
     if refused is not None:
         await websocket.close(code=refused[0], reason=refused[1][:120])

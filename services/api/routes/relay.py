@@ -23,8 +23,7 @@ from sqlalchemy import select
 from websockets.asyncio.client import connect
 from websockets.exceptions import WebSocketException
 
-from services.api.deps import authenticate
-from services.api.errors import UnauthorizedError
+from services.api.deps import websocket_sign_in_refusal, websocket_token
 from services.core.db.live import LiveRun
 from services.core.db.models import LabSession
 from services.core.websockets import CLOSE_NOT_FOUND, CLOSE_ORIGIN_REFUSED, origin_allowed
@@ -32,20 +31,15 @@ from services.core.websockets import CLOSE_NOT_FOUND, CLOSE_ORIGIN_REFUSED, orig
 router = APIRouter(tags=["live sessions"])
 logger = logging.getLogger(__name__)
 
-CLOSE_UNAUTHORIZED = 4401
 CLOSE_TRY_AGAIN = 1013
 FRAME_PARAMS = "fps=2&on_action=true&view=camera&format=jpeg&encoding=base64"
 
 
 def _sim_session(websocket: WebSocket, token: str | None, session_id: int) -> tuple[int, str]:
     """``(0, sim session id)``, or ``(close code, reason)`` if the connection is refused."""
-    if not token:
-        return CLOSE_UNAUTHORIZED, "not signed in: pass ?token= or an Authorization header"
     with websocket.app.state.sessions() as db:
-        try:
-            authenticate(db, token, websocket.app.state.jwt_key)
-        except UnauthorizedError as exc:
-            return CLOSE_UNAUTHORIZED, str(exc)
+        if (refused := websocket_sign_in_refusal(db, websocket, token)) is not None:
+            return refused
         if db.get(LabSession, session_id) is None:
             return CLOSE_NOT_FOUND, f"no session with id {session_id}"
         sim_id = db.scalar(
@@ -69,9 +63,7 @@ async def frames(
     if not origin_allowed(websocket, settings.allowed_origins):
         await websocket.close(code=CLOSE_ORIGIN_REFUSED, reason="origin not allowed")
         return
-    header = websocket.headers.get("authorization", "")
-    if token is None and header.lower().startswith("bearer "):
-        token = header[7:].strip()
+    token = websocket_token(websocket, token)
     code, detail = await run_in_threadpool(_sim_session, websocket, token, session_id)
     if code:
         await websocket.close(code=code, reason=detail[:120])
