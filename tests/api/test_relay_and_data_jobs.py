@@ -21,6 +21,24 @@ def test_frame_relay_checks_token_and_session_before_accept(api: Api) -> None:
     assert _close_code(api, f"/api/v1/sessions/999/frames?token={token}") == 4404
 
 
+def test_frame_relay_accepts_then_closes_4404_while_a_session_has_no_sim_session(
+    api: Api,
+) -> None:
+    """A signed-in page waiting for a session to start gets the close code (a handshake
+    refused before ``accept`` reaches a browser only as 1006 and a console error)."""
+    staff = api.as_("staff")
+    subject = api.client.post("/api/v1/subjects", json={"code": "S-relay"}, headers=staff)
+    body = {"subject_id": subject.json()["id"], "kind": "online",
+            "scheduled_at": "2026-12-02T09:00:00+00:00"}  # fmt: skip
+    session = api.client.post("/api/v1/sessions", json=body, headers=staff).json()
+    token = staff["Authorization"].removeprefix("Bearer ")
+    path = f"/api/v1/sessions/{session['id']}/frames?token={token}"
+    # entered in order: a refused handshake would raise before pytest.raises is entered
+    with api.client.websocket_connect(path) as ws, pytest.raises(WebSocketDisconnect) as closed:
+        ws.receive_json()
+    assert closed.value.code == 4404 and "no running sim session" in closed.value.reason
+
+
 def test_data_jobs_name_an_unknown_subject_or_session(api: Api) -> None:
     staff = api.as_("staff")
     for kind, config, name in (

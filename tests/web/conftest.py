@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,7 @@ CHROMIUM_ARGS = [
 ADMIN = ("admin@lab.test", "admin-password-123")
 STAFF = ("staff@lab.test", "staff-password-123")
 VIEWER = ("viewer@lab.test", "viewer-password-123")
+ACCOUNTS = {"admin": ADMIN, "staff": STAFF, "viewer": VIEWER}
 REPO = Path(__file__).resolve().parents[2]
 
 try:
@@ -79,6 +81,8 @@ class Server:
     env: dict[str, str]
     tokens: dict[str, str] = field(default_factory=dict)
     worker: subprocess.Popen[bytes] | None = None
+    sim_url: str | None = None
+    database_url: str | None = None
 
     def call(self, method: str, path: str, role: str = "admin", **kwargs: Any) -> Any:
         response = httpx.request(
@@ -104,6 +108,47 @@ class Server:
         )
 
 
+SERVICE_APPS = {
+    "sim": "services.sim.app:app",
+    "eeg": "services.eeg.app:app",
+    "learner": "services.learner.service.app:app",
+}
+
+
+@contextmanager
+def run_services(
+    root: Path, env: dict[str, str], names: tuple[str, ...]
+) -> Iterator[dict[str, str]]:
+    """The named services (sim, eeg, learner) as uvicorn processes on free loopback ports,
+    logging to ``root/<name>.log``; their base URLs once all answer ``/health``."""
+    ports = {name: _free_port() for name in names}
+    urls = {name: f"http://127.0.0.1:{port}" for name, port in ports.items()}
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    try:
+        for name in names:
+            procs[name] = subprocess.Popen(
+                [sys.executable, "-m", "uvicorn", SERVICE_APPS[name], "--host", "127.0.0.1",
+                 "--port", str(ports[name])],
+                env=env, cwd=root, stdout=(root / f"{name}.log").open("wb"),
+                stderr=subprocess.STDOUT,
+            )  # fmt: skip
+        deadline = time.monotonic() + 120  # torch and mne imports on a loaded machine
+        for name in names:
+            while True:
+                try:
+                    if httpx.get(urls[name] + "/health", timeout=2).is_success:
+                        break
+                except httpx.HTTPError:
+                    pass
+                if procs[name].poll() is not None or time.monotonic() > deadline:
+                    pytest.fail(f"{name} did not start: {(root / f'{name}.log').read_text()}")
+                time.sleep(0.2)
+        yield urls
+    finally:
+        for proc in procs.values():
+            _stop(proc)
+
+
 def _login(base_url: str, email: str, password: str) -> str:
     response = httpx.post(
         base_url + "/api/v1/auth/token", data={"username": email, "password": password}
@@ -112,22 +157,55 @@ def _login(base_url: str, email: str, password: str) -> str:
     return response.json()["access_token"]
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    """The api (uvicorn in a thread) on a free loopback port with an admin, a staff and a
-    viewer account; password hashing at minimal cost (the tests check pages, not hashes)."""
-    reason = _skip_reason()
-    if reason:
-        pytest.skip(reason)
+@contextmanager
+def serve_api(settings: Any) -> Iterator[str]:
+    """The api (uvicorn in a thread) on a free loopback port; its base URL. Password hashing
+    at minimal cost (the tests check pages, not hashes)."""
     import uvicorn
     from argon2 import PasswordHasher
 
     from services.api import security
     from services.api.app import create_app
+
+    patch = pytest.MonkeyPatch()
+    patch.setattr(security, "_hasher", PasswordHasher(time_cost=1, memory_cost=64, parallelism=1))
+    port = _free_port()
+    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning")
+    uvicorn_server = uvicorn.Server(config)
+    thread = threading.Thread(target=uvicorn_server.run, name="api", daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 60
+        while not uvicorn_server.started:
+            if not thread.is_alive() or time.monotonic() > deadline:
+                pytest.fail("the api did not start (see the log above)")
+            time.sleep(0.1)
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        uvicorn_server.should_exit = True
+        thread.join(timeout=15)
+        patch.undo()
+
+
+def add_accounts(srv: Server, roles: tuple[str, ...] = ("staff", "viewer")) -> None:
+    """Sign in as the admin and create (and sign in) an account per role."""
+    srv.tokens["admin"] = _login(srv.base_url, *ADMIN)
+    for role in roles:
+        email, password = ACCOUNTS[role]
+        srv.call("POST", "/api/v1/users", json={"email": email, "password": password, "role": role})
+        srv.tokens[role] = _login(srv.base_url, email, password)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """The api on a temporary SQLite database with an admin, a staff and a viewer account,
+    and a real ``bgrl worker``."""
+    reason = _skip_reason()
+    if reason:
+        pytest.skip(reason)
     from services.api.settings import ApiSettings
 
     root = tmp_path_factory.mktemp("web")
-    port = _free_port()
     env = {
         **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
         "BGRL_DATA_DIR": str(root / "data"),
@@ -141,34 +219,15 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
         eeg_url=None,
         job_heartbeat_s=0.5,
     )
-    patch = pytest.MonkeyPatch()
-    patch.setattr(security, "_hasher", PasswordHasher(time_cost=1, memory_cost=64, parallelism=1))
-    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning")
-    uvicorn_server = uvicorn.Server(config)
-    thread = threading.Thread(target=uvicorn_server.run, name="api", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not uvicorn_server.started:
-        if not thread.is_alive() or time.monotonic() > deadline:
-            pytest.fail("the api did not start (see the log above)")
-        time.sleep(0.1)
-    base_url = f"http://127.0.0.1:{port}"
-    srv = Server(base_url, root, env)
-    srv.start_worker()  # starts up while the first tests run
-    try:
-        srv.tokens["admin"] = _login(base_url, *ADMIN)
-        for role, (email, password) in (("staff", STAFF), ("viewer", VIEWER)):
-            srv.call(
-                "POST", "/api/v1/users", json={"email": email, "password": password, "role": role}
-            )
-            srv.tokens[role] = _login(base_url, email, password)
-        yield srv
-    finally:
-        if srv.worker is not None:
-            _stop(srv.worker)
-        uvicorn_server.should_exit = True
-        thread.join(timeout=15)
-        patch.undo()
+    with serve_api(settings) as base_url:
+        srv = Server(base_url, root, env)
+        srv.start_worker()  # starts up while the first tests run
+        try:
+            add_accounts(srv)
+            yield srv
+        finally:
+            if srv.worker is not None:
+                _stop(srv.worker)
 
 
 @pytest.fixture(scope="module")

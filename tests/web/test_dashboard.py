@@ -54,12 +54,19 @@ def test_sign_in_wrong_password_then_right_then_out(context: tuple, server: Serv
 def test_viewer_is_offered_no_changes(context: tuple, server: Server) -> None:
     ctx, watch = context
     subject = server.call("POST", "/api/v1/subjects", json={"code": "V-01", "notes": "read only"})
+    server.call(
+        "POST",
+        "/api/v1/sessions",
+        json={"subject_id": subject["id"], "kind": "online",
+              "scheduled_at": (datetime.now(UTC) + timedelta(days=3)).isoformat()},
+    )  # fmt: skip
     page = open_as(ctx, server, "viewer", "/subjects")
     page.get_by_role("link", name="V-01").wait_for()
     assert page.locator("form", has_text="New subject").count() == 0
     page.goto(f"/subjects/{subject['id']}")
     page.get_by_role("heading", name="Subject V-01").wait_for()
     assert page.locator("textarea").count() == 0
+    assert page.get_by_role("link", name="Live view").count() == 0  # none started
     assert page.get_by_role("button", name="Save notes").count() == 0
     page.goto("/sessions")
     page.locator("table.week").wait_for()
@@ -134,6 +141,8 @@ def test_schedule_conflict_reschedule_cancel(context: tuple, server: Server) -> 
 
     slot.click()
     dialog = page.locator("dialog[open]")
+    live = dialog.get_by_role("link", name="Live view")  # staff start it there
+    assert live.get_attribute("href") == f"/sessions/{first['id']}/live"
     dialog.locator("input[name=time]").fill("14:30")
     dialog.get_by_role("button", name="Reschedule").click()
     page.get_by_text(f"Session {first['id']} rescheduled.").wait_for()
@@ -357,6 +366,12 @@ def test_every_page_is_clean_and_local(
         "/api/v1/sessions",
         json={"subject_id": subject["id"], "kind": "rl", "scheduled_at": start.isoformat()},
     )
+    online = server.call(
+        "POST",
+        "/api/v1/sessions",
+        json={"subject_id": subject["id"], "kind": "online",
+              "scheduled_at": (start + timedelta(hours=2)).isoformat()},
+    )  # fmt: skip
     engine = make_engine(PlatformSettings(data_dir=server.root / "data").resolved_database_url)
     with make_session_factory(engine)() as db:
         metrics = {"test_accuracy": 0.9, "balanced_accuracy": 0.875, "roc_auc": 0.95,
@@ -376,6 +391,8 @@ def test_every_page_is_clean_and_local(
         "jobs": ("/jobs", "Jobs"),
         "models": ("/models", "Models and downloads"),
         "classifier": (f"/classifiers/{classifier_id}", "Calibration: S-pages.bdf (seed 0)"),
+        # not started: the start form, and no polling of a run that does not exist yet
+        "live-start": (f"/sessions/{online['id']}/live", f"Session {online['id']} live (online)"),
     }
     for name, (path, heading) in pages.items():
         page.goto(path)
@@ -384,8 +401,15 @@ def test_every_page_is_clean_and_local(
         assert nav_labels(page) == NAV
         suffix = "" if scheme == "light" else "-dark"
         page.screenshot(path=str(screenshot_dir / f"{name}{suffix}.png"), full_page=True)
+    form = page.get_by_role("form", name="Start the session")
+    assert form.get_by_label("Classifier").input_value() == str(classifier_id)
+    page.goto(f"/classifiers/{classifier_id}")
+    page.locator("table.confusion").wait_for()
     cells = page.locator("table.confusion tbody td").all_inner_texts()
     assert cells == ["40", "2", "3", "15"]
+    page.goto(f"/sessions/{online['id']}/display")  # waits for the session to start
+    page.locator("#display-frame").wait_for(state="attached")
+    page.wait_for_load_state("networkidle")
     page.goto("/signin")
     page.locator("input[name=email]").wait_for()
     page.screenshot(path=str(screenshot_dir / f"signin{'' if scheme == 'light' else '-dark'}.png"))

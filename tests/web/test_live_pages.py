@@ -1,46 +1,47 @@
-"""The live pages in Debian's Chromium against a real sim service: the operator's live view
+"""The live pages in Debian's Chromium against the real services: the operator's live view
 and the subject display receive the robot's frames through the api's relay (token and
 service token checked for real), show each action's decoded feedback beside the oracle
 label as rows arrive, reconnect after a dropped frame connection without losing the table,
 and the display reports the frames it showed.
 
-The sim session is stepped by this test, which writes the rows the live-session runner
-writes (one marker per executed action with the sim's own marker, then the decision): the
-decoded feedback here is seeded by the test (p_error 0.2 for an action the oracle judges
-correct, 0.8 for an error, every fourth one wrong), not decoded from EEG, so the page's
-accuracy has a known value. The full chain (runner, EEG, learner) is tested in tests/loop.
+Two ways in. ``test_live_view_and_display_...`` steps a sim session itself and writes the
+rows the live-session runner writes, with the decoded feedback seeded (p_error 0.2 for an
+action the oracle judges correct, 0.8 for an error, every fourth one wrong), so every cell
+and the accuracy have known values. ``test_accelerated_online_session_...`` is the whole
+chain: staff start an accelerated online session of the virtual subject from the dashboard,
+and a real ``bgrl worker`` runs it through the sim, EEG and learner services with a
+classifier from a real (small) calibration session.
 """
 
 from __future__ import annotations
 
 import os
 import re
-import subprocess
-import sys
-import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import timedelta
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 
 from services.core.db.base import utcnow
 from services.core.db.live import LiveDecision, LiveMarker, LiveRun
+from services.core.db.models import LabSession
 from services.core.db.session import make_engine, make_session_factory
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
 from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
 from tests.web.conftest import (
     ADMIN,
-    STAFF,
     Server,
-    _free_port,
-    _login,
     _skip_reason,
     _stop,
+    add_accounts,
     open_as,
+    run_services,
+    serve_api,
 )
 
 TOKEN = "web-live-service-token-0123"
@@ -49,71 +50,50 @@ STEPS = 8
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    """The api (relaying to a real sim process with the service token) and the sim."""
+    """The api (relaying frames from the sim with the service token), the sim, EEG and
+    learner services and a real ``bgrl worker`` running live sessions through them, all on
+    loopback sharing one data folder and service token."""
     reason = _skip_reason()
     if reason:
         pytest.skip(reason)
-    import uvicorn
-    from argon2 import PasswordHasher
-
-    from services.api import security
-    from services.api.app import create_app
     from services.api.settings import ApiSettings
 
     root = tmp_path_factory.mktemp("web-live")
     data_dir = root / "data"
+    # built once here: the sim and the worker's runner would each build it on first use
     Oracle.for_map(load_map(DEFAULT_MAP_PATH), SimSettings(data_dir=data_dir).oracle_cache_dir)
-    sim_port = _free_port()
     env = {
         **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
         "BGRL_DATA_DIR": str(data_dir),
         "BGRL_SERVICE_TOKEN": TOKEN,
         "BGRL_LOG_LEVEL": "WARNING",
     }
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "uvicorn", "services.sim.app:app", "--host", "127.0.0.1",
-         "--port", str(sim_port)],
-        env=env, cwd=root, stdout=(root / "sim.log").open("wb"), stderr=subprocess.STDOUT,
-    )  # fmt: skip
-    settings = ApiSettings(
-        data_dir=data_dir,
-        admin_email=ADMIN[0],
-        admin_password=ADMIN[1],
-        eeg_url=None,
-        sim_url=f"http://127.0.0.1:{sim_port}",
-        service_token=TOKEN,
-    )
-    patch = pytest.MonkeyPatch()
-    patch.setattr(security, "_hasher", PasswordHasher(time_cost=1, memory_cost=64, parallelism=1))
-    port = _free_port()
-    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning")
-    api = uvicorn.Server(config)
-    thread = threading.Thread(target=api.run, name="api", daemon=True)
-    thread.start()
-    try:
-        deadline = time.monotonic() + 90
-        while True:
+    with run_services(root, env, ("sim", "eeg", "learner")) as urls:
+        settings = ApiSettings(
+            data_dir=data_dir,
+            admin_email=ADMIN[0],
+            admin_password=ADMIN[1],
+            eeg_url=None,
+            sim_url=urls["sim"],
+            service_token=TOKEN,
+            job_heartbeat_s=0.5,
+        )
+        with serve_api(settings) as base_url:
+            worker_env = {
+                **env,
+                **{f"BGRL_{name.upper()}_URL": url for name, url in urls.items()},
+                "BGRL_JOB_HEARTBEAT_S": "0.5",
+                "BGRL_LOG_LEVEL": "INFO",
+            }
+            srv = Server(base_url, root, worker_env, sim_url=urls["sim"],
+                         database_url=settings.resolved_database_url)  # fmt: skip
+            srv.start_worker()
             try:
-                sim_up = httpx.get(f"http://127.0.0.1:{sim_port}/health", timeout=2).is_success
-            except httpx.HTTPError:
-                sim_up = False
-            if sim_up and api.started:
-                break
-            assert time.monotonic() < deadline, (root / "sim.log").read_text()
-            time.sleep(0.2)
-        srv = Server(f"http://127.0.0.1:{port}", root, env)
-        srv.sim_url = f"http://127.0.0.1:{sim_port}"  # type: ignore[attr-defined]
-        srv.database_url = settings.resolved_database_url  # type: ignore[attr-defined]
-        srv.tokens["admin"] = _login(srv.base_url, *ADMIN)
-        srv.call("POST", "/api/v1/users", json={"email": STAFF[0], "password": STAFF[1],
-                                                 "role": "staff"})  # fmt: skip
-        srv.tokens["staff"] = _login(srv.base_url, *STAFF)
-        yield srv
-    finally:
-        api.should_exit = True
-        thread.join(timeout=15)
-        _stop(sim)
-        patch.undo()
+                add_accounts(srv, ("staff",))
+                yield srv
+            finally:
+                if srv.worker is not None:
+                    _stop(srv.worker)
 
 
 class SteppedSession:
@@ -130,19 +110,22 @@ class SteppedSession:
         )  # fmt: skip
         # the first session builds the map's oracle: seconds, more on a loaded machine
         self.sim = httpx.Client(
-            base_url=server.sim_url,  # type: ignore[attr-defined]
+            base_url=server.sim_url,
             headers={"X-Service-Token": TOKEN},
             timeout=120.0,
         )
         created = self.sim.post("/sessions", json={"task": "sssg", "seed": 5}).json()
         self.sim_id = created["id"]
         self.observation = created["observation"]
-        self.sessions = make_session_factory(make_engine(server.database_url))  # type: ignore[attr-defined]
-        with self.sessions() as db:
+        self.sessions = make_session_factory(make_engine(server.database_url))
+        with self.sessions() as db:  # what POST /sessions/{id}/start and the runner write
             run = LiveRun(session_id=self.lab["id"], mode="online", status="running",
                           sim_session_id=self.sim_id,
                           options={"accelerated": True, "label_budget": 100})  # fmt: skip
             db.add(run)
+            lab = db.get(LabSession, self.lab["id"])
+            assert lab is not None
+            lab.status = "running"
             db.commit()
             self.run_id = run.id
         self.expected: list[tuple[int, str, str]] = []
@@ -237,6 +220,152 @@ def test_live_view_and_display_show_frames_feedback_and_reconnect(
     assert watch.errors_except() == []
 
 
+# A real classifier, made the platform's way but small: an accelerated calibration session of
+# the virtual subject with 60 actions (the paper records ~600) at full ErrP strength, and its
+# eeg_calibration job with at most 30 training passes (300 by default): ~30 s, not minutes.
+# How well it decodes is not what this test checks; that the page shows what it decodes is.
+CALIBRATION = {"accelerated": True, "n_actions": 60, "virtual_quality": 1.0, "seed": 1,
+               "calibration_max_passes": 30}  # fmt: skip
+ROWS_BEFORE_STOP = 6
+"""Decoded actions the page must show before the test stops the session."""
+
+
+def _schedule(server: Server, subject_id: int, kind: str, in_minutes: int) -> dict[str, Any]:
+    start = utcnow() + timedelta(minutes=in_minutes)
+    return server.call(
+        "POST",
+        "/api/v1/sessions",
+        json={"subject_id": subject_id, "kind": kind, "scheduled_at": start.isoformat(),
+              "duration_minutes": 20},
+    )  # fmt: skip
+
+
+def _poll(read: Callable[[], Any], done: Callable[[Any], bool], timeout: float, what: str) -> Any:
+    """``read()`` until ``done`` of it; fail naming ``what`` and the last answer."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = read()
+        if done(value):
+            return value
+        assert time.monotonic() < deadline, f"{what} within {timeout} s: {value}"
+        time.sleep(0.5)
+
+
+@pytest.fixture(scope="module")
+def calibrated(server: Server) -> tuple[int, int]:
+    """A subject and its classifier from a calibration session run by the worker."""
+    subject = server.call("POST", "/api/v1/subjects", json={"code": "LIVE-2"})
+    cal = _schedule(server, subject["id"], "calibration", in_minutes=1)
+    server.call("POST", f"/api/v1/sessions/{cal['id']}/start", role="staff", json=CALIBRATION)
+    live = _poll(
+        lambda: server.call("GET", f"/api/v1/sessions/{cal['id']}/live"),
+        lambda live: live["run"]["status"] not in ("queued", "running"),
+        240,
+        "the calibration session ends",
+    )
+    assert live["run"]["status"] == "completed", live
+    job = _poll(
+        lambda: server.call("GET", f"/api/v1/jobs/{live['run']['follow_up_job_id']}"),
+        lambda job: job["status"] in ("succeeded", "failed", "cancelled"),
+        240,
+        "its eeg_calibration job ends",
+    )
+    assert job["status"] == "succeeded", job
+    made = server.call("GET", "/api/v1/classifiers", params={"subject_id": subject["id"]})
+    (classifier,) = [c for c in made["items"] if c["job_id"] == job["id"]]
+    return subject["id"], classifier["id"]
+
+
+def _stat(page: Any, name: str) -> str:
+    """The value of one figure of the live view (``<dt>name</dt><dd>value</dd>``)."""
+    xpath = f"//dl[@id='live-stats']/dt[.='{name}']/following-sibling::dd[1]"
+    return page.locator(f"xpath={xpath}").inner_text()
+
+
+def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
+    context: tuple, server: Server, calibrated: tuple[int, int], screenshot_dir: Path
+) -> None:
+    ctx, watch = context
+    subject_id, classifier_id = calibrated
+    online = _schedule(server, subject_id, "online", in_minutes=30)
+    sid = online["id"]
+    # Staff reach the scheduled session's live view from the subject's page and start it
+    # there: accelerated, the virtual subject, the subject's classifier.
+    page = open_as(ctx, server, "staff", f"/subjects/{subject_id}")
+    page.locator(f"a[href='/sessions/{sid}/live']").click()
+    page.wait_for_url(f"**/sessions/{sid}/live")
+    assert _stat(page, "Status") == "not started"
+    form = page.get_by_role("form", name="Start the session")
+    form.get_by_label("Classifier").select_option(str(classifier_id))
+    assert form.get_by_label("Label budget").input_value() == "1000"  # not reached: stopped
+    assert form.get_by_label("Accelerated (virtual subject)").is_checked()
+    form.get_by_role("button", name="Start").click()
+    page.get_by_text("Session started.").wait_for()
+    form.wait_for(state="hidden")
+
+    # Frames arrive through the relay while the worker runs the session, and they move.
+    page.wait_for_function("() => document.getElementById('live-frame').naturalWidth > 0")
+    page.wait_for_function(
+        "() => document.getElementById('current-action').textContent.startsWith('Now: ')"
+    )
+    first = page.locator("#current-action").inner_text()
+    page.wait_for_function(
+        "(first) => document.getElementById('current-action').textContent !== first", arg=first
+    )
+    # Per action: the decoded feedback and its probability beside the oracle label; then the
+    # running accuracy and the labels against the budget.
+    page.wait_for_function(
+        """(n) => [...document.querySelectorAll('#live-actions td.decoded')]
+              .filter((td) => ['correct', 'error'].includes(td.textContent)).length >= n""",
+        arg=ROWS_BEFORE_STOP,
+        timeout=120_000,
+    )
+    page.wait_for_function(
+        r"""() => /^\d+\.\d %$/.test([...document.querySelectorAll('#live-stats dt')]
+              .find((dt) => dt.textContent === 'Running accuracy')
+              ?.nextElementSibling.textContent)"""
+    )
+    assert _stat(page, "Status") == "running"
+    assert re.fullmatch(r"[1-9]\d* / 1000", _stat(page, "Labels"))
+    page.screenshot(path=str(screenshot_dir / "live.png"), full_page=True)
+
+    page.get_by_role("button", name="Stop").click()
+    page.get_by_text("Stop requested").wait_for()
+    page.wait_for_function(
+        "() => document.querySelector('#live-stats .badge')?.textContent === 'stopped'",
+        timeout=120_000,
+    )
+    live = server.call("GET", f"/api/v1/sessions/{sid}/live")
+    run = live["run"]
+    assert run["result"]["stopped_on_command"] is True and run["hf_model_id"] is not None
+    assert run["options"]["classifier_id"] == classifier_id and run["options"]["accelerated"]
+    # The page's table is the run's rows: every action, its oracle label, decoded feedback
+    # and p(error) as the worker stored them; its running accuracy is the API's.
+    rows = page.locator("#live-actions tr")
+    page.wait_for_function(
+        "(n) => document.querySelectorAll('#live-actions tr').length === n", arg=live["markers"]
+    )
+    decisions = server.call(
+        "GET", f"/api/v1/sessions/{sid}/events", params={"kind": "decisions", "limit": 500}
+    )["items"]
+    assert live["decisions_accepted"] >= ROWS_BEFORE_STOP and len(decisions) == rows.count()
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('#live-actions td.decoded')]"
+        ".every((td) => td.textContent !== 'pending')"
+    )
+    for decision in decisions:
+        cells = page.locator(f"#live-actions tr[data-step='{decision['step']}'] td")
+        step, _, oracle, decoded, p_error, _ = cells.all_inner_texts()
+        assert step == str(decision["step"])
+        assert oracle == ("correct" if decision["oracle_correct"] else "error")
+        if decision["status"] == "ok":
+            assert (decoded, p_error) == (decision["feedback"], f"{decision['p_error']:.3f}")
+        else:
+            assert decoded == "rejected"
+    assert _stat(page, "Running accuracy") == f"{100 * live['running_accuracy']:.1f} %"
+    assert watch.errors_except() == []
+
+
 def test_subject_page_links_the_live_view_and_starts_a_bids_export(
     context: tuple, server: Server
 ) -> None:
@@ -251,5 +380,7 @@ def test_subject_page_links_the_live_view_and_starts_a_bids_export(
     job_id = link.get_attribute("href").rsplit("/", 1)[-1]
     job = server.call("GET", f"/api/v1/jobs/{job_id}")
     assert job["kind"] == "bids_export" and job["config"] == {"subject_id": subject["id"]}
-    assert page.get_by_role("link", name="Live view").count() == 0  # the session is scheduled
+    server.call("POST", f"/api/v1/jobs/{job_id}/cancel")  # the module's worker has done its part
+    live = page.get_by_role("link", name="Live view")  # LIVE-1's session has started
+    assert live.count() == 1 and live.get_attribute("href").endswith("/live")
     assert watch.errors_except() == []

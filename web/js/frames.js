@@ -80,3 +80,34 @@ export function followEvents(get, sessionId, kind, onItems, everyMs = 700) {
     clearTimeout(timer);
   };
 }
+
+/**
+ * Call ``onStarted()`` once ``session`` has a live run to follow: at once if it has left
+ * "scheduled", else when a poll of the session (every ``everyMs``) finds it started here or
+ * elsewhere. A cancelled session never starts. Returns a function that stops waiting.
+ */
+export function whenStarted(get, session, onStarted, everyMs = 2000) {
+  let stopped = false;
+  let timer = null;
+  function check(status) {
+    if (stopped || status === "cancelled") return;
+    if (status !== "scheduled") {
+      onStarted();
+      return;
+    }
+    timer = setTimeout(async () => {
+      let next = status;
+      try {
+        next = (await get(`/api/v1/sessions/${session.id}`)).status;
+      } catch {
+        // transient: ask again
+      }
+      check(next);
+    }, everyMs);
+  }
+  check(session.status);
+  return () => {
+    stopped = true;
+    clearTimeout(timer);
+  };
+}

@@ -5,8 +5,9 @@ it: ``WS /api/v1/sessions/{id}/frames`` checks the user's token (``?token=`` or 
 header) and the ``Origin`` before ``accept``, then opens the sim's frame stream of the
 session's current sim session (``GET /sessions/{sim id}/stream``, JPEG, base64, a frame right
 after every action) with the service token and forwards every message as it comes. Close
-codes: 4401 unauthenticated, 4403 Origin refused, 4404 unknown session or no live run yet,
-1013 the sim is unreachable (the page reconnects).
+codes: 4401 unauthenticated and 4403 Origin refused (before ``accept``), 4404 unknown session
+or no sim session yet (after ``accept``, so a signed-in page gets the code and retries), 1013
+the sim is unreachable (the page reconnects).
 """
 
 from __future__ import annotations
@@ -65,13 +66,17 @@ async def frames(
         return
     token = websocket_token(websocket, token)
     code, detail = await run_in_threadpool(_sim_session, websocket, token, session_id)
+    if code and code != CLOSE_NOT_FOUND:
+        await websocket.close(code=code, reason=detail[:120])  # refused before accept
+        return
+    if not code and not settings.sim_url:
+        code, detail = CLOSE_NOT_FOUND, "no sim service configured"
+    await websocket.accept()
     if code:
+        # Signed in, nothing to relay yet (the run's sim session is being opened): say so
+        # with the close code; a refused handshake would reach the page as 1006 and an error.
         await websocket.close(code=code, reason=detail[:120])
         return
-    if not settings.sim_url:
-        await websocket.close(code=CLOSE_NOT_FOUND, reason="no sim service configured")
-        return
-    await websocket.accept()
     base = settings.sim_url.rstrip("/").replace("http", "ws", 1)
     url = f"{base}/sessions/{quote(detail, safe='')}/stream?{FRAME_PARAMS}"
     headers = {"X-Service-Token": settings.service_token} if settings.service_token else {}

@@ -3,7 +3,7 @@
 
 import { get, post } from "../api.js";
 import { h } from "../dom.js";
-import { followEvents, followFrames } from "../frames.js";
+import { followEvents, followFrames, whenStarted } from "../frames.js";
 
 export async function displayPage(root, _context, sessionId) {
   document.body.classList.add("subject-display");
@@ -26,19 +26,23 @@ export async function displayPage(root, _context, sessionId) {
       }
     }
   }
-  followEvents(get, sessionId, "markers", (items) => {
-    for (const m of items) runStep.set(`${m.sim_session_id}:${m.sim_step}`, m.step);
-    report();
-  }, 500);
-  followFrames(sessionId, img, {
-    onFrame: (frame) => {
-      const marker = frame.state.last_marker;
-      if (!marker) return;
-      const key = `${marker.session_id}:${marker.step}`;
-      if (!shown.has(key)) {
-        shown.set(key, new Date().toISOString());
-        report();
-      }
-    },
+  // opened before the session starts (the usual order), it waits for the run to exist
+  const session = await get(`/api/v1/sessions/${sessionId}`);
+  whenStarted(get, session, () => {
+    followEvents(get, sessionId, "markers", (items) => {
+      for (const m of items) runStep.set(`${m.sim_session_id}:${m.sim_step}`, m.step);
+      report();
+    }, 500);
+    followFrames(sessionId, img, {
+      onFrame: (frame) => {
+        const marker = frame.state.last_marker;
+        if (!marker) return;
+        const key = `${marker.session_id}:${marker.step}`;
+        if (!shown.has(key)) {
+          shown.set(key, new Date().toISOString());
+          report();
+        }
+      },
+    });
   });
 }

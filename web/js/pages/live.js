@@ -1,37 +1,62 @@
 // Live session (operator): frames, current action, per-action decoded feedback beside the
 // oracle label, running accuracy, labels vs budget, latency per action, start and stop.
 
-import { get, post } from "../api.js";
+import { all, get, post } from "../api.js";
 import { field, fmtNumber, h, messageBox, statusBadge } from "../dom.js";
-import { followEvents, followFrames } from "../frames.js";
+import { followEvents, followFrames, whenStarted } from "../frames.js";
 
 const ACTIONS = ["forward", "turn left", "turn right"];
 const label = (correct) => (correct === null || correct === undefined ? "–" : correct ? "correct" : "error");
 
-function startForm(session, message, onStarted) {
-  const classifier = h("input", { type: "number", min: 1, name: "classifier_id" });
-  const actions = h("input", { type: "number", min: 1, name: "n_actions", value: 60 });
-  const budget = h("input", { type: "number", min: 1, name: "label_budget", value: 1000 });
+const DEFAULT_ACTIONS = { calibration: "600", test: "200", online: "3 × label budget" };
+
+/** Whether the dashboard links a session's live view and subject display: once it has
+ *  started, and before that for staff, who start it there (a cancelled one never runs). */
+export function offersLiveView(session, canEdit) {
+  if (!["calibration", "test", "online"].includes(session.kind)) return false;
+  if (session.status === "scheduled") return canEdit;
+  return session.status !== "cancelled";
+}
+
+function startForm(session, classifiers, message, onStarted) {
+  const classifier = h("select", { name: "classifier_id" },
+    classifiers.map((c) => h("option", { value: c.id },
+      `${c.name} (#${c.id}, balanced accuracy ${fmtNumber(c.metrics.balanced_accuracy)})`)));
+  const actions = h("input", {
+    type: "number", min: 1, max: 100000, name: "n_actions", placeholder: DEFAULT_ACTIONS[session.kind],
+  });
+  const budget = h("input", { type: "number", min: 1, max: 100000, name: "label_budget", value: 1000 });
   const accelerated = h("input", { type: "checkbox", name: "accelerated", checked: true });
+  const needsClassifier = session.kind !== "calibration";
+  const submit = h("button", { type: "submit", class: "btn primary" }, "Start");
+  const fields = {
+    classifier_id: needsClassifier
+      ? field("Classifier", classifier, classifiers.length ? "" : "This subject has no classifier yet: run a calibration session first.")
+      : null,
+    n_actions: field("Actions", actions, "empty: the default"),
+    label_budget: session.kind === "online" ? field("Label budget", budget) : null,
+  };
+  submit.disabled = needsClassifier && !classifiers.length;
   const form = h(
     "form",
     { class: "inline-form", "aria-label": "Start the session" },
-    session.kind === "calibration" ? null : field("Classifier id", classifier),
-    field("Actions", actions),
-    session.kind === "online" ? field("Label budget", budget) : null,
+    Object.values(fields),
     h("label", { class: "check" }, accelerated, " Accelerated (virtual subject)"),
-    h("button", { type: "submit", class: "btn primary" }, "Start"),
+    submit,
   );
   form.addEventListener("submit", async (event) => {
     event.preventDefault();
     message.clear();
-    const body = { accelerated: accelerated.checked, n_actions: Number(actions.value) };
-    if (session.kind !== "calibration") body.classifier_id = Number(classifier.value);
+    for (const f of Object.values(fields)) f?.setError("");
+    const body = { accelerated: accelerated.checked };
+    if (actions.value) body.n_actions = Number(actions.value);
+    if (needsClassifier) body.classifier_id = Number(classifier.value);
     if (session.kind === "online") body.label_budget = Number(budget.value);
     try {
       await post(`/api/v1/sessions/${session.id}/start`, body);
       onStarted();
     } catch (err) {
+      for (const [name, text] of Object.entries(err.fields || {})) fields[name]?.setError(text);
       message.error(err);
     }
   });
@@ -73,19 +98,6 @@ export async function livePage(root, { canEdit }, sessionId) {
     if (old) old.replaceWith(tr);
     else rows.prepend(tr);
   }
-  const stopMarkers = followEvents(get, sessionId, "markers", (items) => {
-    for (const marker of items) {
-      steps.set(marker.step, { ...(steps.get(marker.step) || {}), marker });
-      renderRow(marker.step);
-    }
-  });
-  const stopDecisions = followEvents(get, sessionId, "decisions", (items) => {
-    for (const decision of items) {
-      const entry = { ...(steps.get(decision.step) || {}), decision };
-      steps.set(decision.step, entry);
-      if (entry.marker) renderRow(decision.step); // else drawn when its marker arrives
-    }
-  });
 
   let stopButton = null;
   let form = null;
@@ -98,9 +110,7 @@ export async function livePage(root, { canEdit }, sessionId) {
     try {
       live = await get(`/api/v1/sessions/${sessionId}/live`);
     } catch {
-      stats.replaceChildren(...statRow("Status", "not started"));
-      showControls(false);
-      return;
+      return; // transient: the next refresh shows it
     }
     const latency = live.latency.epoch_end_to_decision || {};
     stats.replaceChildren(
@@ -108,26 +118,50 @@ export async function livePage(root, { canEdit }, sessionId) {
       ...statRow("Actions", String(live.markers)),
       ...statRow("Running accuracy", live.running_accuracy === null ? "–" : `${fmtNumber(live.running_accuracy * 100, 1)} %`),
       ...statRow("Labels", live.label_budget ? `${live.labels} / ${live.label_budget}` : String(live.labels)),
-      ...statRow("Decision latency p50 / p99", latency.n ? `${latency.p50_ms} / ${latency.p99_ms} ms` : "–"),
+      ...statRow("Decision latency p50 / p99", latency.n ? `${fmtNumber(latency.p50_ms, 1)} / ${fmtNumber(latency.p99_ms, 1)} ms` : "–"),
     );
     showControls(["queued", "running"].includes(live.run.status));
   }
-  const timer = setInterval(refresh, 1000);
 
-  const frames = followFrames(sessionId, img, {
-    onStatus: (text) => { connection.textContent = text; },
-    onFrame: (frame) => {
-      const marker = frame.state.last_marker;
-      if (marker) {
-        current.textContent = `Now: ${ACTIONS[marker.action]} (oracle: ${label(marker.correct)}), sim step ${marker.step}`;
+  // Until the session has started there is no run to follow (the API answers 404): wait
+  // for its status to change (here or elsewhere), then follow its rows, figures and frames.
+  let stopFollowing = null;
+  function follow() {
+    if (stopFollowing) return;
+    if (session.status === "scheduled") session.status = "running";
+    const stopMarkers = followEvents(get, sessionId, "markers", (items) => {
+      for (const marker of items) {
+        steps.set(marker.step, { ...(steps.get(marker.step) || {}), marker });
+        renderRow(marker.step);
       }
-    },
-  });
-  window.bgrlLiveView = { frames, steps }; // for the browser tests: drop the connection
+    });
+    const stopDecisions = followEvents(get, sessionId, "decisions", (items) => {
+      for (const decision of items) {
+        const entry = { ...(steps.get(decision.step) || {}), decision };
+        steps.set(decision.step, entry);
+        if (entry.marker) renderRow(decision.step); // else drawn when its marker arrives
+      }
+    });
+    const timer = setInterval(refresh, 1000);
+    const frames = followFrames(sessionId, img, {
+      onStatus: (text) => { connection.textContent = text; },
+      onFrame: (frame) => {
+        const marker = frame.state.last_marker;
+        if (marker) {
+          current.textContent = `Now: ${ACTIONS[marker.action]} (oracle: ${label(marker.correct)}), sim step ${marker.step}`;
+        }
+      },
+    });
+    window.bgrlLiveView = { frames, steps }; // for the browser tests: drop the connection
+    stopFollowing = () => {
+      frames.stop(); stopMarkers(); stopDecisions(); clearInterval(timer);
+    };
+    return refresh();
+  }
 
   const controls = h("div", { class: "live-controls" });
   if (canEdit) {
-    stopButton = h("button", { type: "button", class: "btn" }, "Stop");
+    stopButton = h("button", { type: "button", class: "btn", hidden: true }, "Stop");
     stopButton.addEventListener("click", async () => {
       message.clear();
       try {
@@ -137,12 +171,30 @@ export async function livePage(root, { canEdit }, sessionId) {
         message.error(err);
       }
     });
-    form = startForm(session, message, () => message.show("Session started."));
-    controls.append(stopButton, form);
+    controls.append(stopButton);
+    if (session.status === "scheduled") {
+      const classifiers = session.kind === "calibration"
+        ? [] : await all("/api/v1/classifiers", { subject_id: session.subject_id });
+      form = startForm(session, classifiers, message, () => {
+        message.show("Session started.");
+        form.hidden = true;
+        stopWaiting();
+        follow();
+      });
+      controls.append(form);
+    }
   }
-  await refresh();
+  const stopWaiting = whenStarted(get, session, follow);
+  if (session.status === "scheduled") {
+    stats.replaceChildren(...statRow("Status", "not started"));
+    connection.textContent = "when the session starts";
+  } else if (session.status === "cancelled") {
+    stats.replaceChildren(...statRow("Status", statusBadge("cancelled")));
+    connection.textContent = "none (cancelled)";
+  }
   addEventListener("pagehide", () => {
-    frames.stop(); stopMarkers(); stopDecisions(); clearInterval(timer);
+    stopWaiting();
+    if (stopFollowing) stopFollowing();
   });
   root.append(
     h("h1", {}, `Session ${session.id} live (${session.kind})`),

@@ -3,6 +3,7 @@
 
 import { all, patch, post, request } from "../api.js";
 import { field, fmtDateTime, fmtTime, h, messageBox, statusBadge } from "../dom.js";
+import { offersLiveView } from "./live.js";
 
 const KINDS = ["calibration", "test", "online", "rl"];
 const DAY_MS = 86_400_000;
@@ -127,7 +128,7 @@ function editDialog(session, subjectCode, rigs, canEdit, onDone) {
     h("p", {}, statusBadge(session.status), ` ${fmtDateTime(session.scheduled_at)}, `,
       `${session.duration_minutes} min`),
     session.notes ? h("p", { class: "pre" }, session.notes) : null,
-    ["calibration", "test", "online"].includes(session.kind) && session.status !== "scheduled"
+    offersLiveView(session, canEdit)
       ? h("p", {}, h("a", { href: `/sessions/${session.id}/live` }, "Live view"), " · ",
         h("a", { href: `/sessions/${session.id}/display`, target: "_blank" }, "Subject display"))
       : null,

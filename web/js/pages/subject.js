@@ -4,6 +4,7 @@ import { all, get, patch, post } from "../api.js";
 import {
   downloadButton, field, fmtBytes, fmtDateTime, fmtNumber, h, messageBox, statusBadge, table,
 } from "../dom.js";
+import { offersLiveView } from "./live.js";
 
 function notesForm(subject, canEdit) {
   if (!canEdit) {
@@ -89,7 +90,7 @@ export async function subjectPage(root, { canEdit }, subjectId) {
         { label: "Kind", cell: (s) => s.kind },
         {
           label: "Live",
-          cell: (s) => (["calibration", "test", "online"].includes(s.kind) && s.status !== "scheduled"
+          cell: (s) => (offersLiveView(s, canEdit)
             ? h("a", { href: `/sessions/${s.id}/live` }, "Live view") : "–"),
         },
         { label: "Minutes", cell: (s) => s.duration_minutes },
