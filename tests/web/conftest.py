@@ -1,6 +1,7 @@
 """Browser tests of the dashboard: the real api (uvicorn, SQLite in a temp folder) on loopback,
-a real ``bgrl worker`` when a test needs job progress, and Debian's Chromium driven headless by
-Playwright (never a downloaded browser). Skipped with the reason where /usr/bin/chromium or
+a real ``bgrl worker`` when a test needs job progress (the live pages' tests add the sim, EEG
+and learner services: ``run_services``), and Debian's Chromium driven headless by Playwright
+(never a downloaded browser). Skipped with the reason where /usr/bin/chromium or
 Playwright is absent.
 
 Screenshots go to a temp folder (printed at the end); set ``BGRL_WEB_SCREENSHOTS`` to a folder
