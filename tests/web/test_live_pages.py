@@ -282,6 +282,16 @@ def _stat(page: Any, name: str) -> str:
     return page.locator(f"xpath={xpath}").inner_text()
 
 
+def _wait_stat(page: Any, name: str, pattern: str) -> None:
+    """Until the figure ``name`` of the live view matches ``pattern`` (a JS regex)."""
+    page.wait_for_function(
+        """([name, pattern]) => new RegExp(pattern).test([...document.querySelectorAll(
+              '#live-stats dt')].find((dt) => dt.textContent === name)?.nextElementSibling
+              .textContent)""",
+        arg=[name, pattern],
+    )
+
+
 def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
     context: tuple, server: Server, calibrated: tuple[int, int], screenshot_dir: Path
 ) -> None:
@@ -320,13 +330,9 @@ def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
         arg=ROWS_BEFORE_STOP,
         timeout=120_000,
     )
-    page.wait_for_function(
-        r"""() => /^\d+\.\d %$/.test([...document.querySelectorAll('#live-stats dt')]
-              .find((dt) => dt.textContent === 'Running accuracy')
-              ?.nextElementSibling.textContent)"""
-    )
+    _wait_stat(page, "Running accuracy", r"^\d+\.\d %$")
+    _wait_stat(page, "Labels", r"^[1-9]\d* / 1000$")
     assert _stat(page, "Status") == "running"
-    assert re.fullmatch(r"[1-9]\d* / 1000", _stat(page, "Labels"))
     page.screenshot(path=str(screenshot_dir / "live.png"), full_page=True)
 
     page.get_by_role("button", name="Stop").click()

@@ -8,7 +8,7 @@ import { followEvents, followFrames, whenStarted } from "../frames.js";
 const ACTIONS = ["forward", "turn left", "turn right"];
 const label = (correct) => (correct === null || correct === undefined ? "–" : correct ? "correct" : "error");
 
-const DEFAULT_ACTIONS = { calibration: "600", test: "200", online: "3 × label budget" };
+const DEFAULT_ACTIONS = { calibration: "600", test: "200", online: "up to 3 per label" };
 
 /** Whether the dashboard links a session's live view and subject display: once it has
  *  started, and before that for staff, who start it there (a cancelled one never runs). */
@@ -22,9 +22,7 @@ function startForm(session, classifiers, message, onStarted) {
   const classifier = h("select", { name: "classifier_id" },
     classifiers.map((c) => h("option", { value: c.id },
       `${c.name} (#${c.id}, balanced accuracy ${fmtNumber(c.metrics.balanced_accuracy)})`)));
-  const actions = h("input", {
-    type: "number", min: 1, max: 100000, name: "n_actions", placeholder: DEFAULT_ACTIONS[session.kind],
-  });
+  const actions = h("input", { type: "number", min: 1, max: 100000, name: "n_actions" });
   const budget = h("input", { type: "number", min: 1, max: 100000, name: "label_budget", value: 1000 });
   const accelerated = h("input", { type: "checkbox", name: "accelerated", checked: true });
   const needsClassifier = session.kind !== "calibration";
@@ -33,7 +31,7 @@ function startForm(session, classifiers, message, onStarted) {
     classifier_id: needsClassifier
       ? field("Classifier", classifier, classifiers.length ? "" : "This subject has no classifier yet: run a calibration session first.")
       : null,
-    n_actions: field("Actions", actions, "empty: the default"),
+    n_actions: field("Actions", actions, `empty: ${DEFAULT_ACTIONS[session.kind]}`),
     label_budget: session.kind === "online" ? field("Label budget", budget) : null,
   };
   submit.disabled = needsClassifier && !classifiers.length;
@@ -67,7 +65,8 @@ export async function livePage(root, { canEdit }, sessionId) {
   const session = await get(`/api/v1/sessions/${sessionId}`);
   document.title = `Session ${session.id} live · Brain-guided RL platform`;
   const message = messageBox();
-  const img = h("img", { class: "live-frame", alt: "The robot's view", id: "live-frame" });
+  const img = h("img", { class: "live-frame", alt: "The robot's view", id: "live-frame", hidden: true });
+  const noFrame = h("p", { class: "no-frame" }, "The robot's frames appear here while the session runs.");
   const connection = h("span", { class: "muted", id: "live-connection" }, "connecting…");
   const current = h("p", { class: "current-action", id: "current-action", "aria-live": "polite" }, "No action yet.");
   const stats = h("dl", { class: "stats", id: "live-stats" });
@@ -146,6 +145,8 @@ export async function livePage(root, { canEdit }, sessionId) {
     const frames = followFrames(sessionId, img, {
       onStatus: (text) => { connection.textContent = text; },
       onFrame: (frame) => {
+        img.hidden = false;
+        noFrame.remove();
         const marker = frame.state.last_marker;
         if (marker) {
           current.textContent = `Now: ${ACTIONS[marker.action]} (oracle: ${label(marker.correct)}), sim step ${marker.step}`;
@@ -202,7 +203,7 @@ export async function livePage(root, { canEdit }, sessionId) {
     controls,
     message,
     h("div", { class: "live-grid" },
-      h("div", {}, img, current),
+      h("div", {}, img, noFrame, current),
       h("div", {}, stats)),
     h("h2", {}, "Actions"),
     h("table", { class: "grid" },
