@@ -215,7 +215,6 @@ def test_live_view_and_display_show_frames_feedback_and_reconnect(
         time.sleep(0.3)
     assert shown["total"] >= 1
     assert {item["step"] for item in shown["items"]} <= set(range(STEPS))
-    live.screenshot(path=str(screenshot_dir / "live.png"), full_page=True)
     display.screenshot(path=str(screenshot_dir / "display.png"))
     assert watch.errors_except() == []
 
@@ -282,13 +281,14 @@ def _stat(page: Any, name: str) -> str:
     return page.locator(f"xpath={xpath}").inner_text()
 
 
-def _wait_stat(page: Any, name: str, pattern: str) -> None:
+def _wait_stat(page: Any, name: str, pattern: str, timeout_s: float = 15.0) -> None:
     """Until the figure ``name`` of the live view matches ``pattern`` (a JS regex)."""
     page.wait_for_function(
         """([name, pattern]) => new RegExp(pattern).test([...document.querySelectorAll(
               '#live-stats dt')].find((dt) => dt.textContent === name)?.nextElementSibling
               .textContent)""",
         arg=[name, pattern],
+        timeout=timeout_s * 1000,
     )
 
 
@@ -369,6 +369,43 @@ def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
         else:
             assert decoded == "rejected"
     assert _stat(page, "Running accuracy") == f"{100 * live['running_accuracy']:.1f} %"
+    assert watch.errors_except() == []
+
+
+def test_a_failed_run_resumes_from_the_live_view(
+    context: tuple, server: Server, calibrated: tuple[int, int]
+) -> None:
+    """A test session whose run failed (as the runner leaves it when a service stayed down
+    past its retry window) is resumed from the live view with the options it began with,
+    and the worker finishes it."""
+    ctx, watch = context
+    subject_id, classifier_id = calibrated
+    lab = _schedule(server, subject_id, "test", in_minutes=60)
+    options = {"accelerated": True, "n_actions": 3, "classifier_id": classifier_id,
+               "virtual_quality": 1.0}  # fmt: skip
+    sessions = make_session_factory(make_engine(server.database_url))
+    with sessions() as db:
+        db.add(LiveRun(session_id=lab["id"], mode="test", options=options, status="failed",
+                       error="sim stayed unreachable for 60 s"))  # fmt: skip
+        row = db.get(LabSession, lab["id"])
+        assert row is not None
+        row.status = "running"
+        db.commit()
+    page = open_as(ctx, server, "staff", f"/sessions/{lab['id']}/live")
+    _wait_stat(page, "Status", "^failed$")
+    assert _stat(page, "Error") == "sim stayed unreachable for 60 s"
+    assert page.get_by_role("button", name="Stop").is_hidden()
+    page.get_by_role("button", name="Resume").click()
+    page.get_by_text("Session resumed").wait_for()
+    _wait_stat(page, "Status", "^completed$", timeout_s=120)
+    page.wait_for_function(
+        """() => [...document.querySelectorAll('#live-actions td.decoded')]
+              .filter((td) => ['correct', 'error', 'rejected'].includes(td.textContent))
+              .length === 3"""
+    )
+    assert page.get_by_role("button", name="Resume").is_hidden()
+    run = server.call("GET", f"/api/v1/sessions/{lab['id']}/live")["run"]
+    assert run["options"] == options and run["result"]["decisions"] == 3
     assert watch.errors_except() == []
 
 

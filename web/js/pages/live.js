@@ -99,10 +99,19 @@ export async function livePage(root, { canEdit }, sessionId) {
   }
 
   let stopButton = null;
+  let resumeButton = null;
   let form = null;
-  function showControls(active) {
+  let resumeBody = {};
+  function showControls(live) {
+    // the API resumes a failed run, or one whose job ended without finishing it
+    const jobActive = ["queued", "running"].includes(live.job_status);
+    const active = ["queued", "running"].includes(live.run.status) && jobActive;
+    const resumable = live.run.status === "failed" || (["queued", "running"].includes(live.run.status) && !jobActive);
     if (stopButton) stopButton.hidden = !active;
-    if (form) form.hidden = active || session.status !== "scheduled";
+    if (resumeButton) resumeButton.hidden = !resumable;
+    if (form) form.hidden = true; // started
+    const classifierId = live.run.options.classifier_id;
+    resumeBody = classifierId ? { classifier_id: classifierId } : {};
   }
   async function refresh() {
     let live;
@@ -118,8 +127,9 @@ export async function livePage(root, { canEdit }, sessionId) {
       ...statRow("Running accuracy", live.running_accuracy === null ? "–" : `${fmtNumber(live.running_accuracy * 100, 1)} %`),
       ...statRow("Labels", live.label_budget ? `${live.labels} / ${live.label_budget}` : String(live.labels)),
       ...statRow("Decision latency p50 / p99", latency.n ? `${fmtNumber(latency.p50_ms, 1)} / ${fmtNumber(latency.p99_ms, 1)} ms` : "–"),
+      ...(live.run.error || live.job_error ? statRow("Error", live.run.error || live.job_error) : []),
     );
-    showControls(["queued", "running"].includes(live.run.status));
+    showControls(live);
   }
 
   // Until the session has started there is no run to follow (the API answers 404): wait
@@ -127,7 +137,6 @@ export async function livePage(root, { canEdit }, sessionId) {
   let stopFollowing = null;
   function follow() {
     if (stopFollowing) return;
-    if (session.status === "scheduled") session.status = "running";
     const stopMarkers = followEvents(get, sessionId, "markers", (items) => {
       for (const marker of items) {
         steps.set(marker.step, { ...(steps.get(marker.step) || {}), marker });
@@ -172,7 +181,18 @@ export async function livePage(root, { canEdit }, sessionId) {
         message.error(err);
       }
     });
-    controls.append(stopButton);
+    resumeButton = h("button", { type: "button", class: "btn", hidden: true }, "Resume");
+    resumeButton.addEventListener("click", async () => {
+      message.clear();
+      try {
+        await post(`/api/v1/sessions/${sessionId}/start`, resumeBody);
+        message.show("Session resumed: it carries on from its last recorded action.");
+        refresh();
+      } catch (err) {
+        message.error(err);
+      }
+    });
+    controls.append(stopButton, resumeButton);
     if (session.status === "scheduled") {
       const classifiers = session.kind === "calibration"
         ? [] : await all("/api/v1/classifiers", { subject_id: session.subject_id });
