@@ -170,6 +170,7 @@ def test_live_view_and_display_show_frames_feedback_and_reconnect(
     context: tuple, server: Server, screenshot_dir: Path
 ) -> None:
     ctx, watch = context
+    ctx.set_default_timeout(30_000)  # the worker calibrates meanwhile (fixture calibration)
     session = SteppedSession(server)
     sid = session.lab["id"]
     live = open_as(ctx, server, "staff", f"/sessions/{sid}/live")
@@ -225,7 +226,7 @@ def test_live_view_and_display_show_frames_feedback_and_reconnect(
 # How well it decodes is not what this test checks; that the page shows what it decodes is.
 CALIBRATION = {"accelerated": True, "n_actions": 60, "virtual_quality": 1.0, "seed": 1,
                "calibration_max_passes": 30}  # fmt: skip
-ROWS_BEFORE_STOP = 6
+ROWS_BEFORE_STOP = 4
 """Decoded actions the page must show before the test stops the session."""
 
 
@@ -250,14 +251,22 @@ def _poll(read: Callable[[], Any], done: Callable[[Any], bool], timeout: float, 
         time.sleep(0.5)
 
 
-@pytest.fixture(scope="module")
-def calibrated(server: Server) -> tuple[int, int]:
-    """A subject and its classifier from a calibration session run by the worker."""
+@pytest.fixture(scope="module", autouse=True)
+def calibration(server: Server) -> tuple[int, int]:
+    """Start the calibration session as soon as the platform is up, so that the worker runs
+    it while the first test drives the browser; (subject id, its lab session id)."""
     subject = server.call("POST", "/api/v1/subjects", json={"code": "LIVE-2"})
     cal = _schedule(server, subject["id"], "calibration", in_minutes=1)
     server.call("POST", f"/api/v1/sessions/{cal['id']}/start", role="staff", json=CALIBRATION)
+    return subject["id"], cal["id"]
+
+
+@pytest.fixture(scope="module")
+def calibrated(server: Server, calibration: tuple[int, int]) -> tuple[int, int]:
+    """The subject and the classifier its calibration session and eeg_calibration job made."""
+    subject_id, session_id = calibration
     live = _poll(
-        lambda: server.call("GET", f"/api/v1/sessions/{cal['id']}/live"),
+        lambda: server.call("GET", f"/api/v1/sessions/{session_id}/live"),
         lambda live: live["run"]["status"] not in ("queued", "running"),
         240,
         "the calibration session ends",
@@ -270,9 +279,9 @@ def calibrated(server: Server) -> tuple[int, int]:
         "its eeg_calibration job ends",
     )
     assert job["status"] == "succeeded", job
-    made = server.call("GET", "/api/v1/classifiers", params={"subject_id": subject["id"]})
+    made = server.call("GET", "/api/v1/classifiers", params={"subject_id": subject_id})
     (classifier,) = [c for c in made["items"] if c["job_id"] == job["id"]]
-    return subject["id"], classifier["id"]
+    return subject_id, classifier["id"]
 
 
 def _stat(page: Any, name: str) -> str:
