@@ -24,9 +24,17 @@ def get_or_404(db: Session, model: type[RowT], row_id: object, field: str) -> Ro
 
 
 def paginate(db: Session, query: Select[Any], page: PageParams) -> dict[str, Any]:
-    """``{"items", "total", "limit", "offset"}`` of ``query`` (already filtered and ordered)."""
+    """``{"items", "total", "limit", "offset"}`` of ``query`` (already filtered and ordered).
+
+    A query of one entity gives its rows as ``items``; a query of several columns gives
+    one dict per row (cheaper: no ORM objects, only what the response returns).
+    """
     total = db.scalar(select(func.count()).select_from(query.order_by(None).subquery())) or 0
-    items = db.scalars(query.limit(page.limit).offset(page.offset)).all()
+    result = db.execute(query.limit(page.limit).offset(page.offset))
+    if len(query.column_descriptions) == 1:
+        items: list[Any] = result.scalars().all()
+    else:
+        items = [row._asdict() for row in result]
     return {"items": items, "total": total, "limit": page.limit, "offset": page.offset}
 
 
