@@ -1,9 +1,10 @@
 """CPU per request of the api, in process: what a route costs whatever the machine's load.
 
-The app is called straight through ASGI (no HTTP parsing, no socket, no test client), one
-request at a time, on the event loop uvicorn would use; the figure is the process's CPU
-time (``time.process_time``, every thread) divided by the requests, the median of a few
-repeats. On a shared machine this is the robust figure: wall-clock latency under load also
+``python -m benchmarks.api_cpu`` prints the figures on a fresh database (SQLite, and
+PostgreSQL when reachable); ``bgrl bench api`` reports them too. The app is called straight
+through ASGI (no HTTP parsing, no socket, no test client), one request at a time, on the
+event loop uvicorn would use; the figure is the process's CPU time (``time.process_time``,
+every thread) divided by the requests, the median of a few repeats. On a shared machine this is the robust figure: wall-clock latency under load also
 measures everyone else's work.
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -128,3 +130,39 @@ def cpu_ms_per_request(
             return await _measure(app, {p: auth for p in paths}, requests, repeats)
 
     return asyncio.run(run())
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m benchmarks.api_cpu``: CPU ms per request of the two routes of ``bgrl bench
+    api`` on a fresh SQLite database and, when reachable, PostgreSQL (JSON on stdout)."""
+    import argparse
+    import tempfile
+
+    from benchmarks.api_load import BARE_ROUTE, JOBS_ROUTE
+    from benchmarks.bench_api import ADMIN_EMAIL, PG_SKIP_REASON, postgres_schema, store_jobs
+
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.api_cpu")
+    parser.add_argument("--jobs-stored", type=int, default=1000)
+    parser.add_argument("--requests", type=int, default=200)
+    args = parser.parse_args(argv)
+    password = "bench-password-123"
+    figures: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="bgrl-api-cpu-") as tmp, postgres_schema() as pg_url:
+        urls = {"sqlite": f"sqlite:///{Path(tmp) / 'bgrl.db'}", "postgresql": pg_url}
+        for name, url in urls.items():
+            if url is None:
+                figures[name] = {"skipped": PG_SKIP_REASON}
+                continue
+            upgrade_database(url)
+            store_jobs(url, args.jobs_stored)
+            data_dir = Path(tmp) / name
+            figures[name] = cpu_ms_per_request(
+                url, data_dir, ADMIN_EMAIL, password, (JOBS_ROUTE, BARE_ROUTE),
+                requests=args.requests,
+            )  # fmt: skip
+    json.dump({"jobs_stored": args.jobs_stored, "cpu_ms_per_request": figures}, sys.stdout)
+    print()
+
+
+if __name__ == "__main__":
+    main()

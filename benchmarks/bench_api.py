@@ -203,7 +203,7 @@ class Platform:
 
 
 @contextmanager
-def _postgres_schema() -> Iterator[str | None]:
+def postgres_schema() -> Iterator[str | None]:
     """A private schema of PostgreSQL's ``test`` database (dropped afterwards), or None."""
     for admin_url in PG_ADMIN_URLS:
         try:
@@ -544,7 +544,7 @@ def bench_all_reads(
     figures["sqlite"] = bench_reads(
         "sqlite", f"sqlite:///{root / 'sqlite' / 'bgrl.db'}", root / "sqlite", **kwargs
     )
-    with _postgres_schema() as pg_url:
+    with postgres_schema() as pg_url:
         if pg_url is None:
             figures["postgresql"] = {"skipped": PG_SKIP_REASON}
             progress("postgresql: skipped")
