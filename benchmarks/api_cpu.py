@@ -4,8 +4,8 @@
 PostgreSQL when reachable); ``bgrl bench api`` reports them too. The app is called straight
 through ASGI (no HTTP parsing, no socket, no test client), one request at a time, on the
 event loop uvicorn would use; the figure is the process's CPU time (``time.process_time``,
-every thread) divided by the requests, the median of a few repeats. On a shared machine this is the robust figure: wall-clock latency under load also
-measures everyone else's work.
+every thread) divided by the requests, the median of a few repeats. On a shared machine
+this is the robust figure: wall-clock latency under load also measures everyone else's work.
 """
 
 from __future__ import annotations
