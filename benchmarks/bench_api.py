@@ -2,15 +2,20 @@
 
 Figures:
 
-- **reads under load**: the api (``uvicorn services.api.app:app``, one process, on
+- **reads under load**: the api (``uvicorn services.api.app:app --workers N``, on
   loopback) with ``jobs_stored`` jobs in its database; a SECOND process sends ``rate``
   requests/s, open loop (each request leaves at its scheduled time, whatever the earlier
   ones are doing), of ``GET /api/v1/jobs?limit=50`` (signed in) and of the bare
   ``GET /healthz`` of the same server, in alternating blocks so load from other processes
   hits both alike. Latency is measured from the scheduled send time to the end of the
   response (so a client or server falling behind shows up), p50/p99 and errors per route
-  and the ratio of the two p99s. SQLite, and PostgreSQL when it is reachable.
-- **RSS** of the api process when idle (started, signed in, jobs stored) and after the load.
+  and the ratio of the two p99s. Each load level gets a fresh api (a light level must not
+  inherit a saturated one's backlog). SQLite, and PostgreSQL when it is reachable.
+- **CPU per request**, in process: the same two routes called straight through the ASGI
+  app (no HTTP, no network, one at a time), CPU milliseconds per request: what the api
+  costs whatever the machine's load.
+- **RSS** of the api processes (uvicorn's and its workers', summed) when idle (started,
+  signed in, jobs stored) and after the load.
 - **job throughput**: short ``guided_ppo`` jobs (hf_sparse, ``total_steps`` 2000) per
   minute through 1 and then 2 ``bgrl worker`` processes (embedded filesystem broker,
   SQLite: what ``bgrl up`` runs), from the first commit to the last finish; **queue
@@ -44,8 +49,10 @@ from typing import Any
 import httpx
 from sqlalchemy import create_engine, insert, text
 
+from benchmarks.api_cpu import cpu_ms_per_request
 from benchmarks.api_load import BARE_ROUTE, JOBS_ROUTE, latency_summary, percentile
 from services.client import Job, PlatformClient
+from services.core.db.migrate import upgrade_database
 from services.core.db.models import Job as JobRow
 from services.core.db.session import make_engine
 
@@ -82,6 +89,17 @@ def _rss_mb(pid: int) -> float:
     raise RuntimeError(f"no VmRSS for process {pid}")
 
 
+def _process_tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (Linux ``/proc``)."""
+    pids, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        pids.append(current)
+        for task in Path(f"/proc/{current}/task").glob("*/children"):
+            todo.extend(int(child) for child in task.read_text().split())
+    return pids
+
+
 def _platform_env(data_dir: Path, database_url: str, admin_password: str) -> dict[str, str]:
     """The environment of the bench's api and workers (nothing inherited from BGRL_*)."""
     base = {k: v for k, v in os.environ.items() if not k.startswith("BGRL_")}
@@ -99,9 +117,10 @@ def _platform_env(data_dir: Path, database_url: str, admin_password: str) -> dic
 class Platform:
     """An api process (and worker processes) on one database and data folder."""
 
-    def __init__(self, root: Path, database_url: str) -> None:
+    def __init__(self, root: Path, database_url: str, *, api_workers: int = 1) -> None:
         self.root = root
         self.database_url = database_url
+        self.api_workers = api_workers
         self.admin_password = secrets.token_urlsafe(16)
         self.env = _platform_env(root / "data", database_url, self.admin_password)
         self.port = _free_port()
@@ -109,18 +128,28 @@ class Platform:
         self.api: subprocess.Popen[bytes] | None = None
         self.workers: list[subprocess.Popen[bytes]] = []
 
-    def _spawn(self, name: str, args: list[str]) -> subprocess.Popen[bytes]:
-        log = (self.root / f"{name}.log").open("wb")
+    def _spawn(
+        self, name: str, args: list[str], extra_env: dict[str, str] | None = None
+    ) -> subprocess.Popen[bytes]:
+        log = (self.root / f"{name}.log").open("ab")
         return subprocess.Popen(
-            [sys.executable, *args], env=self.env, cwd=self.root, stdout=log, stderr=log
+            [sys.executable, *args],
+            env={**self.env, **(extra_env or {})},
+            cwd=self.root,
+            stdout=log,
+            stderr=log,
         )
 
     def start_api(self) -> None:
-        """Start uvicorn and wait until ``/readyz`` answers 200 (migrations done)."""
+        """Migrate, start uvicorn with ``api_workers`` processes (which do not migrate, as
+        under ``bgrl up``) and wait until ``/readyz`` answers 200."""
+        upgrade_database(self.database_url)
         self.api = self._spawn(
             "api",
             ["-m", "uvicorn", "services.api.app:app", "--host", "127.0.0.1",
-             "--port", str(self.port), "--no-access-log", "--log-level", "warning"],
+             "--port", str(self.port), "--workers", str(self.api_workers),
+             "--no-access-log", "--log-level", "warning"],
+            extra_env={"BGRL_MIGRATE_ON_START": "false"},
         )  # fmt: skip
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while True:
@@ -155,8 +184,9 @@ class Platform:
         return client
 
     def api_rss_mb(self) -> float:
+        """RSS of uvicorn and its worker processes, summed."""
         assert self.api is not None
-        return _rss_mb(self.api.pid)
+        return sum(_rss_mb(pid) for pid in _process_tree(self.api.pid))
 
     def stop(self) -> None:
         """SIGTERM everything started, SIGKILL what is left after 15 s."""
@@ -173,7 +203,7 @@ class Platform:
 
 
 @contextmanager
-def _postgres_schema() -> Iterator[str | None]:
+def postgres_schema() -> Iterator[str | None]:
     """A private schema of PostgreSQL's ``test`` database (dropped afterwards), or None."""
     for admin_url in PG_ADMIN_URLS:
         try:
@@ -282,6 +312,33 @@ def run_load(
     return json.loads(done.stdout)
 
 
+def _load_level(
+    plat: Platform, token: str, rate: float, duration_s: float, blocks: int
+) -> dict[str, Any]:
+    """A fresh api on the platform's database, its RSS idle, the load, its RSS after."""
+    plat.start_api()
+    try:
+        rss_idle = plat.api_rss_mb()
+        load = run_load(plat.url, token, rate=rate, duration_s=duration_s, blocks=blocks)
+        rss_after = plat.api_rss_mb()
+    finally:
+        plat.stop()
+    jobs, bare = load["routes"][JOBS_ROUTE], load["routes"][BARE_ROUTE]
+    ratio = jobs["p99_ms"] / bare["p99_ms"] if bare.get("p99_ms") else None
+    return {
+        "rate_per_s": rate,
+        **load,
+        "jobs_p99_to_bare_p99": ratio,
+        "meets_aim": bool(
+            jobs.get("p99_ms", math.inf) < AIM_P99_MS
+            and ratio is not None
+            and ratio < AIM_RATIO_TO_BARE
+            and jobs["errors"] == 0
+        ),
+        "api_rss_mb": {"idle": rss_idle, "after_load": rss_after},
+    }
+
+
 def bench_reads(
     database: str,
     database_url: str,
@@ -292,11 +349,13 @@ def bench_reads(
     light_rate: float,
     duration_s: float,
     blocks: int,
+    api_workers: int,
     progress: Progress,
 ) -> dict[str, Any]:
-    """One api on ``database_url``: RSS idle, the load at ``rate``, RSS after, then the
-    same load at ``light_rate`` (what the server carries on this machine, for reference)."""
-    plat = Platform(root, database_url)
+    """``jobs_stored`` jobs on ``database_url``; the load at ``rate``, then at ``light_rate``
+    (what the server carries on this machine, for reference), each on a fresh api of
+    ``api_workers`` processes; then the CPU per request in process."""
+    plat = Platform(root, database_url, api_workers=api_workers)
     try:
         plat.start_api()
         with plat.client() as client:
@@ -304,36 +363,32 @@ def bench_reads(
             page = client.list_jobs(limit=50)
             assert page.total == jobs_stored, page.total
             token = client.token
-        assert token is not None
-        progress(f"{database}: api up, {jobs_stored} jobs stored")
-        rss_idle = plat.api_rss_mb()
-        load = run_load(plat.url, token, rate=rate, duration_s=duration_s, blocks=blocks)
-        rss_after = plat.api_rss_mb()
-        progress(f"{database}: load done")
-        light = run_load(plat.url, token, rate=light_rate, duration_s=duration_s, blocks=blocks)
-        progress(f"{database}: light load done")
     finally:
         plat.stop()
-    jobs, bare = load["routes"][JOBS_ROUTE], load["routes"][BARE_ROUTE]
-    ratio = jobs["p99_ms"] / bare["p99_ms"] if bare.get("p99_ms") else None
-    light_jobs, light_bare = light["routes"][JOBS_ROUTE], light["routes"][BARE_ROUTE]
+    assert token is not None
+    progress(f"{database}: {jobs_stored} jobs stored")
+    load = _load_level(plat, token, rate, duration_s, blocks)
+    progress(f"{database}: load at {rate:g} req/s done")
+    light = _load_level(plat, token, light_rate, duration_s, blocks)
+    progress(f"{database}: load at {light_rate:g} req/s done")
+    cpu = cpu_ms_per_request(
+        database_url,
+        root / "data",
+        ADMIN_EMAIL,
+        plat.admin_password,
+        (JOBS_ROUTE, BARE_ROUTE),
+    )
+    progress(f"{database}: CPU per request measured")
     return {
         "database": database,
         "jobs_stored": jobs_stored,
-        "load": {"rate_per_s": rate, **load},
-        "jobs_p99_to_bare_p99": ratio,
-        "light_load": {
-            "rate_per_s": light_rate,
-            **light,
-            "jobs_p99_to_bare_p99": light_jobs["p99_ms"] / light_bare["p99_ms"],
-        },
-        "meets_aim": bool(
-            jobs.get("p99_ms", math.inf) < AIM_P99_MS
-            and ratio is not None
-            and ratio < AIM_RATIO_TO_BARE
-            and jobs["errors"] == 0
-        ),
-        "api_rss_mb": {"idle": rss_idle, "after_load": rss_after},
+        "api_workers": api_workers,
+        "load": load,
+        "jobs_p99_to_bare_p99": load["jobs_p99_to_bare_p99"],
+        "light_load": light,
+        "meets_aim": load["meets_aim"],
+        "api_rss_mb": load["api_rss_mb"],
+        "cpu_ms_per_request_in_process": cpu,
     }
 
 
@@ -477,18 +532,19 @@ def bench_all_reads(
     light_rate: float,
     duration_s: float,
     blocks: int,
+    api_workers: int,
     progress: Progress,
 ) -> dict[str, Any]:
     """:func:`bench_reads` on SQLite, and on PostgreSQL when it is reachable."""
     kwargs = {"jobs_stored": jobs_stored, "rate": rate, "light_rate": light_rate,
-              "duration_s": duration_s,
-              "blocks": blocks, "progress": progress}  # fmt: skip
+              "duration_s": duration_s, "blocks": blocks, "api_workers": api_workers,
+              "progress": progress}  # fmt: skip
     figures: dict[str, Any] = {}
     (root / "sqlite").mkdir()
     figures["sqlite"] = bench_reads(
         "sqlite", f"sqlite:///{root / 'sqlite' / 'bgrl.db'}", root / "sqlite", **kwargs
     )
-    with _postgres_schema() as pg_url:
+    with postgres_schema() as pg_url:
         if pg_url is None:
             figures["postgresql"] = {"skipped": PG_SKIP_REASON}
             progress("postgresql: skipped")
@@ -511,11 +567,13 @@ def run(
     job_steps: int = 2000,
     job_timeout_s: float = 1800.0,
     jobs: bool = True,
+    api_workers: int = 2,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Every api benchmark; the figures as a JSON-ready dict."""
     report: Progress = progress if progress is not None else (lambda _message: None)
     started = time.perf_counter()
+    load_at_start = list(os.getloadavg())
     job_config: dict[str, Any] = {
         **THROUGHPUT_CONFIG,
         "method": job_method,
@@ -527,7 +585,7 @@ def run(
         root = Path(tmp)
         reads = bench_all_reads(
             root, jobs_stored=jobs_stored, rate=rate, light_rate=light_rate,
-            duration_s=duration_s, blocks=blocks,
+            duration_s=duration_s, blocks=blocks, api_workers=api_workers,
             progress=report,
         )  # fmt: skip
         (root / "jobs").mkdir()
@@ -550,6 +608,7 @@ def run(
             "platform": platform.platform(),
             "python": platform.python_version(),
             "cpus": os.cpu_count(),
+            "load_average_at_start": load_at_start,
             "load_average_at_end": list(os.getloadavg()),
         },
         "parameters": {
@@ -558,6 +617,7 @@ def run(
             "duration_s_per_route": duration_s,
             "blocks_per_route": blocks,
             "jobs_stored": jobs_stored,
+            "api_workers": api_workers,
             "jobs_route": JOBS_ROUTE,
             "bare_route": BARE_ROUTE,
             "throughput_jobs_per_worker": batch,

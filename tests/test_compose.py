@@ -121,6 +121,14 @@ def test_services_listen_where_their_health_checks_and_clients_look() -> None:
     assert all(p.startswith("127.0.0.1:") for p in SERVICES["flower"]["ports"])
 
 
+def test_the_api_runs_several_processes_under_bgrl_up() -> None:
+    api = OURS["api"]
+    assert api["command"][:2] == ["bgrl", "up"]  # `bgrl up` passes --workers to uvicorn
+    default = re.fullmatch(r"\$\{BGRL_API_WORKERS:-(\d+)\}", api["environment"]["BGRL_API_WORKERS"])
+    assert default is not None
+    assert ApiSettings(api_workers=int(default.group(1))).api_workers >= 2
+
+
 def test_dependencies_wait_for_health_checks() -> None:
     for name, spec in SERVICES.items():
         for dependency, rule in spec.get("depends_on", {}).items():

@@ -12,6 +12,8 @@ from services.api.deps import PageParams
 from services.core.errors import NotFoundError
 
 RowT = TypeVar("RowT")
+TOTAL_COLUMN = "total_matching"
+"""Name of the count column :func:`paginate` adds to a list query."""
 
 
 def get_or_404(db: Session, model: type[RowT], row_id: object, field: str) -> RowT:
@@ -24,9 +26,27 @@ def get_or_404(db: Session, model: type[RowT], row_id: object, field: str) -> Ro
 
 
 def paginate(db: Session, query: Select[Any], page: PageParams) -> dict[str, Any]:
-    """``{"items", "total", "limit", "offset"}`` of ``query`` (already filtered and ordered)."""
-    total = db.scalar(select(func.count()).select_from(query.order_by(None).subquery())) or 0
-    items = db.scalars(query.limit(page.limit).offset(page.offset)).all()
+    """``{"items", "total", "limit", "offset"}`` of ``query`` (already filtered and ordered).
+
+    A query of one entity gives its rows as ``items``; a query of several columns gives
+    one dict per row (cheaper: no ORM objects, only what the response returns). The total
+    comes in the same query, as a column counted once; only a page past the end needs a
+    second query for it.
+    """
+    count = select(func.count()).select_from(query.order_by(None).subquery()).correlate(None)
+    counted = query.add_columns(count.scalar_subquery().label(TOTAL_COLUMN))
+    rows = db.execute(counted.limit(page.limit).offset(page.offset)).all()
+    if rows:
+        total = rows[0][-1]
+    elif page.offset == 0:
+        total = 0
+    else:  # past the end: count on its own
+        total = db.scalar(count) or 0
+    if len(query.column_descriptions) == 1:
+        items: list[Any] = [row[0] for row in rows]
+    else:
+        names = [column["name"] for column in query.column_descriptions]
+        items = [dict(zip(names, row[:-1], strict=True)) for row in rows]
     return {"items": items, "total": total, "limit": page.limit, "offset": page.offset}
 
 

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Annotated
 
 from celery import Celery
 from fastapi import Depends, Path, Query, WebSocket
+from fastapi.concurrency import run_in_threadpool
 from fastapi.security import OAuth2PasswordBearer
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
@@ -30,29 +31,39 @@ MAX_PAGE_LIMIT = 500
 bearer_scheme = OAuth2PasswordBearer(tokenUrl=TOKEN_URL, auto_error=False)
 
 
-def get_settings(connection: HTTPConnection) -> ApiSettings:
+async def get_settings(connection: HTTPConnection) -> ApiSettings:
     """The settings the app was built with."""
     return connection.app.state.settings
 
 
-def get_db(connection: HTTPConnection) -> Iterator[Session]:
-    """A database session for this request (closed afterwards; routes commit)."""
+async def get_db(connection: HTTPConnection) -> AsyncIterator[Session]:
+    """A database session for this request (closed afterwards; routes commit).
+
+    Opening a session does no I/O, so it happens on the event loop; closing it returns its
+    connection (a rollback), so that runs in a thread, and only if a connection was taken.
+    """
     factory: sessionmaker[Session] = connection.app.state.sessions
-    with factory() as session:
+    session = factory()
+    try:
         yield session
+    finally:
+        if session.in_transaction():
+            await run_in_threadpool(session.close)
+        else:
+            session.close()
 
 
-def get_store(connection: HTTPConnection) -> ArtifactStore:
+async def get_store(connection: HTTPConnection) -> ArtifactStore:
     """The artifact store."""
     return connection.app.state.store
 
 
-def get_celery(connection: HTTPConnection) -> Celery:
+async def get_celery(connection: HTTPConnection) -> Celery:
     """The Celery client jobs are enqueued with."""
     return connection.app.state.celery
 
 
-def get_limiter(connection: HTTPConnection) -> LoginLimiter:
+async def get_limiter(connection: HTTPConnection) -> LoginLimiter:
     """The failed-login limiter."""
     return connection.app.state.limiter
 
@@ -137,7 +148,7 @@ class PageParams:
     offset: int
 
 
-def get_page(
+async def get_page(
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE_LIMIT, description="Items per page.")] = 50,
     offset: Annotated[int, Query(ge=0, le=10**9, description="Items to skip.")] = 0,
 ) -> PageParams:

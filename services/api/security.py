@@ -54,19 +54,27 @@ def generate_password() -> str:
 
 
 def load_jwt_key(settings: ApiSettings) -> str:
-    """The configured key, or the one generated at first start and kept with mode 600."""
+    """The configured key, or the one generated at first start and kept with mode 600.
+
+    Safe when several api processes start at once: the key is written to a private file
+    that is then linked into place, so a reader sees no key file or a complete one, and
+    every process ends up with the key of the first to link.
+    """
     if settings.jwt_secret is not None:
         return settings.jwt_secret.get_secret_value()
     path = settings.api_dir / "jwt.key"
     if not path.is_file():
         path.parent.mkdir(parents=True, exist_ok=True)
+        draft = path.with_name(f".jwt.key.{os.getpid()}.{secrets.token_hex(4)}")
+        fd = os.open(draft, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:
-            pass  # another process created it just now
-        else:
             with os.fdopen(fd, "w") as handle:
                 handle.write(secrets.token_hex(32))
+            os.link(draft, path)
+        except FileExistsError:
+            pass  # another process linked its key first: that one is used
+        finally:
+            draft.unlink(missing_ok=True)
     key = Path(path).read_text().strip()
     if len(key) < 32:
         raise RuntimeError(f"{path} holds a key shorter than 32 characters; delete it")

@@ -6,17 +6,32 @@ BGRL_ADMIN_PASSWORD=... uvicorn services.api.app:app --port 8000``.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from pydantic import Field, SecretStr
 
 from services.core.platform import PlatformSettings
 
+MAX_DEFAULT_API_WORKERS = 4
+
+
+def default_api_workers() -> int:
+    """One api process per CPU core, at most ``MAX_DEFAULT_API_WORKERS``."""
+    return max(1, min(MAX_DEFAULT_API_WORKERS, os.cpu_count() or 1))
+
 
 class ApiSettings(PlatformSettings):
     """Configuration of the api (everything the platform shares, plus auth and limits)."""
 
     port: int = Field(8000, ge=1, le=65535, description="TCP port of the HTTP server.")
+    api_workers: int = Field(
+        default_factory=default_api_workers,
+        ge=1,
+        le=64,
+        description="Api processes `bgrl up` starts behind the one port (uvicorn --workers); "
+        "default: one per CPU core, at most 4.",
+    )
     max_upload_bytes: int = Field(
         1024 * 1024 * 1024,
         gt=0,

@@ -309,9 +309,13 @@ def bench_api(
     ] = "hf_sparse",
     job_steps: Annotated[int, typer.Option(min=128, help="total_steps of each job.")] = 2000,
     jobs: Annotated[bool, typer.Option(help="Also measure job throughput (slow).")] = True,
+    api_workers: Annotated[
+        int, typer.Option(min=1, max=64, help="Api processes under the read load.")
+    ] = 2,
 ) -> None:
-    """Api reads under load (SQLite, PostgreSQL) vs a bare route, api RSS, job throughput
-    with 1 and 2 workers and queue latency; writes OUT/api.json."""
+    """Api reads under load (SQLite, PostgreSQL) vs a bare route, each load level on a
+    fresh api; CPU per request in process; api RSS; job throughput with 1 and 2 workers
+    and queue latency; writes OUT/api.json."""
     import time
 
     from tqdm import tqdm
@@ -336,13 +340,15 @@ def bench_api(
             job_method=job_method,
             job_steps=job_steps,
             jobs=jobs,
+            api_workers=api_workers,
             progress=progress,
         )
     result["command"] = (
         f"bgrl bench api --out {out} --rate {rate:g} --light-rate {light_rate:g} "
         f"--duration {duration:g} --blocks {blocks} "
         f"--jobs-stored {jobs_stored} --batch {batch} --probes {probes} "
-        f"--job-method {job_method} --job-steps {job_steps}{'' if jobs else ' --no-jobs'}"
+        f"--job-method {job_method} --job-steps {job_steps} --api-workers {api_workers}"
+        f"{'' if jobs else ' --no-jobs'}"
     )
     out.mkdir(parents=True, exist_ok=True)
     path = out / "api.json"
@@ -351,20 +357,22 @@ def bench_api(
         if "skipped" in reads:
             typer.echo(f"{name}: skipped ({reads['skipped']})")
             continue
-        routes = reads["load"]["routes"]
-        jobs, bare = routes[bench.JOBS_ROUTE], routes[bench.BARE_ROUTE]
+        for level in (reads["load"], reads["light_load"]):
+            jobs_route, bare = (level["routes"][r] for r in (bench.JOBS_ROUTE, bench.BARE_ROUTE))
+            ratio = level["jobs_p99_to_bare_p99"]
+            typer.echo(
+                f"{name} at {level['rate_per_s']:g} req/s: GET {bench.JOBS_ROUTE} p50 "
+                f"{jobs_route['p50_ms']:.1f} ms p99 {jobs_route['p99_ms']:.1f} ms "
+                f"({jobs_route['errors']} errors) vs {bench.BARE_ROUTE} p50 "
+                f"{bare['p50_ms']:.1f} ms p99 {bare['p99_ms']:.1f} ms ({bare['errors']} "
+                f"errors); p99 ratio {'-' if ratio is None else f'{ratio:.2f}'}; aim met: "
+                f"{level['meets_aim']}; api RSS {level['api_rss_mb']['idle']:.0f} -> "
+                f"{level['api_rss_mb']['after_load']:.0f} MiB"
+            )
+        cpu = reads["cpu_ms_per_request_in_process"]
         typer.echo(
-            f"{name}: GET {bench.JOBS_ROUTE} p50 {jobs['p50_ms']:.1f} ms p99 "
-            f"{jobs['p99_ms']:.1f} ms ({jobs['errors']} errors) vs {bench.BARE_ROUTE} p50 "
-            f"{bare['p50_ms']:.1f} ms p99 {bare['p99_ms']:.1f} ms ({bare['errors']} errors); "
-            f"p99 ratio {reads['jobs_p99_to_bare_p99']:.2f}; api RSS "
-            f"{reads['api_rss_mb']['idle']:.0f} -> {reads['api_rss_mb']['after_load']:.0f} MiB"
-        )
-        light = reads["light_load"]
-        typer.echo(
-            f"{name} at {light['rate_per_s']:g} req/s: p99 "
-            f"{light['routes'][bench.JOBS_ROUTE]['p99_ms']:.1f} ms vs "
-            f"{light['routes'][bench.BARE_ROUTE]['p99_ms']:.1f} ms"
+            f"{name}: CPU per request in process: "
+            + ", ".join(f"GET {route} {ms:.2f} ms" for route, ms in cpu.items())
         )
     tp = result["throughput"]
     if tp is None:

@@ -1,13 +1,13 @@
 """``bgrl up`` (alias ``bgrl serve``): the whole platform on one machine, one command.
 
 Creates the data folder, brings the database to the current schema, then starts the api
-(8000), sim (8001), EEG (8002) and learner (8003) services as uvicorn processes and
-``BGRL_WORKERS`` job workers. Every value comes from the services' settings (``BGRL_PORT``,
-``BGRL_SIM_HOST``, ``BGRL_EEG_PORT``...), validated before anything starts: a bad one is one
-line naming the variable. A worker that dies is restarted; if an HTTP service dies,
-everything stops. Ctrl-C or SIGTERM stops every process within 10 s (workers hand their
-running job back to the queue); the data folder keeps the database, broker and artifacts for
-the next start.
+(8000; ``BGRL_API_WORKERS`` processes behind that port), sim (8001), EEG (8002) and learner
+(8003) services as uvicorn processes and ``BGRL_WORKERS`` job workers. Every value comes
+from the services' settings (``BGRL_PORT``, ``BGRL_SIM_HOST``, ``BGRL_EEG_PORT``...),
+validated before anything starts: a bad one is one line naming the variable. A worker that
+dies is restarted; if an HTTP service dies, everything stops. Ctrl-C or SIGTERM stops every
+process within 10 s (workers hand their running job back to the queue); the data folder
+keeps the database, broker and artifacts for the next start.
 """
 
 from __future__ import annotations
@@ -85,14 +85,17 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
 class Child:
     """A child process of ``bgrl up`` (in its own process group, so only we signal it)."""
 
-    def __init__(self, name: str, cmd: list[str]) -> None:
+    def __init__(self, name: str, cmd: list[str], env: dict[str, str] | None = None) -> None:
         self.name = name
         self.cmd = cmd
+        self.env = env
+        """Variables set for this child on top of ``bgrl up``'s environment."""
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
         preexec = _die_with_parent if sys.platform.startswith("linux") else None
-        self.proc = subprocess.Popen(self.cmd, start_new_session=True, preexec_fn=preexec)
+        env = {**os.environ, **self.env} if self.env else None
+        self.proc = subprocess.Popen(self.cmd, start_new_session=True, preexec_fn=preexec, env=env)
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -181,11 +184,7 @@ def up(
         upgrade_database(platform.resolved_database_url)
         typer.echo("database schema up to date")
 
-    uvicorn = [sys.executable, "-m", "uvicorn"]
-    services = [
-        Child(spec.name, [*uvicorn, spec.asgi_app, "--host", s.host, "--port", str(s.port)])
-        for spec, s in service_settings
-    ]
+    services = [_service_child(spec, s) for spec, s in service_settings]
     worker_cmd = [sys.executable, "-m", "services.cli.main", "worker", "--no-migrate"]
     workers = [
         Child(f"worker-{i + 1}", [*worker_cmd, "--name", f"local{i + 1}"]) for i in range(n_workers)
@@ -205,7 +204,9 @@ def up(
             child.start()
         for spec, settings in service_settings:
             url = f"http://{settings.host}:{settings.port}"
-            typer.echo(f"{spec.name:>8}: {url}  (docs: {url}/docs)")
+            processes = getattr(settings, "api_workers", 1)
+            extra = f", {processes} processes (BGRL_API_WORKERS)" if processes > 1 else ""
+            typer.echo(f"{spec.name:>8}: {url}  (docs: {url}/docs{extra})")
         if workers:
             typer.echo(f"{'workers':>8}: {len(workers)} (BGRL_WORKERS)")
         typer.echo("Ctrl-C stops everything.")
@@ -224,6 +225,22 @@ def up(
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(exit_code)
+
+
+def _service_child(spec: ServiceSpec, settings: BaseServiceSettings) -> Child:
+    """The uvicorn process of one service; the api's with ``BGRL_API_WORKERS`` processes.
+
+    The api processes do not migrate: ``bgrl up`` did it once before starting them (or was
+    told not to), so several processes never run the migrations at the same moment.
+    """
+    cmd = [sys.executable, "-m", "uvicorn", spec.asgi_app]
+    cmd += ["--host", settings.host, "--port", str(settings.port)]
+    if spec.name != "api":
+        return Child(spec.name, cmd)
+    workers = getattr(settings, "api_workers", 1)
+    if workers > 1:
+        cmd += ["--workers", str(workers)]
+    return Child(spec.name, cmd, env={"BGRL_MIGRATE_ON_START": "false"})
 
 
 def _supervise(services: list[Child], workers: list[Child], stop: threading.Event) -> int:

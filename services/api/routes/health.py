@@ -14,8 +14,8 @@ router = APIRouter(tags=["service"])
 
 
 @router.get("/healthz")
-def healthz() -> dict[str, str]:
-    """Liveness: the process answers."""
+async def healthz() -> dict[str, str]:
+    """Liveness: the process answers (no per-request work, no database, no thread)."""
     return {"status": "ok"}
 
 

@@ -9,11 +9,12 @@ from typing import Annotated, Any, Literal
 
 from celery import Celery
 from fastapi import APIRouter, Depends, Query, Response, status
+from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
 from sqlalchemy import select, update
-from sqlalchemy.orm import Session, defer
+from sqlalchemy.orm import Session
 
 from services.api import audit
 from services.api.crud import get_or_404, paginate
@@ -128,8 +129,12 @@ def submit(
     return JobPublic.model_validate(job)
 
 
+JOB_LIST_COLUMNS = tuple(Job.__table__.c[name] for name in JobPublic.model_fields)
+"""The columns a job list returns (not the curve, up to hundreds of points, nor tracebacks)."""
+
+
 @router.get("")
-def list_jobs(
+async def list_jobs(
     db: DbDep,
     page: PageDep,
     status_: Annotated[JobStatus | None, Query(alias="status")] = None,
@@ -138,12 +143,7 @@ def list_jobs(
     parent_id: Annotated[str | None, Query(max_length=32)] = None,
 ) -> Page[JobPublic]:
     """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs)."""
-    # the curve (up to hundreds of points) and tracebacks are not in the list's items
-    query = (
-        select(Job)
-        .options(defer(Job.curve), defer(Job.traceback))
-        .order_by(Job.created_at.desc(), Job.id)
-    )
+    query = select(*JOB_LIST_COLUMNS).order_by(Job.created_at.desc(), Job.id)
     if status_ is not None:
         query = query.where(Job.status == status_)
     if kind is not None:
@@ -152,7 +152,8 @@ def list_jobs(
         query = query.where(Job.submitter_id == submitter_id)
     if parent_id is not None:
         query = query.where(Job.parent_id == parent_id)
-    return Page[JobPublic].model_validate(paginate(db, query, page))
+    # async route, one thread for the queries: the page is validated on the event loop
+    return Page[JobPublic].model_validate(await run_in_threadpool(paginate, db, query, page))
 
 
 @router.get("/{job_id}")

@@ -1,0 +1,168 @@
+"""CPU per request of the api, in process: what a route costs whatever the machine's load.
+
+``python -m benchmarks.api_cpu`` prints the figures on a fresh database (SQLite, and
+PostgreSQL when reachable); ``bgrl bench api`` reports them too. The app is called straight
+through ASGI (no HTTP parsing, no socket, no test client), one request at a time, on the
+event loop uvicorn would use; the figure is the process's CPU time (``time.process_time``,
+every thread) divided by the requests, the median of a few repeats. On a shared machine
+this is the robust figure: wall-clock latency under load also measures everyone else's work.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlencode
+
+from fastapi import FastAPI
+from pydantic import SecretStr
+
+from services.api.app import create_app
+from services.api.settings import ApiSettings
+from services.core.db.migrate import upgrade_database
+
+ASGI_ADDRESS = ("127.0.0.1", 8000)
+
+
+async def asgi_get(
+    app: FastAPI, path: str, headers: dict[str, str], body: bytes = b"", method: str = "GET"
+) -> tuple[int, bytes]:
+    """One request through the ASGI app: (status, body)."""
+    route, _, query = path.partition("?")
+    scope = {
+        "type": "http",
+        "asgi": {"version": "3.0"},
+        "http_version": "1.1",
+        "method": method,
+        "scheme": "http",
+        "path": route,
+        "raw_path": route.encode(),
+        "query_string": query.encode(),
+        "root_path": "",
+        "headers": [(k.lower().encode(), v.encode()) for k, v in headers.items()],
+        "client": ("127.0.0.1", 50000),
+        "server": ASGI_ADDRESS,
+    }
+    delivered = False
+
+    async def receive() -> dict[str, Any]:
+        nonlocal delivered
+        if not delivered:
+            delivered = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        await asyncio.Event().wait()  # the client never disconnects
+        raise AssertionError("unreachable")
+
+    status, chunks = 0, []
+
+    async def send(message: dict[str, Any]) -> None:
+        nonlocal status
+        if message["type"] == "http.response.start":
+            status = message["status"]
+        elif message["type"] == "http.response.body":
+            chunks.append(message.get("body", b""))
+
+    await app(scope, receive, send)
+    return status, b"".join(chunks)
+
+
+async def _measure(
+    app: FastAPI, routes: dict[str, dict[str, str]], requests: int, repeats: int
+) -> dict[str, float]:
+    figures = {}
+    for path, headers in routes.items():
+        for _ in range(20):  # warm caches (compiled queries, pydantic, the pool)
+            status, body = await asgi_get(app, path, headers)
+            if status != 200:
+                raise RuntimeError(f"GET {path}: {status} {body[:300]!r}")
+        per_request = []
+        for _ in range(repeats):
+            started = time.process_time()
+            for _ in range(requests):
+                await asgi_get(app, path, headers)
+            per_request.append(1000 * (time.process_time() - started) / requests)
+        figures[path] = statistics.median(per_request)
+    return figures
+
+
+def cpu_ms_per_request(
+    database_url: str,
+    data_dir: Path,
+    admin_email: str,
+    admin_password: str,
+    paths: tuple[str, ...],
+    *,
+    requests: int = 200,
+    repeats: int = 5,
+) -> dict[str, float]:
+    """CPU ms per request of each path (signed in as the admin) on an already filled
+    database; the median over ``repeats`` runs of ``requests`` requests."""
+    upgrade_database(database_url)
+    settings = ApiSettings(
+        data_dir=data_dir,
+        database_url=database_url,
+        admin_email=admin_email,
+        admin_password=SecretStr(admin_password),
+        eeg_url="",
+        log_level="WARNING",
+        migrate_on_start=False,
+    )
+    app = create_app(settings)
+
+    async def run() -> dict[str, float]:
+        async with app.router.lifespan_context(app):
+            form = urlencode({"username": admin_email, "password": admin_password}).encode()
+            status, body = await asgi_get(
+                app,
+                "/api/v1/auth/token",
+                {"content-type": "application/x-www-form-urlencoded"},
+                form,
+                method="POST",
+            )
+            if status != 200:
+                raise RuntimeError(f"sign-in failed: {status} {body[:300]!r}")
+            auth = {"authorization": f"Bearer {json.loads(body)['access_token']}"}
+            return await _measure(app, {p: auth for p in paths}, requests, repeats)
+
+    return asyncio.run(run())
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m benchmarks.api_cpu``: CPU ms per request of the two routes of ``bgrl bench
+    api`` on a fresh SQLite database and, when reachable, PostgreSQL (JSON on stdout)."""
+    import argparse
+    import tempfile
+
+    from benchmarks.api_load import BARE_ROUTE, JOBS_ROUTE
+    from benchmarks.bench_api import ADMIN_EMAIL, PG_SKIP_REASON, postgres_schema, store_jobs
+
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.api_cpu")
+    parser.add_argument("--jobs-stored", type=int, default=1000)
+    parser.add_argument("--requests", type=int, default=200)
+    args = parser.parse_args(argv)
+    password = "bench-password-123"
+    figures: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="bgrl-api-cpu-") as tmp, postgres_schema() as pg_url:
+        urls = {"sqlite": f"sqlite:///{Path(tmp) / 'bgrl.db'}", "postgresql": pg_url}
+        for name, url in urls.items():
+            if url is None:
+                figures[name] = {"skipped": PG_SKIP_REASON}
+                continue
+            upgrade_database(url)
+            store_jobs(url, args.jobs_stored)
+            data_dir = Path(tmp) / name
+            figures[name] = cpu_ms_per_request(
+                url, data_dir, ADMIN_EMAIL, password, (JOBS_ROUTE, BARE_ROUTE),
+                requests=args.requests,
+            )  # fmt: skip
+    json.dump({"jobs_stored": args.jobs_stored, "cpu_ms_per_request": figures}, sys.stdout)
+    print()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,92 @@
+"""The api's hot read path and its processes: the job list returns the job resource, every
+request gives its database connection back, several api processes share one generated JWT
+key, and ``bgrl up`` starts the api with ``BGRL_API_WORKERS`` processes that do not migrate."""
+
+from __future__ import annotations
+
+import multiprocessing
+import multiprocessing.queues
+import multiprocessing.synchronize
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from services.api.security import load_jwt_key
+from services.api.settings import ApiSettings, default_api_workers
+from services.cli.serve import SERVICES, _service_child
+from services.core.settings import SettingsError
+from tests.api.conftest import Api, make_settings
+from tests.api.test_jobs import GUIDED, set_job, submit
+
+
+def test_job_list_items_are_the_job_resource(api_any_db: Api) -> None:
+    api = api_any_db
+    job_id = submit(api, "guided_ppo", {**GUIDED, "seed": 3}).json()["id"]
+    set_job(api, job_id, curve=[[0, 0.0], [2048, 0.5]], status="succeeded", progress=1.0)
+    viewer = api.as_("viewer")
+    page = api.client.get("/api/v1/jobs?limit=50", headers=viewer).json()
+    one = api.client.get(f"/api/v1/jobs/{job_id}", headers=viewer).json()
+    assert page["total"] == 1
+    assert page["items"] == [one]
+    assert one["status"] == "succeeded" and one["progress"] == 1.0
+    assert "curve" not in one and "traceback" not in one
+
+
+def test_every_request_gives_its_connection_back(api_any_db: Api) -> None:
+    api = api_any_db
+    staff = api.as_("staff")
+    submit(api, "guided_ppo", {**GUIDED, "seed": 1})
+    api.client.get("/api/v1/jobs", headers=staff)
+    api.client.get("/api/v1/jobs/nope", headers=staff)
+    api.client.get("/api/v1/jobs", headers={"Authorization": "Bearer bgrl_not-a-token"})
+    api.client.post("/api/v1/subjects", json={"code": "S9"}, headers=staff)
+    api.client.get("/healthz")
+    assert api.client.app.state.engine.pool.checkedout() == 0  # type: ignore[attr-defined]
+
+
+def _key_of(
+    settings: ApiSettings,
+    start: multiprocessing.synchronize.Barrier,
+    keys: multiprocessing.queues.Queue[str],
+) -> None:
+    start.wait()
+    keys.put(load_jwt_key(settings))
+
+
+def test_concurrent_api_processes_generate_one_jwt_key(tmp_path: Path) -> None:
+    settings = make_settings(tmp_path / "data", f"sqlite:///{tmp_path / 'bgrl.db'}")
+    context = multiprocessing.get_context("fork")
+    start, queue = context.Barrier(6), context.Queue()
+    processes = [context.Process(target=_key_of, args=(settings, start, queue)) for _ in range(6)]
+    for process in processes:
+        process.start()
+    keys = [queue.get(timeout=60) for _ in processes]
+    for process in processes:
+        process.join(timeout=60)
+        assert process.exitcode == 0
+    assert len(set(keys)) == 1 and len(keys[0]) == 64
+    key_file = settings.api_dir / "jwt.key"
+    assert stat.S_IMODE(key_file.stat().st_mode) == 0o600
+    assert sorted(p.name for p in settings.api_dir.iterdir()) == ["jwt.key"]  # no drafts left
+
+
+def test_up_starts_the_api_with_its_worker_processes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    api_spec = next(spec for spec in SERVICES if spec.name == "api")
+    monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("BGRL_API_WORKERS", "3")
+    child = _service_child(api_spec, api_spec.load_settings())
+    assert child.cmd[child.cmd.index("--workers") + 1] == "3"
+    assert child.env == {"BGRL_MIGRATE_ON_START": "false"}  # `bgrl up` migrated already
+    monkeypatch.setenv("BGRL_API_WORKERS", "1")
+    assert "--workers" not in _service_child(api_spec, api_spec.load_settings()).cmd
+    monkeypatch.setenv("BGRL_API_WORKERS", "0")
+    with pytest.raises(SettingsError, match=r"invalid setting: BGRL_API_WORKERS \(got '0'\)"):
+        api_spec.load_settings()
+
+
+def test_default_api_workers_follow_the_cores() -> None:
+    assert default_api_workers() == max(1, min(4, os.cpu_count() or 1))
