@@ -7,6 +7,7 @@ are documented in ``docs/api.md`` and at ``/docs``.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -41,7 +42,7 @@ from services.api.security import load_jwt_key
 from services.api.settings import ApiSettings
 from services.core.artifacts import ArtifactStore
 from services.core.db.migrate import upgrade_database
-from services.core.db.session import make_engine, make_session_factory
+from services.core.db.session import make_engine, make_session_factory, pool_capacity
 from services.core.logging import configure_logging
 from services.core.queue import make_celery
 from services.core.settings import load_settings
@@ -87,6 +88,7 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
         engine = make_engine(url)
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
+        app.state.db_slots = asyncio.Semaphore(pool_capacity(engine))
         app.state.store = ArtifactStore(settings.resolved_artifact_dir)
         app.state.celery = make_celery(settings)
         app.state.jwt_key = load_jwt_key(settings)

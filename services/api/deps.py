@@ -8,7 +8,6 @@ from typing import Annotated
 
 from celery import Celery
 from fastapi import Depends, Path, Query, WebSocket
-from fastapi.concurrency import run_in_threadpool
 from fastapi.security import OAuth2PasswordBearer
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
@@ -39,17 +38,20 @@ async def get_settings(connection: HTTPConnection) -> ApiSettings:
 async def get_db(connection: HTTPConnection) -> AsyncIterator[Session]:
     """A database session for this request (closed afterwards; routes commit).
 
-    Opening a session does no I/O, so it happens on the event loop; closing it returns its
-    connection (a rollback), so that runs in a thread, and only if a connection was taken.
+    A request's session keeps its connection across the request's thread hops (sign-in,
+    then the route), so with more requests in flight than the pool has connections, every
+    thread could wait for a connection held by a request that waits for a thread: a
+    deadlock until the pool's timeout. ``app.state.db_slots`` (one slot per pooled
+    connection) admits only as many requests as can hold a connection; the others wait on
+    the event loop. Closing returns the connection (a rollback at most), done on the loop
+    so that releasing never needs a free thread.
     """
     factory: sessionmaker[Session] = connection.app.state.sessions
-    session = factory()
-    try:
-        yield session
-    finally:
-        if session.in_transaction():
-            await run_in_threadpool(session.close)
-        else:
+    async with connection.app.state.db_slots:
+        session = factory()
+        try:
+            yield session
+        finally:
             session.close()
 
 

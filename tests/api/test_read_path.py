@@ -9,8 +9,10 @@ import multiprocessing.queues
 import multiprocessing.synchronize
 import os
 import stat
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import anyio.to_thread
 import pytest
 
 from services.api.security import load_jwt_key
@@ -43,6 +45,29 @@ def test_every_request_gives_its_connection_back(api_any_db: Api) -> None:
     api.client.get("/api/v1/jobs", headers={"Authorization": "Bearer bgrl_not-a-token"})
     api.client.post("/api/v1/subjects", json={"code": "S9"}, headers=staff)
     api.client.get("/healthz")
+    assert api.client.app.state.engine.pool.checkedout() == 0  # type: ignore[attr-defined]
+
+
+@pytest.mark.timeout(120)
+def test_more_requests_than_connections_and_threads_do_not_deadlock(api: Api) -> None:
+    """Each request keeps its connection across its thread hops (sign-in, then the route):
+    with more requests in flight than the pool has connections and only a few threads,
+    unadmitted requests would take every thread waiting for connections that requests
+    between hops hold (until the pool's 30 s timeout, then a 500). Requests beyond the
+    pool's capacity wait on the event loop instead, so every one is answered."""
+    staff = api.as_("staff")
+    portal = api.client.portal  # type: ignore[attr-defined]
+    limiter = portal.call(anyio.to_thread.current_default_thread_limiter)
+    threads = limiter.total_tokens
+    portal.call(setattr, limiter, "total_tokens", 3)
+    try:
+        with ThreadPoolExecutor(max_workers=48) as pool:
+            answers = list(
+                pool.map(lambda _: api.client.get("/api/v1/jobs", headers=staff), range(96))
+            )
+    finally:
+        portal.call(setattr, limiter, "total_tokens", threads)
+    assert [answer.status_code for answer in answers] == [200] * 96
     assert api.client.app.state.engine.pool.checkedout() == 0  # type: ignore[attr-defined]
 
 

@@ -8,6 +8,7 @@ from typing import Any
 from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.pool import QueuePool, StaticPool
 
 SQLITE_BUSY_TIMEOUT_MS = 10_000
 
@@ -38,6 +39,18 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
         return engine
     kwargs.setdefault("pool_pre_ping", True)
     return create_engine(url, **kwargs)
+
+
+def pool_capacity(engine: Engine) -> int:
+    """How many sessions of ``engine`` can hold a connection at once: size + overflow of a
+    ``QueuePool`` (the default for a SQLite file and PostgreSQL), 1 for a ``StaticPool``
+    (one shared connection), else 64 (pools that open a connection per thread or use)."""
+    pool = engine.pool
+    if isinstance(pool, QueuePool):
+        return pool.size() + max(pool._max_overflow, 0)
+    if isinstance(pool, StaticPool):
+        return 1
+    return 64
 
 
 def make_session_factory(engine: Engine) -> sessionmaker[Session]:
