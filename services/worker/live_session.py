@@ -6,9 +6,12 @@ executed by the sim (``POST /sessions/{id}/step``, which publishes its LSL marke
 the oracle's label); the marker row is written; test and online sessions then ask the EEG
 service for the decision on the [0, 0.8] s epoch after it (decision row: accepted, or
 rejected and why); online, an accepted decision goes to the learner as a label (label row)
-and pi_HF's next action comes from the updated model (model-version row). Paced sessions keep
-one action every ``period_s`` on the runner's clock; accelerated ones run as fast as the
-services answer while the virtual subject's clock advances ``period_s`` per action.
+and its answer carries pi_HF's next action from the updated model (model-version row). A
+calibration binds no classifier: the EEG service records the stream and every marker (its
+live recording, named after the run) and stores the recording when the session ends. Paced
+sessions keep one action every ``period_s`` on the runner's clock; accelerated ones run as
+fast as the services answer while the virtual subject's clock advances ``period_s`` per
+action.
 
 Resume: every attempt starts from the rows. The marker whose decision was not written is
 the label in flight: it is recorded as rejected ("lost") and the loop goes on with the next
