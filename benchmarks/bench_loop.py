@@ -27,20 +27,10 @@ from services.cli.demo import (
     _live_run,
     _run,
     cpu_seconds,
+    job_runtime,
     run_latencies,
     start_services,
 )
-
-
-def _runtime(folder: Path) -> Any:
-    from services.core.db.migrate import upgrade_database
-    from services.core.queue import make_celery
-    from services.worker.runtime import Runtime
-    from services.worker.settings import WorkerSettings
-
-    settings = WorkerSettings(data_dir=folder)
-    upgrade_database(settings.resolved_database_url)
-    return Runtime(settings=settings, celery=make_celery(settings))
 
 
 def _subject(runtime: Any, code: str) -> int:
@@ -107,7 +97,7 @@ def run_benchmark(
         os.environ[f"BGRL_{name.upper()}_URL"] = url
     os.environ["BGRL_SERVICE_TOKEN"] = token
     os.environ["BGRL_DATA_DIR"] = str(folder)
-    runtime = _runtime(folder)
+    runtime = job_runtime(folder)
     result: dict[str, Any] = {
         "synthetic": True,
         "cpus": os.cpu_count(),
@@ -129,9 +119,10 @@ def run_benchmark(
                 "label_budget": labels,
             }
             run_id, job_id = _live_run(runtime, session_id, "online", options)
-            t = time.perf_counter()
+            t, cpu_before = time.perf_counter(), cpu_seconds(children)
             online = _run(runtime, job_id, live_session)
             online_s = time.perf_counter() - t
+            cpu_per_label = _cpu_ms_per(cpu_before, cpu_seconds(children), online["labels"])
             accuracy = online["decoding_accuracy"]
             row = {
                 "quality": quality,
@@ -144,6 +135,7 @@ def run_benchmark(
                 "hf_sweep_spl_at_same_accuracy": _sweep_spl("sssg", accuracy, labels, sweep_seeds),
                 "online_seconds": round(online_s, 1),
                 "seconds_per_label": round(online_s / max(online["labels"], 1), 4),
+                "cpu_ms_per_label": cpu_per_label,
                 "latency_ms": run_latencies(runtime, run_id),
                 "wall_seconds": round(time.perf_counter() - started, 1),
                 "cpu_seconds_so_far": cpu_seconds(children),
@@ -158,8 +150,12 @@ def run_benchmark(
                        "classifier_id": classifiers[quality], "label_budget": paced_actions,
                        "n_actions": paced_actions, "period_s": period_s}  # fmt: skip
             run_id, job_id = _live_run(runtime, session_id, "online", options)
+            cpu_before = cpu_seconds(children)
             online = _run(runtime, job_id, live_session)
             result["paced"] = {
+                "cpu_ms_per_action": _cpu_ms_per(
+                    cpu_before, cpu_seconds(children), online["actions"]
+                ),
                 "actions": online["actions"],
                 "labels": online["labels"],
                 "period_s": period_s,
@@ -179,6 +175,12 @@ def run_benchmark(
             child.wait_or_kill(deadline)
         runtime.engine.dispose()
         tmp.cleanup()
+
+
+def _cpu_ms_per(before: dict[str, float], after: dict[str, float], n: int) -> dict[str, float]:
+    """CPU milliseconds per item of each process (``demo``: the runner's own) between two
+    :func:`cpu_seconds` snapshots."""
+    return {k: round(1000 * (after[k] - before.get(k, 0.0)) / max(n, 1), 2) for k in after}
 
 
 def _pace(runtime: Any, run_id: int, period_s: float) -> dict[str, float | None]:

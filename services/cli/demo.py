@@ -81,6 +81,25 @@ def start_services(data_dir: Path, token: str) -> tuple[dict[str, str], list[Any
     return urls, children
 
 
+def job_runtime(data_dir: Path) -> Any:
+    """The worker runtime that runs this command's jobs in-process, set up as a ``bgrl
+    worker`` process is: database migrated, torch limited to ``worker_torch_threads``
+    intra-op threads (1 by default; the default of one per core spins for tens of ms per
+    small op when the cores are shared, which made the demo's PPO and EEGNet training
+    several times slower)."""
+    import torch
+
+    from services.core.db.migrate import upgrade_database
+    from services.core.queue import make_celery
+    from services.worker.runtime import Runtime
+    from services.worker.settings import WorkerSettings
+
+    settings = WorkerSettings(data_dir=data_dir)
+    upgrade_database(settings.resolved_database_url)
+    torch.set_num_threads(settings.worker_torch_threads)
+    return Runtime(settings=settings, celery=make_celery(settings))
+
+
 def cpu_seconds(children: list[Any]) -> dict[str, float]:
     """CPU time (user + system, s) used so far by this process and each service child: on
     a shared machine, the wall time a run would take on idle cores is bounded by these."""
@@ -260,14 +279,10 @@ def demo(
     seed: Annotated[int, typer.Option(min=0)] = 0,
 ) -> None:
     """Calibration -> classifier -> online session -> guided PPO, with the virtual subject."""
-    from services.core.db.migrate import upgrade_database
     from services.core.db.models import Subject
     from services.core.logging import configure_logging
-    from services.core.queue import make_celery
     from services.worker.calibration import eeg_calibration
     from services.worker.live_session import live_session
-    from services.worker.runtime import Runtime
-    from services.worker.settings import WorkerSettings
     from services.worker.training import guided_ppo
 
     configure_logging("WARNING")
@@ -282,9 +297,7 @@ def demo(
         os.environ[f"BGRL_{name.upper()}_URL"] = url
     os.environ["BGRL_SERVICE_TOKEN"] = token
     os.environ["BGRL_DATA_DIR"] = str(folder)
-    settings = WorkerSettings(data_dir=folder)
-    upgrade_database(settings.resolved_database_url)
-    runtime = Runtime(settings=settings, celery=make_celery(settings))
+    runtime = job_runtime(folder)
     stages: dict[str, float] = {"services_s": time.perf_counter() - started}
     try:
         with runtime.sessions() as db:

@@ -33,6 +33,11 @@ def create_app(settings: EEGSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        import torch
+
+        # One intra-op thread: an EEGNet pass on one live epoch takes ~1 ms on one thread,
+        # while two OpenMP threads on a busy 2-core machine spin for tens of ms (p99 > 100 ms).
+        torch.set_num_threads(1)
         service = EEGService(settings, asyncio.get_running_loop())
         app.state.service = service
         try:

@@ -182,6 +182,9 @@ class LiveIngest:
         self.stale_after_s = stale_after_s
         self._clock = clock
         self._lock = threading.Lock()
+        self._arrived = threading.Condition()
+        self._generation = 0
+        """Counts ingested chunks and disconnects: :meth:`wait_epoch` sleeps until it moves."""
         self._issues: deque[StreamIssue] = deque(maxlen=MAX_ISSUES)
         self.issues_dropped = 0
         self._open_disconnect: StreamIssue | None = None
@@ -251,8 +254,14 @@ class LiveIngest:
             ):
                 self._ingest(part_x, part_t, arrival)
             self._last_arrival = arrival
+        self._wake()
         for listener in list(self._listeners):
             listener(samples, timestamps)
+
+    def _wake(self) -> None:
+        with self._arrived:
+            self._generation += 1
+            self._arrived.notify_all()
 
     def add_listener(self, listener: Callable[[np.ndarray, np.ndarray], None]) -> None:
         """Call ``listener(samples, timestamps)`` with every chunk after it was checked
@@ -389,6 +398,7 @@ class LiveIngest:
                 self._disconnected_at = self._last_ts
                 self._open_disconnect = StreamIssue("disconnect", self._last_ts, math.inf, detail)
                 self._add_issue(self._open_disconnect)
+        self._wake()
 
     def check_stale(self) -> bool:
         """Mark a disconnect when no data arrived for ``stale_after_s``; True if disconnected."""
@@ -465,23 +475,31 @@ class LiveIngest:
         onset: float,
         *,
         timeout_s: float = 2.0,
-        poll_s: float = 0.002,
+        poll_s: float = 0.05,
         stop: threading.Event | None = None,
     ) -> EpochResult:
-        """Poll :meth:`epoch_for` until it is not pending or ``timeout_s`` passes.
+        """Wait until :meth:`epoch_for` is not pending or ``timeout_s`` passes.
 
-        ``stop`` (optional) ends the wait early with a rejection (the source is closing).
+        The wait sleeps until the next chunk (or disconnect) arrives, so the epoch is
+        answered as soon as its last sample is ingested; ``poll_s`` bounds each sleep (how
+        soon ``stop`` is noticed). ``stop`` (optional) ends the wait early with a rejection
+        (the source is closing).
         """
         deadline = time.monotonic() + timeout_s
         while True:
+            with self._arrived:
+                generation = self._generation
             result = self.epoch_for(onset)
             if result.status != "pending":
                 return result
             if stop is not None and stop.is_set():
                 return EpochResult(onset, "rejected", reason="the live source was closed")
-            if time.monotonic() >= deadline:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
                 self.check_stale()
                 return EpochResult(
                     onset, "rejected", reason=f"no complete window within {timeout_s:g} s"
                 )
-            time.sleep(poll_s)
+            with self._arrived:
+                if self._generation == generation:  # nothing arrived since epoch_for looked
+                    self._arrived.wait(timeout=min(poll_s, remaining))

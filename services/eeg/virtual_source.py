@@ -32,6 +32,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import struct
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -379,9 +380,9 @@ class VirtualEEGSource:
 
 
 class IngestConnection(Protocol):
-    """A websocket connection to ``WS /live/ingest`` (text messages)."""
+    """A websocket connection to ``WS /live/ingest`` (text and binary messages)."""
 
-    def send(self, message: str) -> None: ...
+    def send(self, message: str | bytes) -> None: ...
 
     def recv(self) -> str: ...
 
@@ -454,8 +455,8 @@ class VirtualIngestClient:
             connection.close()
             raise
 
-    def _exchange(self, message: dict[str, Any]) -> dict[str, Any]:
-        self._connection.send(json.dumps(message))
+    def _exchange(self, message: dict[str, Any] | bytes) -> dict[str, Any]:
+        self._connection.send(message if isinstance(message, bytes) else json.dumps(message))
         reply = json.loads(self._connection.recv())
         if not reply.get("ok"):
             raise IngestError(f"EEG ingest refused: {reply.get('error')}")
@@ -475,7 +476,9 @@ class VirtualIngestClient:
             )
             if not len(samples):
                 break
-            self._exchange({"first_timestamp": first, "samples": samples.tolist()})
+            # Binary: the float32 samples as they are (JSON of 0.5 s of 65 channels costs
+            # ~50 ms of CPU to write and parse; these bytes, well under 1 ms).
+            self._exchange(struct.pack("<d", first) + np.asarray(samples, "<f4").tobytes())
             sent += len(samples)
         self.n_sent += sent
         return sent

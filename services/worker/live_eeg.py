@@ -1,6 +1,8 @@
 """The EEG side of a live session: the classifier installed in the EEG service, the source
 feeding it (virtual subject accelerated or real time, or a headset's LSL stream), and one
-decision per marker through ``POST /live/markers``.
+decision per marker through ``POST /live/markers``. A calibration binds no classifier: the
+EEG service records the stream and every marker (``POST /live/recording``, written to disk
+as they arrive) and stores the recording as a BDF when the session ends.
 
 The virtual subject runs in the runner's process and pushes its samples to ``WS
 /live/ingest``: accelerated, on a virtual clock advanced only as far as each epoch needs;
@@ -13,6 +15,7 @@ epoch in flight is lost: its decision is recorded as rejected with that reason.
 from __future__ import annotations
 
 import logging
+import math
 import shutil
 import threading
 import time
@@ -40,6 +43,8 @@ WARMUP_S = 3.0
 LAG_S = 0.2
 """The real-time virtual subject generates this far behind the clock."""
 FEED_EVERY_S = 0.02
+RECORDING_MARGIN_S = 2.0
+"""EEG recorded after the last marker of a calibration before the recording is stored."""
 
 
 def install_classifier(runtime: Runtime, classifier_id: int) -> str:
@@ -78,15 +83,18 @@ class EegDecoder:
     def __init__(
         self,
         eeg: ServiceClient,
-        classifier_id: str,
+        classifier_id: str | None,
         *,
         source: VirtualEEGSource | None,
         accelerated: bool,
         stream_name: str | None,
         retry_s: float,
         period_s: float,
+        recording: str | None = None,
     ) -> None:
         self.eeg = eeg
+        self.recording = recording
+        """Name of the EEG service's live recording of this source (calibration), if any."""
         self.classifier_id = classifier_id
         self.source = source
         self.accelerated = accelerated
@@ -128,6 +136,8 @@ class EegDecoder:
                 "/live",
                 json={"classifier_id": self.classifier_id, "stream_name": self.stream_name},
             )
+            self._start_recording()
+            time.sleep(WARMUP_S)  # the first marker must find data (and a settled filter)
             return
         with self._lock:
             if self._ingest is not None:
@@ -138,11 +148,46 @@ class EegDecoder:
             if self.accelerated:
                 self.virtual_now = max(self.virtual_now, self.source.next_timestamp) + WARMUP_S
                 self._ingest.push_until(self.virtual_now)
+        self._start_recording()
         if not self.accelerated and self._feeder is None:
             self._feeder = threading.Thread(target=self._feed, name="virtual-eeg", daemon=True)
             self._feeder.start()
         if not self.accelerated:
             time.sleep(WARMUP_S)
+
+    def _start_recording(self) -> None:
+        """Start (or, after a crash of the EEG service, continue) the live recording."""
+        if self.recording is None:
+            return
+        try:
+            self.eeg.call("POST", "/live/recording", json={"name": self.recording})
+        except ServiceCallError as exc:
+            if exc.status_code != 409:
+                raise
+            status = self.eeg.call("GET", "/live")
+            current = (status.get("recording") or {}).get("name")
+            if current != self.recording:  # another recording runs: never mix two sessions
+                raise
+            logger.info("live recording %s goes on", self.recording)
+
+    def stop_recording(self, last_marker_ts: float | None) -> dict[str, Any]:
+        """Record :data:`RECORDING_MARGIN_S` after the last marker (None: no marker), then
+        have the EEG service store the recording (BDF, sha256); returns its
+        ``RecordingPublic``."""
+        assert self.recording is not None
+        end = (last_marker_ts if last_marker_ts is not None else -math.inf) + RECORDING_MARGIN_S
+        if last_marker_ts is None:
+            pass
+        elif self.source is not None and self.accelerated:
+            with self._lock:
+                if self._ingest is not None:
+                    self._ingest.push_until(end)
+        elif self.source is not None:
+            while self.source.next_timestamp < end and not self._reconnect_needed:
+                time.sleep(FEED_EVERY_S)
+        else:  # a headset: its samples arrive in real time, a little late
+            time.sleep(max(0.0, end + LAG_S - local_clock()))
+        return self.eeg.call("DELETE", "/live/recording", params={"name": self.recording})
 
     def _feed(self) -> None:
         """Real time: push the virtual subject's samples up to ``now - LAG_S``."""
@@ -170,22 +215,25 @@ class EegDecoder:
         self.virtual_now += self.period_s
         return self.virtual_now
 
-    def decide(self, marker: ActionMarker) -> tuple[dict[str, Any], float | None]:
-        """The EEG service's decision on ``marker`` (on the EEG clock) and when its epoch was
-        complete there (runner clock). A lost connection re-attaches and rejects the epoch."""
+    def decide(self, marker: ActionMarker) -> tuple[dict[str, Any], float | None, float]:
+        """The EEG service's decision on ``marker`` (on the EEG clock), when its epoch was
+        complete there and when the decision arrived (runner clock). A lost connection
+        re-attaches and rejects the epoch."""
         try:
             epoch_end = self._feed_marker(marker)
             feedback = self.eeg.call("POST", "/live/markers", json=marker.model_dump(mode="json"))
+            decided = local_clock()
         except ServiceCallError as exc:
             if exc.status_code != 409:  # 409: no live source (the EEG service restarted)
                 raise
-            return self._lost(f"EEG live source gone ({exc.detail})"), None
+            return self._lost(f"EEG live source gone ({exc.detail})"), None, local_clock()
         except (OSError, RuntimeError, WebSocketException) as exc:
-            return self._lost(f"EEG ingest failed ({type(exc).__name__}: {exc})"), None
+            lost = self._lost(f"EEG ingest failed ({type(exc).__name__}: {exc})")
+            return lost, None, local_clock()
         if not self.accelerated and self.source is not None:
             with self._lock:
                 epoch_end = self.epoch_pushed_ts.pop(marker.timestamp, 0.0) or None
-        return feedback, epoch_end
+        return feedback, epoch_end, decided
 
     def _feed_marker(self, marker: ActionMarker) -> float | None:
         if self.source is None:

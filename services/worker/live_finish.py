@@ -4,29 +4,24 @@ accuracy, the online session's HF model (registered as an ``hf_models`` row)."""
 from __future__ import annotations
 
 import logging
+import shutil
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import mne
 import numpy as np
 from sqlalchemy import select
 
 from services.core.db.live import LiveDecision, LiveMarker
 from services.core.db.models import Artifact, FeedbackLabel, HFModel, Job, Recording
 from services.core.queue import enqueue_job
-from services.eeg.io import file_sha256, read_recording, write_bdf
-from services.eeg.virtual_source import VirtualEEGSource
-from services.eeg.virtual_subject import STIM_CHANNEL
+from services.eeg.io import file_sha256, read_recording
+from services.eeg.settings import EEGSettings
 
 if TYPE_CHECKING:
     from services.worker.live_session import LiveRunner
 
 logger = logging.getLogger(__name__)
-
-MARGIN_S = 2.0
-"""EEG kept before the first and after the last marker of a calibration recording."""
-GENERATE_CHUNK_S = 20.0
 
 
 def _markers(runner: LiveRunner) -> list[LiveMarker]:
@@ -49,60 +44,25 @@ def _decisions(runner: LiveRunner) -> list[LiveDecision]:
     return list(rows)
 
 
-def virtual_recording(
-    markers: list[LiveMarker], *, quality: float, seed: int, session_id: str
-) -> mne.io.RawArray:
-    """The virtual subject's EEG during ``markers`` (on their EEG clock), Status included.
-
-    The subject's samples depend only on its seed and the markers, so the recording is the
-    same whether the session ran in one attempt or was resumed after a crash.
-    """
-    from services.core.markers import ActionMarker
-
-    start = markers[0].eeg_ts - MARGIN_S
-    source = VirtualEEGSource(quality=quality, seed=seed, start_timestamp=start)
-    for row in markers:
-        source.add_marker(
-            ActionMarker(
-                session_id=session_id,
-                step=row.step,
-                episode=row.episode,
-                action=row.action,
-                correct=row.oracle_correct,
-                timestamp=row.eeg_ts,
-            )
-        )
-    end = markers[-1].eeg_ts + MARGIN_S
-    blocks = []
-    while source.next_timestamp < end - 0.5 / source.sfreq:
-        samples, _ = source.generate_until(min(end, source.next_timestamp + GENERATE_CHUNK_S))
-        blocks.append(samples.astype(np.float64))
-    data = np.concatenate(blocks).T
-    types = ["eeg"] * (len(source.ch_names) - 1) + ["stim"]
-    info = mne.create_info(source.ch_names, source.sfreq, types)
-    assert source.ch_names[-1] == STIM_CHANNEL
-    raw = mne.io.RawArray(data, info, verbose="error")
-    raw.info["description"] = source.description
-    return raw
-
-
 def finish_calibration(runner: LiveRunner) -> dict[str, Any]:
-    """Store the recording (BDF + sha256, a recording row) and start ``eeg_calibration``."""
+    """Store the EEG service's live recording of the session (BDF + sha256, a recording
+    row) and start ``eeg_calibration`` on it."""
     markers = _markers(runner)
-    if len(markers) < 2:
+    stored = runner.stored_recording
+    if len(markers) < 2 or stored is None:
         return {"actions": len(markers), "recording_id": None, "calibration_job_id": None}
     options = runner.options
-    raw = virtual_recording(
-        markers,
-        quality=options.virtual_quality,
-        seed=runner.virtual_seed,
-        session_id=f"lab-session-{runner.session_id}",
-    )
     name = f"session-{runner.session_id}-calibration.bdf"
+    source = EEGSettings(data_dir=runner.runtime.settings.data_dir).eeg_dir / "recordings"
     with tempfile.TemporaryDirectory(prefix="bgrl-live-") as tmp:
-        path = write_bdf(raw, Path(tmp) / name)
-        checked = read_recording(path)
+        path = Path(tmp) / name
+        shutil.copyfile(source / f"{stored['id']}.bdf", path)  # the services share the folder
         sha = file_sha256(path)
+        if sha != stored["sha256"]:
+            raise RuntimeError(
+                f"live recording {stored['id'][:12]}: the copy's sha256 {sha[:12]} differs"
+            )
+        checked = read_recording(path)
         artifact_id = runner.context.store_file(path, kind="recording", name=name)
     with runner.runtime.sessions() as db:
         size = db.scalar(select(Artifact.size_bytes).where(Artifact.id == artifact_id))
@@ -112,7 +72,7 @@ def finish_calibration(runner: LiveRunner) -> dict[str, Any]:
             filename=name,
             sha256=sha,
             size_bytes=int(size or 0),
-            synthetic=True,
+            synthetic=bool(stored["synthetic"]),
             n_channels=len(checked.ch_names),
             channels=list(checked.ch_names),
             sfreq=float(checked.info["sfreq"]),
@@ -143,6 +103,8 @@ def finish_calibration(runner: LiveRunner) -> dict[str, Any]:
         "errors": n_errors,
         "recording_id": recording_id,
         "recording_sha256": sha,
+        "recorded_markers": stored["n_actions"],
+        "recording_duration_s": stored["duration_s"],
         "calibration_job_id": job_id,
     }
 

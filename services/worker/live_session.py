@@ -6,9 +6,12 @@ executed by the sim (``POST /sessions/{id}/step``, which publishes its LSL marke
 the oracle's label); the marker row is written; test and online sessions then ask the EEG
 service for the decision on the [0, 0.8] s epoch after it (decision row: accepted, or
 rejected and why); online, an accepted decision goes to the learner as a label (label row)
-and pi_HF's next action comes from the updated model (model-version row). Paced sessions keep
-one action every ``period_s`` on the runner's clock; accelerated ones run as fast as the
-services answer while the virtual subject's clock advances ``period_s`` per action.
+and its answer carries pi_HF's next action from the updated model (model-version row). A
+calibration binds no classifier: the EEG service records the stream and every marker (its
+live recording, named after the run) and stores the recording when the session ends. Paced
+sessions keep one action every ``period_s`` on the runner's clock; accelerated ones run as
+fast as the services answer while the virtual subject's clock advances ``period_s`` per
+action.
 
 Resume: every attempt starts from the rows. The marker whose decision was not written is
 the label in flight: it is recorded as rejected ("lost") and the loop goes on with the next
@@ -86,11 +89,6 @@ class LiveRunner:
             db.commit()
         if self.mode in ("test", "online") and options.classifier_id is None:
             raise JobConfigError(f"classifier_id is required for a {self.mode} session")
-        if self.mode == "calibration" and options.eeg_source == "lsl":
-            raise JobConfigError(
-                "eeg_source lsl: calibration from a headset needs the EEG service's live "
-                "recording; record with LabRecorder and upload the file instead"
-            )
         self.virtual_seed = (
             options.virtual_seed if options.virtual_seed is not None else self.subject_id
         )
@@ -98,6 +96,8 @@ class LiveRunner:
         self.episode_over = False
         self.next_action: tuple[int, int] | None = None
         self.decoder: EegDecoder | None = None
+        self.stored_recording: dict[str, Any] | None = None
+        """The EEG service's stored live recording of a calibration (``RecordingPublic``)."""
         self.last_progress = 0.0
 
     # ----------------------------------------------------------------- helpers
@@ -162,19 +162,26 @@ class LiveRunner:
         self.hf_session_id = created["id"]
         self._set_run(hf_session_id=self.hf_session_id)
 
+    @property
+    def recording_name(self) -> str:
+        """Name of a calibration's live recording in the EEG service (one per run, so a
+        resumed run continues it)."""
+        return f"live-run-{self.run_id}-calibration"
+
     def attach_eeg(self) -> None:
+        """Connect the EEG source: bound to the classifier (test, online), or recorded by the
+        EEG service's live recording (calibration)."""
         from services.eeg.virtual_source import VirtualEEGSource
 
-        eeg_id = install_classifier(self.runtime, self.options.classifier_id or 0)
-        self._set_run(eeg_classifier_id=eeg_id)
+        eeg_id = None
+        if self.mode != "calibration":
+            eeg_id = install_classifier(self.runtime, self.options.classifier_id or 0)
+            self._set_run(eeg_classifier_id=eeg_id)
         source = None
         if self.options.eeg_source == "virtual":
             start = 0.0 if self.options.accelerated else local_clock()
             if self.options.accelerated and self.done:
-                with self.runtime.sessions() as db:
-                    start = (db.scalar(
-                        select(func.max(LiveMarker.eeg_ts)).where(LiveMarker.run_id == self.run_id)
-                    ) or 0.0) + 1.0  # fmt: skip
+                start = (self._last_eeg_ts() or 0.0) + 1.0
             source = VirtualEEGSource(
                 quality=self.options.virtual_quality,
                 seed=self.virtual_seed,
@@ -189,8 +196,15 @@ class LiveRunner:
             stream_name=self.options.stream_name,
             retry_s=self.settings.live_retry_s,
             period_s=self.options.period_s,
+            recording=self.recording_name if self.mode == "calibration" else None,
         )
         self.decoder.attach()
+
+    def _last_eeg_ts(self) -> float | None:
+        with self.runtime.sessions() as db:
+            return db.scalar(
+                select(func.max(LiveMarker.eeg_ts)).where(LiveMarker.run_id == self.run_id)
+            )
 
     # ---------------------------------------------------------------- recovery
     def recover_in_flight(self) -> None:
@@ -270,26 +284,36 @@ class LiveRunner:
         action: int,
         oracle_correct: bool | None,
         decision: dict[str, Any],
+        next_observation: list[float] | None = None,
     ) -> bool:
-        """Label one accepted decision; returns False once the learner's budget is full."""
+        """Label one accepted decision; returns False once the learner's budget is full.
+
+        With ``next_observation`` the learner's answer carries pi_HF's next action (one
+        round trip for the update and the action); it is kept in :attr:`next_action`.
+        """
+        body: dict[str, Any] = {
+            "marker_id": f"run{self.run_id}:{step}",
+            "observation": observation,
+            "action": action,
+            "feedback": decision["feedback"],
+            "p_error": decision["p_error"],
+            "oracle_correct": oracle_correct,
+        }
+        if next_observation is not None:
+            body["next_observation"] = next_observation
         try:
             answer = self.services["learner"].call(
-                "POST",
-                f"/hf-sessions/{self.hf_session_id}/labels",
-                json={
-                    "marker_id": f"run{self.run_id}:{step}",
-                    "observation": observation,
-                    "action": action,
-                    "feedback": decision["feedback"],
-                    "p_error": decision["p_error"],
-                    "oracle_correct": oracle_correct,
-                },
+                "POST", f"/hf-sessions/{self.hf_session_id}/labels", json=body
             )
         except ServiceCallError as exc:
             if exc.status_code == 409:
                 return False
             raise
         updated = local_clock()
+        next_ready = None
+        if answer.get("next_action") is not None:
+            self.next_action = (int(answer["next_action"]), int(answer["model_version"]))
+            next_ready = updated
         with self.runtime.sessions() as db:
             db.add(
                 FeedbackLabel(
@@ -312,6 +336,7 @@ class LiveRunner:
                     model_version=int(answer["model_version"]),
                     metrics=answer.get("metrics") or {},
                     updated_ts=updated,
+                    next_ready_ts=next_ready,
                 )
             )
             db.commit()
@@ -325,7 +350,14 @@ class LiveRunner:
         return DEFAULT_ACTIONS[self.mode]
 
     def step(self, step: int) -> bool:
-        """Run action ``step``; returns False when the session is complete."""
+        """Run action ``step``; returns False when the session is complete.
+
+        On the path from the epoch's end to the next action there is one call to the EEG
+        service (the decision), one commit (its row, before the label is sent, so a crash
+        cannot lose a label the learner has) and one call to the learner (the label's
+        answer carries the next action); the sim's episode reset happens while the epoch is
+        still being recorded.
+        """
         action, version = self.choose_action(step)
         obs_before = list(self.observation)
         out = self.execute(action)
@@ -333,7 +365,7 @@ class LiveRunner:
         now_wall, now_clock = time.time(), local_clock()
         if self.decoder is not None:
             eeg_ts = self.decoder.next_eeg_timestamp(marker.timestamp)
-        elif self.options.accelerated:  # calibration: the recording's virtual clock
+        elif self.options.accelerated:  # no EEG source: the virtual clock
             eeg_ts = step * self.options.period_s
         else:
             eeg_ts = marker.timestamp
@@ -360,12 +392,17 @@ class LiveRunner:
             db.commit()
         self.next_action = None
         self.observation = list(out["observation"])
-        self.episode_over = bool(out["terminated"] or out["truncated"])
+        if out["terminated"] or out["truncated"]:
+            reset = self.services["sim"].call("POST", f"/sessions/{self.sim_session_id}/reset")
+            self.observation = list(reset["observation"])
+        self.episode_over = False
         more = True
         if self.decoder is not None:
-            decision, epoch_end = self.decoder.decide(
+            decision, epoch_end, decided = self.decoder.decide(
                 marker.model_copy(update={"timestamp": eeg_ts})
             )
+            if self.mode == "calibration":  # recorded only: no classifier, no decision row
+                return more
             with self.runtime.sessions() as db:
                 db.add(
                     LiveDecision(
@@ -379,27 +416,16 @@ class LiveRunner:
                         oracle_correct=marker.correct,
                         classifier_id=self.decoder.classifier_id,
                         epoch_end_ts=epoch_end,
-                        decided_ts=local_clock(),
+                        decided_ts=decided,
                     )
                 )
                 db.commit()
             if self.mode == "online" and decision["status"] == "ok":
-                more = self.send_label(step, obs_before, action, marker.correct, decision)
-        if self.episode_over:
-            reset = self.services["sim"].call("POST", f"/sessions/{self.sim_session_id}/reset")
-            self.observation = list(reset["observation"])
-            self.episode_over = False
-        if self.mode == "online" and more:
-            self.next_action = self.act()
-            with self.runtime.sessions() as db:
-                row = db.scalar(
-                    select(LiveModelVersion).where(
-                        LiveModelVersion.run_id == self.run_id, LiveModelVersion.step == step
-                    )
+                more = self.send_label(
+                    step, obs_before, action, marker.correct, decision, self.observation
                 )
-                if row is not None:
-                    row.next_ready_ts = local_clock()
-                    db.commit()
+        if self.mode == "online" and more and self.next_action is None:
+            self.next_action = self.act()
         return more
 
     def run(self) -> JobOutcome:
@@ -408,8 +434,7 @@ class LiveRunner:
             self.attach_sim()
             if self.mode == "online":
                 self.attach_learner()
-            if self.mode in ("test", "online"):
-                self.attach_eeg()
+            self.attach_eeg()
             self.recover_in_flight()
             if self.episode_over:
                 reset = self.services["sim"].call("POST", f"/sessions/{self.sim_session_id}/reset")
@@ -434,6 +459,8 @@ class LiveRunner:
                 if not more:
                     break
             self.done = step
+            if self.mode == "calibration" and self.decoder is not None:
+                self.stored_recording = self.decoder.stop_recording(self._last_eeg_ts())
         finally:
             if self.decoder is not None:
                 self.decoder.close()

@@ -175,6 +175,36 @@ def test_bad_classifier_query_closes_with_4422(client):
         assert _disconnect_code(ws)[0] == 4422
 
 
+def test_binary_ingest_chunks_equal_json_ones_and_bad_ones_are_refused(client):
+    """A binary chunk (float64 first timestamp, float32 samples) is ingested exactly as the
+    same float32 samples sent as JSON; a chunk of the wrong size is refused with the reason
+    and the connection stays open."""
+    import struct
+
+    url = f"/live/ingest?classifier_id={CLASSIFIER}"
+    header = {"ch_names": STREAM, "sfreq": SFREQ}
+    x = _noise(3.0).astype(np.float32)
+    onset = 11.0
+    epochs = []
+    for binary in (False, True):
+        with client.websocket_connect(url) as ws:
+            ws.send_json(header)
+            assert ws.receive_json() == {"ok": True, "n_samples": 0}
+            if binary:
+                bad = struct.pack("<d", 10.0) + x[:3].tobytes()[:-4]
+                ws.send_bytes(bad)
+                answer = ws.receive_json()
+                assert answer["ok"] is False and "float32" in answer["error"]
+                ws.send_bytes(struct.pack("<d", 10.0) + x.tobytes())
+            else:
+                ws.send_json({"first_timestamp": 10.0, "samples": x.tolist()})
+            assert ws.receive_json() == {"ok": True, "n_samples": len(x)}
+            result = client.app.state.service.live.ingest.epoch_for(onset)
+            assert result.status == "ok", result.reason
+            epochs.append(result.epoch)
+    np.testing.assert_array_equal(epochs[0], epochs[1])
+
+
 def test_second_ingest_websocket_replaces_the_first(client):
     url = f"/live/ingest?classifier_id={CLASSIFIER}"
     header = {"ch_names": STREAM, "sfreq": SFREQ}

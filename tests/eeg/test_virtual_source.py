@@ -44,8 +44,11 @@ class AsgiConnection:
     def __init__(self, session) -> None:
         self._session = session
 
-    def send(self, message: str) -> None:
-        self._session.send_text(message)
+    def send(self, message: str | bytes) -> None:
+        if isinstance(message, bytes):
+            self._session.send_bytes(message)
+        else:
+            self._session.send_text(message)
 
     def recv(self) -> str:
         return self._session.receive_text()

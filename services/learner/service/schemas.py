@@ -139,6 +139,12 @@ class LabelCreate(StrictRequest):
     oracle_correct: bool | None = Field(
         None, strict=True, description="The oracle's truth, when known (simulation)."
     )
+    next_observation: Observation | None = Field(
+        None,
+        description="The state the next action will be taken in: the answer then carries "
+        "pi_HF's sampled action there, from the updated Fhat (one round trip instead of a "
+        "label and a POST /act).",
+    )
 
     @field_validator("p_error")
     @classmethod
@@ -163,6 +169,11 @@ class LabelPublic(BaseModel):
     done: bool
     duplicate: bool = Field(description="The marker id was labelled before; nothing changed.")
     validation: bool = Field(description="The label was held out for validation.")
+    next_action: int | None = Field(
+        None,
+        description="pi_HF's sampled action in next_observation (as POST /act answers), "
+        "when it was given and the budget is not full.",
+    )
 
 
 class ExportRequest(StrictRequest):

@@ -16,7 +16,8 @@ def add_label(body: LabelCreate, session: SessionDep, store: StoreDep) -> LabelP
 
     Idempotent by ``marker_id``: the same label sent again answers ``duplicate: true`` and
     changes nothing; a different label under a used marker id is a 409, and so is a new
-    label once the budget is reached.
+    label once the budget is reached. With ``next_observation`` the answer also carries
+    pi_HF's next action (sampled as ``POST /act`` samples it) unless the budget is full.
     """
     outcome = store.add_label(
         session,
@@ -27,6 +28,9 @@ def add_label(body: LabelCreate, session: SessionDep, store: StoreDep) -> LabelP
         p_error=body.p_error,
         oracle_correct=body.oracle_correct,
     )
+    next_action = None
+    if body.next_observation is not None and not session.done:
+        next_action, _ = store.act(session, body.next_observation, greedy=False)
     with session.lock:
         return LabelPublic(
             labels=len(session.labels),
@@ -35,4 +39,5 @@ def add_label(body: LabelCreate, session: SessionDep, store: StoreDep) -> LabelP
             done=session.done,
             duplicate=outcome.duplicate,
             validation=outcome.record.validation,
+            next_action=next_action,
         )
