@@ -63,6 +63,9 @@ def _percentiles(values_s: list[float]) -> dict[str, float]:
 # ----------------------------------------------------------------------------- quality sweep
 
 
+SWEEP_METRICS = ("test_accuracy", "balanced_accuracy", "roc_auc")
+
+
 def _sweep_subject(
     seed: int,
     levels: list[float],
@@ -70,8 +73,12 @@ def _sweep_subject(
     error_rate: float,
     check_linearity: bool,
     max_passes: int,
+    decoders: tuple[str, ...] = ("eegnet", "lda"),
 ) -> list[dict[str, Any]]:
     """Calibrate one virtual subject (``seed``) at every quality level.
+
+    Every decoder of ``decoders`` is trained on the same split; a row has the kept one's
+    test metrics and, under ``decoders``, each one's.
 
     The generator is linear in ``quality`` (only the label-dependent components scale, the
     background does not depend on it), and so is the preprocessing. The epochs at level
@@ -100,19 +107,24 @@ def _sweep_subject(
         t0 = time.perf_counter()
         X = (e0.X + np.float32(q) * delta).astype(np.float32)
         epochs = EpochSet(X, e0.y, e0.ch_names, e0.params, e0.sfreq_in, synthetic=True)
-        config = TrainingConfig(max_passes=max_passes)
+        config = TrainingConfig(max_passes=max_passes, decoders=decoders)
         m = train_classifier(epochs, seed=seed, config=config).metrics
         rows.append(
             {
                 "quality": q,
                 "seed": seed,
                 "extrapolated": q > 1.0,
+                "decoder": m["decoder"],
                 "test_accuracy": m["test_accuracy"],
                 "balanced_accuracy": m["balanced_accuracy"],
                 "roc_auc": m["roc_auc"],
+                "decoders": {
+                    name: {key: d[key] for key in (*SWEEP_METRICS, "val_accuracy")}
+                    for name, d in m["decoders"].items()
+                },
                 "n_epochs": m["n_epochs"],
                 "n_test": m["n_test"],
-                "best_pass": m["best_pass"],
+                "best_pass": m.get("best_pass"),
                 "seconds": time.perf_counter() - t0,
                 "linearity_check_max_rel_diff": linearity,
             }
@@ -129,8 +141,10 @@ def quality_sweep(
     max_passes: int = 150,
     jobs: int = 1,
     partial_path: Path | None = None,
+    decoders: tuple[str, ...] = ("eegnet", "lda"),
 ) -> dict[str, Any]:
-    """Calibrate ``n_seeds`` virtual subjects at every quality level; summarise test metrics.
+    """Calibrate ``n_seeds`` virtual subjects at every quality level; summarise test metrics
+    of the kept decoder and of each decoder (``decoders``, trained on the same split).
 
     Each seed is a different virtual subject (background, topography, latency shift) and
     also seeds the labels, the split and the training. Levels above 1 are extrapolations
@@ -144,7 +158,7 @@ def quality_sweep(
     # Two tasks per subject (each half of the levels) balance the work over the workers.
     halves = [list(levels[: (len(levels) + 1) // 2]), list(levels[(len(levels) + 1) // 2 :])]
     tasks = [
-        (s, half, n_actions, error_rate, s == 0 and k == 0, max_passes)
+        (s, half, n_actions, error_rate, s == 0 and k == 0, max_passes, tuple(decoders))
         for s in range(n_seeds)
         for k, half in enumerate(h for h in halves if h)
     ]
@@ -167,10 +181,11 @@ def quality_sweep(
     for q in levels:
         rows = [r for r in runs if r["quality"] == q]
         entry: dict[str, Any] = {"quality": q, "extrapolated": q > 1.0, "n_seeds": len(rows)}
-        for key in ("test_accuracy", "balanced_accuracy", "roc_auc"):
-            values = np.array([r[key] for r in rows])
-            entry[f"{key}_mean"] = float(values.mean())
-            entry[f"{key}_std"] = float(values.std(ddof=1)) if len(rows) > 1 else 0.0
+        entry.update(_mean_std(rows))
+        entry["decoders"] = {
+            name: _mean_std([r["decoders"][name] for r in rows]) for name in decoders
+        }
+        entry["kept"] = {name: sum(r["decoder"] == name for r in rows) for name in decoders}
         summary.append(entry)
     return {
         "synthetic": True,
@@ -178,6 +193,7 @@ def quality_sweep(
         "error_rate": error_rate,
         "n_seeds": n_seeds,
         "max_passes": max_passes,
+        "decoders": list(decoders),
         "linearity_check_max_rel_diff": next(
             (
                 r["linearity_check_max_rel_diff"]
@@ -191,19 +207,34 @@ def quality_sweep(
     }
 
 
+def _mean_std(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """``<metric>_mean`` and ``<metric>_std`` (ddof 1) of the sweep metrics over rows."""
+    entry = {}
+    for key in SWEEP_METRICS:
+        values = np.array([r[key] for r in rows])
+        entry[f"{key}_mean"] = float(values.mean())
+        entry[f"{key}_std"] = float(values.std(ddof=1)) if len(rows) > 1 else 0.0
+    return entry
+
+
 def format_sweep_table(result: dict[str, Any]) -> str:
-    """Markdown table: quality vs test accuracy, balanced accuracy, ROC AUC (mean +- std)."""
+    """Markdown table per quality: test accuracy, balanced accuracy, ROC AUC (mean +- std)
+    of every decoder, and how often each was kept."""
+    names = result.get("decoders", ["eegnet"])
+    header = [f"{name} {label}" for name in names for label in ("test acc.", "bal. acc.", "AUC")]
     lines = [
-        "| quality | test accuracy | balanced accuracy | ROC AUC |",
-        "|---:|---:|---:|---:|",
+        "| quality | " + " | ".join(header) + " | kept |",
+        "|---:|" + "---:|" * len(header) + "---|",
     ]
     for e in result["summary"]:
         cells = [
-            f"{e[f'{k}_mean']:.3f} ± {e[f'{k}_std']:.3f}"
-            for k in ("test_accuracy", "balanced_accuracy", "roc_auc")
+            f"{e['decoders'][name][f'{k}_mean']:.3f} ± {e['decoders'][name][f'{k}_std']:.3f}"
+            for name in names
+            for k in SWEEP_METRICS
         ]
+        kept = ", ".join(f"{name} {n}" for name, n in e["kept"].items())
         level = f"{e['quality']:.2f}" + (" (extrapolated)" if e["extrapolated"] else "")
-        lines.append(f"| {level} | " + " | ".join(cells) + " |")
+        lines.append(f"| {level} | " + " | ".join(cells) + f" | {kept} |")
     return "\n".join(lines)
 
 

@@ -44,6 +44,13 @@ def calibrate_command(
         int,
         typer.Option(min=1, help="Upper bound on training passes (early stopping may end sooner)."),
     ] = 300,
+    decoders: Annotated[
+        str,
+        typer.Option(
+            help="Comma-separated decoders trained on the same split (eegnet, lda); the "
+            "better on validation is kept."
+        ),
+    ] = "eegnet,lda",
     report: Annotated[bool, typer.Option(help="Write report.png / report.html.")] = True,
     onnx: Annotated[bool, typer.Option(help="Also export model.onnx.")] = True,
 ) -> None:
@@ -54,6 +61,11 @@ def calibrate_command(
     from services.eeg.io import RecordingError, read_recording
 
     torch.set_num_threads(1)  # this process only: one core, bit-reproducible runs
+    try:
+        names = tuple(d.strip() for d in decoders.split(",") if d.strip())
+        config = TrainingConfig(max_passes=max_passes, decoders=names)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--decoders") from exc
     mapping = _read_channel_map(channel_map) if channel_map is not None else None
     labels = _event_labels(event_label) if event_label else None
     try:
@@ -71,7 +83,7 @@ def calibrate_command(
             raw,
             seed=seed,
             out_dir=out,
-            config=TrainingConfig(max_passes=max_passes),
+            config=config,
             report=report,
             onnx=onnx,
             progress=True,
@@ -81,6 +93,12 @@ def calibrate_command(
         raise typer.Exit(2) from exc
     m = result.metrics
     tag = " [SYNTHETIC data]" if m["synthetic"] else ""
+    for name, d in m["decoders"].items():
+        kept = " (kept)" if name == m["decoder"] else ""
+        typer.echo(
+            f"{name}{kept}: validation accuracy {d['val_accuracy']:.3f}, "
+            f"test accuracy {d['test_accuracy']:.3f}"
+        )
     typer.echo(
         f"test accuracy {m['test_accuracy']:.3f}, balanced {m['balanced_accuracy']:.3f}, "
         f"ROC AUC {m['roc_auc']:.3f} on {m['n_test']} of {m['n_epochs']} epochs{tag}"
@@ -140,10 +158,19 @@ def quality_sweep_command(
     error_rate: Annotated[float, typer.Option(min=0.05, max=0.95)] = 0.3,
     max_passes: Annotated[int, typer.Option(min=1, help="Training passes cap per run.")] = 150,
     jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
+    decoders: Annotated[
+        str, typer.Option(help="Comma-separated decoders trained on each split (eegnet, lda).")
+    ] = "eegnet,lda",
 ) -> None:
     """Simulate and calibrate virtual subjects per quality level; table of test accuracy."""
     from benchmarks.bench_eeg import DEFAULT_QUALITIES, format_sweep_table, quality_sweep
+    from services.eeg.calibration import TrainingConfig
 
+    names = tuple(d.strip() for d in decoders.split(",") if d.strip())
+    try:
+        TrainingConfig(decoders=names)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--decoders") from exc
     out.mkdir(parents=True, exist_ok=True)
     result = quality_sweep(
         qualities or list(DEFAULT_QUALITIES),
@@ -153,6 +180,7 @@ def quality_sweep_command(
         max_passes=max_passes,
         jobs=jobs,
         partial_path=out / "quality_sweep.partial.json",
+        decoders=names,
     )
     path = out / "quality_sweep.json"
     path.write_text(json.dumps(result, indent=2))

@@ -38,7 +38,9 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
             raise ValueError(f"--ppo: unknown PPO setting {key!r}; known: {known}")
         default = getattr(defaults, key)
         try:
-            if isinstance(default, bool):
+            if default is None:  # an optional number (target_kl): a float or "none"
+                value = None if raw.strip().lower() == "none" else float(raw.strip())
+            elif isinstance(default, bool):
                 if raw.strip().lower() not in ("true", "false", "1", "0"):
                     raise ValueError
                 value: Any = raw.strip().lower() in ("true", "1")
@@ -47,9 +49,8 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
             else:
                 value = type(default)(raw.strip())
         except ValueError:
-            raise ValueError(
-                f"--ppo {key}: {raw!r} is not a valid {type(default).__name__}"
-            ) from None
+            kind = "number" if default is None else type(default).__name__
+            raise ValueError(f"--ppo {key}: {raw!r} is not a valid {kind}") from None
         overrides[key] = value
     PPOConfig(**overrides)  # validates combinations (e.g. n_steps vs minibatch_size)
     return overrides
@@ -67,7 +68,7 @@ def reproduce(
     workers: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 2,
     tasks: Annotated[str, typer.Option(help="Comma-separated: sssg,vssg.")] = "sssg,vssg",
     methods: Annotated[
-        str, typer.Option(help="Comma-separated: rl_sparse,rl_rich,hf_sparse.")
+        str, typer.Option(help="Comma-separated: rl_sparse,rl_rich,rl_shaped,hf_sparse.")
     ] = "rl_sparse,rl_rich,hf_sparse",
     accuracies: Annotated[
         str, typer.Option(help="Comma-separated feedback accuracies C.")

@@ -1,10 +1,14 @@
-"""ErrP calibration: train and evaluate EEGNet on a labelled recording (paper stage 1).
+"""ErrP calibration: train and evaluate ErrP decoders on a labelled recording (paper stage 1).
 
-Stratified, seeded 80/12/8 train/validation/test split of the epochs (EEG trials);
-class-weighted cross-entropy (errors are the minority class); Adam; early stopping on the
-validation loss (the weights of the best training pass are kept); test accuracy, balanced
-accuracy, ROC AUC and the confusion matrix. ``calibrate(..., out_dir=DIR)`` writes the
-classifier, ``metrics.json``, ``history.json`` and the calibration report.
+Stratified, seeded 80/12/8 train/validation/test split of the epochs (EEG trials). EEGNet
+(the paper's): class-weighted cross-entropy (errors are the minority class); Adam; early
+stopping on the validation loss (the weights of the best training pass are kept). Beside
+it, on the same split, the classical window-mean shrinkage LDA
+(:mod:`services.eeg.classical`). The decoder with the higher validation accuracy is kept
+(EEGNet on a tie): it is the classifier, and its test metrics are the calibration's (test
+accuracy, balanced accuracy, ROC AUC, confusion matrix); ``metrics["decoders"]`` has both.
+``calibrate(..., out_dir=DIR)`` writes the classifier, ``metrics.json``, ``history.json``
+and the calibration report.
 
 Words: an *epoch* is one EEG trial (the window after an action); a *pass* is one sweep of
 training over the training epochs.
@@ -31,6 +35,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from services.eeg.classical import N_CV_FOLDS, fit_window_lda
 from services.eeg.classifier import (
     CONFIG_FILE,
     ONNX_FILE,
@@ -46,6 +51,8 @@ if TYPE_CHECKING:
 
 SPLIT_FRACTIONS = (0.80, 0.12, 0.08)
 """Train / validation / test fractions (paper §EEG Classifier Training)."""
+DECODERS = ("eegnet", "lda")
+"""Decoders calibration can train: EEGNet and the window-mean shrinkage LDA."""
 METRICS_FILE = "metrics.json"
 HISTORY_FILE = "history.json"
 
@@ -86,6 +93,16 @@ class TrainingConfig:
     """EEGNet dropout probability."""
     kernel_length: int = 32
     """EEGNet temporal kernel length (samples at the feature rate)."""
+    decoders: tuple[str, ...] = DECODERS
+    """Decoders trained on the same split; the best on validation is kept."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "decoders", tuple(self.decoders))
+        unknown = [d for d in self.decoders if d not in DECODERS]
+        if not self.decoders or unknown or len(set(self.decoders)) < len(self.decoders):
+            raise ValueError(
+                f"decoders must be distinct names from {DECODERS}, got {self.decoders}"
+            )
 
 
 @dataclass
@@ -104,7 +121,7 @@ class CalibrationResult:
     Attributes
     ----------
     classifier : ErrPClassifier
-        The trained classifier (weights of the pass with the lowest validation loss).
+        The kept decoder's classifier (the better on validation).
     metrics : dict
         Test metrics and run facts (also in ``metrics.json``).
     history : dict of list
@@ -116,7 +133,9 @@ class CalibrationResult:
     out_dir : Path or None
         Where the artefacts were written.
     test_proba : ndarray
-        P(error) for the test epochs (in ``split.test`` order).
+        P(error) of the kept decoder for the test epochs (in ``split.test`` order).
+    candidates : dict of ErrPClassifier
+        Every trained decoder by name (``eegnet``, ``lda``), the kept one included.
     """
 
     classifier: ErrPClassifier
@@ -126,6 +145,7 @@ class CalibrationResult:
     epochs: EpochSet
     out_dir: Path | None = None
     test_proba: np.ndarray = field(default_factory=lambda: np.empty(0))
+    candidates: dict[str, ErrPClassifier] = field(default_factory=dict)
 
 
 def stratified_split(
@@ -231,51 +251,26 @@ def _new_model(
     return model
 
 
-def train_classifier(
+def _train_eegnet(
     epochs: EpochSet,
+    split: Split,
+    input_scale: float,
     *,
-    seed: int = 0,
-    config: TrainingConfig | None = None,
-    split: Split | None = None,
-    progress: bool = False,
-    should_stop: Callable[[], bool] | None = None,
-) -> CalibrationResult:
-    """Train EEGNet on ``epochs`` and evaluate it on the held-out test split.
+    seed: int,
+    config: TrainingConfig,
+    progress: bool,
+    should_stop: Callable[[], bool] | None,
+) -> tuple[EEGNet, dict[str, list[float]], dict[str, Any], np.ndarray, np.ndarray]:
+    """EEGNet with early stopping on the validation loss.
 
-    Parameters
-    ----------
-    epochs : EpochSet
-        Labelled epochs (1 = error).
-    seed : int
-        Seeds the split, the weight initialisation and the minibatch order.
-    config : TrainingConfig | None
-        Hyperparameters; defaults to :class:`TrainingConfig`.
-    split : Split | None
-        Use these indices instead of :func:`stratified_split`.
-    progress : bool
-        Show a tqdm bar over training passes.
-    should_stop : callable | None
-        Called before every training pass; when it returns True,
-        :class:`CalibrationCancelled` is raised.
-
-    Returns
-    -------
-    CalibrationResult
-        Without ``out_dir``; nothing is written.
+    Returns the model (weights of the best pass), the history, its facts (``best_pass``,
+    ``passes_run``, ``best_val_loss``) and P(error) on the validation and test epochs.
     """
-    config = config or TrainingConfig()
     y_all = epochs.y
-    if len(np.unique(y_all)) < 2:
-        raise ValueError("calibration needs both correct and error epochs")
-    if len(epochs) < 30:
-        raise ValueError(f"calibration needs at least 30 epochs, got {len(epochs)}")
-    split = split or stratified_split(y_all, seed=seed)
     # One stream for weights and dropout, one for minibatch order: what seeding torch's
     # global generator and a batch generator with ``seed`` gave, without global state.
     weights_rng = torch.Generator().manual_seed(seed)
     batch_rng = torch.Generator().manual_seed(seed)
-    train_X = epochs.X[split.train]
-    input_scale = 1.0 / float(train_X.std())
     X = torch.from_numpy(np.ascontiguousarray(epochs.X * input_scale, dtype=np.float32))
     y = torch.from_numpy(y_all.astype(np.int64))
     n_chans, n_times = epochs.X.shape[1:]
@@ -292,7 +287,6 @@ def train_classifier(
         from tqdm import tqdm
 
         passes = tqdm(passes, desc="training", unit="pass")
-    t0 = time.perf_counter()
     Xtr, ytr = X[split.train], y[split.train]
     Xva, yva = X[split.val], y[split.val]
     try:
@@ -324,37 +318,154 @@ def train_classifier(
         model.set_dropout_generator(None)
         if progress:
             passes.close()
-    train_seconds = time.perf_counter() - t0
     assert best_state is not None
     model.load_state_dict(best_state)
+    _, val_proba = _run_pass(model, Xva, yva, loss_fn)
     _, test_proba = _run_pass(model, X[split.test], y[split.test], loss_fn)
+    facts = {
+        "best_pass": int(best_pass),
+        "passes_run": len(history["train_loss"]),
+        "best_val_loss": float(best_loss),
+    }
+    return model, history, facts, val_proba, test_proba
+
+
+def _decoder_metrics(
+    epochs: EpochSet, split: Split, val_proba: np.ndarray, test_proba: np.ndarray, n_params: int
+) -> dict[str, Any]:
+    """Validation accuracies and test metrics of one decoder."""
+    val = classification_metrics(epochs.y[split.val], val_proba)
+    return {
+        "val_accuracy": val["test_accuracy"],
+        "val_balanced_accuracy": val["balanced_accuracy"],
+        **classification_metrics(epochs.y[split.test], test_proba),
+        "n_params": n_params,
+    }
+
+
+def train_classifier(
+    epochs: EpochSet,
+    *,
+    seed: int = 0,
+    config: TrainingConfig | None = None,
+    split: Split | None = None,
+    progress: bool = False,
+    should_stop: Callable[[], bool] | None = None,
+) -> CalibrationResult:
+    """Train the decoders of ``config.decoders`` on one split and keep the best on validation.
+
+    EEGNet and the window-mean shrinkage LDA see the same training epochs (scaled by
+    1 / their SD); the one with the higher validation accuracy is kept, EEGNet on a tie,
+    and evaluated on the held-out test split.
+
+    Parameters
+    ----------
+    epochs : EpochSet
+        Labelled epochs (1 = error).
+    seed : int
+        Seeds the split, EEGNet's weight initialisation and minibatch order, and the LDA's
+        cross-validation folds.
+    config : TrainingConfig | None
+        Hyperparameters and decoders; defaults to :class:`TrainingConfig`.
+    split : Split | None
+        Use these indices instead of :func:`stratified_split`.
+    progress : bool
+        Show a tqdm bar over training passes.
+    should_stop : callable | None
+        Called before every training pass and before the LDA fit; when it returns True,
+        :class:`CalibrationCancelled` is raised.
+
+    Returns
+    -------
+    CalibrationResult
+        Without ``out_dir``; nothing is written.
+    """
+    config = config or TrainingConfig()
+    y_all = epochs.y
+    if len(np.unique(y_all)) < 2:
+        raise ValueError("calibration needs both correct and error epochs")
+    if len(epochs) < 30:
+        raise ValueError(f"calibration needs at least 30 epochs, got {len(epochs)}")
+    split = split or stratified_split(y_all, seed=seed)
+    input_scale = 1.0 / float(epochs.X[split.train].std())
+    t0 = time.perf_counter()
+    candidates: dict[str, ErrPClassifier] = {}
+    decoders: dict[str, dict[str, Any]] = {}
+    test_probas: dict[str, np.ndarray] = {}
+    history: dict[str, list[float]] = {"train_loss": [], "val_loss": [], "val_accuracy": []}
+    facts: dict[str, Any] = {}
+
+    def bind(model: nn.Module) -> ErrPClassifier:
+        return ErrPClassifier(
+            model,
+            epochs.params,
+            epochs.ch_names,
+            epochs.sfreq_in,
+            input_scale,
+            synthetic=epochs.synthetic,
+        )
+
+    if "eegnet" in config.decoders:
+        model, history, facts, val_proba, test_proba = _train_eegnet(
+            epochs,
+            split,
+            input_scale,
+            seed=seed,
+            config=config,
+            progress=progress,
+            should_stop=should_stop,
+        )
+        candidates["eegnet"] = bind(model)
+        decoders["eegnet"] = _decoder_metrics(
+            epochs, split, val_proba, test_proba, count_parameters(model)
+        )
+        test_probas["eegnet"] = test_proba
+    if "lda" in config.decoders:
+        if should_stop is not None and should_stop():
+            raise CalibrationCancelled("calibration cancelled before the LDA fit")
+        train_X = (epochs.X[split.train] * input_scale).astype(np.float32)
+        fit = fit_window_lda(
+            train_X, y_all[split.train], epochs.ch_names, epochs.params.sfreq_out, seed=seed
+        )
+        clf = bind(fit.model)
+        candidates["lda"] = clf
+        test_probas["lda"] = clf.predict_proba(epochs.X[split.test])
+        decoders["lda"] = {
+            **_decoder_metrics(
+                epochs,
+                split,
+                clf.predict_proba(epochs.X[split.val]),
+                test_probas["lda"],
+                count_parameters(fit.model),
+            ),
+            "cv_folds": N_CV_FOLDS,
+            "cv_accuracy_mean": float(np.mean(fit.cv_accuracy)),
+            "cv_accuracy_std": float(np.std(fit.cv_accuracy)),
+            "channels": fit.channels,
+        }
+    kept = max(decoders, key=lambda d: (decoders[d]["val_accuracy"], -DECODERS.index(d)))
+    test_proba = test_probas[kept]
     metrics = classification_metrics(y_all[split.test], test_proba)
     metrics.update(
         {
+            "decoder": kept,
+            "selected_by": "validation accuracy",
+            "decoders": decoders,
             "n_epochs": len(epochs),
-            "n_params": count_parameters(model),
+            "n_params": decoders[kept]["n_params"],
             "n_train": int(split.train.size),
             "n_val": int(split.val.size),
             "n_test": int(split.test.size),
             "error_fraction": float(y_all.mean()),
-            "best_pass": int(best_pass),
-            "passes_run": len(history["train_loss"]),
-            "best_val_loss": float(best_loss),
-            "train_seconds": train_seconds,
+            **facts,
+            "train_seconds": time.perf_counter() - t0,
             "seed": seed,
             "synthetic": epochs.synthetic,
             "training_config": asdict(config),
         }
     )
-    classifier = ErrPClassifier(
-        model,
-        epochs.params,
-        epochs.ch_names,
-        epochs.sfreq_in,
-        input_scale,
-        metrics,
-        synthetic=epochs.synthetic,
-    )
+    classifier = candidates[kept]
+    classifier.metrics = metrics
     return CalibrationResult(
         classifier=classifier,
         metrics=metrics,
@@ -362,6 +473,7 @@ def train_classifier(
         split=split,
         epochs=epochs,
         test_proba=test_proba,
+        candidates=candidates,
     )
 
 

@@ -1,4 +1,9 @@
-"""A trained ErrP classifier: EEGNet + the preprocessing and channels it was trained on.
+"""A trained ErrP classifier: a decoder + the preprocessing and channels it was trained on.
+
+The decoder is EEGNet or the classical window-mean shrinkage LDA
+(:class:`~services.eeg.classical.WindowMeanLDA`); calibration keeps the better of the two
+on validation. Both are torch modules mapping scaled epochs to two logits, so both are
+saved, exported and loaded the same way (no pickled objects).
 
 A classifier is only applied to data preprocessed the same way from the same channels at
 the same sampling rate; :meth:`ErrPClassifier.check_compatible` enforces it.
@@ -6,7 +11,7 @@ the same sampling rate; :meth:`ErrPClassifier.check_compatible` enforces it.
 On disk (``save(dir)``)::
 
     dir/classifier.json    architecture, preprocessing params, channels, rate, metrics
-    dir/model.pt           EEGNet state dict
+    dir/model.pt           the decoder's state dict
     dir/model.torchscript.pt  TorchScript: epochs in volts (n, n_chans, n_times) -> P(error)
     dir/model.onnx         the same graph as ONNX (``export_onnx``; input "epochs", output
                            "p_error", dynamic batch), for runtimes without torch
@@ -26,6 +31,7 @@ import torch
 from torch import nn
 
 from services.core.files import write_bytes_atomic
+from services.eeg.classical import WindowMeanLDA
 from services.eeg.eegnet import EEGNet, count_parameters
 from services.eeg.preprocessing import PreprocessingParams
 
@@ -34,6 +40,12 @@ STATE_FILE = "model.pt"
 TORCHSCRIPT_FILE = "model.torchscript.pt"
 ONNX_FILE = "model.onnx"
 FORMAT_VERSION = 1
+ARCHITECTURES: dict[str, type[EEGNet] | type[WindowMeanLDA]] = {
+    "EEGNet": EEGNet,
+    "WindowMeanLDA": WindowMeanLDA,
+}
+"""Decoders a classifier can hold, by the ``architecture`` name in ``classifier.json``."""
+Decoder = EEGNet | WindowMeanLDA
 
 # Library notices that say nothing about the classifier, filtered where they arise (only
 # these messages): torch 2.13 deprecates TorchScript, which is still the portable format
@@ -55,9 +67,9 @@ logging.getLogger("torch.onnx._internal.exporter._registration").addFilter(_not_
 
 
 class ErrorProbability(nn.Module):
-    """EEGNet wrapped to map epochs in volts to P(error); the exported TorchScript graph."""
+    """The decoder wrapped to map epochs in volts to P(error); the exported TorchScript graph."""
 
-    def __init__(self, model: EEGNet, input_scale: float) -> None:
+    def __init__(self, model: Decoder, input_scale: float) -> None:
         super().__init__()
         self.model = model
         self.input_scale = input_scale
@@ -68,12 +80,12 @@ class ErrorProbability(nn.Module):
 
 
 class ErrPClassifier:
-    """EEGNet ErrP decoder bound to its preprocessing and channel list.
+    """ErrP decoder bound to its preprocessing and channel list.
 
     Parameters
     ----------
-    model : EEGNet
-        Trained network with 2 outputs (index 1 = error).
+    model : EEGNet or WindowMeanLDA
+        Trained decoder with 2 outputs (index 1 = error).
     params : PreprocessingParams
         Preprocessing the training epochs went through.
     ch_names : sequence of str
@@ -90,7 +102,7 @@ class ErrPClassifier:
 
     def __init__(
         self,
-        model: EEGNet,
+        model: Decoder,
         params: PreprocessingParams,
         ch_names: Sequence[str],
         sfreq_in: float,
@@ -116,6 +128,11 @@ class ErrPClassifier:
     @property
     def n_params(self) -> int:
         return count_parameters(self.model)
+
+    @property
+    def architecture(self) -> str:
+        """``EEGNet`` or ``WindowMeanLDA``."""
+        return type(self.model).__name__
 
     @property
     def epoch_shape(self) -> tuple[int, int]:
@@ -178,7 +195,7 @@ class ErrPClassifier:
         m = self.model
         return {
             "format_version": FORMAT_VERSION,
-            "architecture": "EEGNet",
+            "architecture": self.architecture,
             "model_kwargs": m.hparams,
             "preprocessing": self.params.model_dump(),
             "ch_names": self.ch_names,
@@ -229,7 +246,13 @@ class ErrPClassifier:
         config = json.loads(config_path.read_text())
         if config.get("format_version") != FORMAT_VERSION:
             raise ValueError(f"unsupported classifier format {config.get('format_version')}")
-        model = EEGNet(**config["model_kwargs"])
+        architecture = ARCHITECTURES.get(config.get("architecture", ""))
+        if architecture is None:
+            raise ValueError(
+                f"unknown classifier architecture {config.get('architecture')!r}; "
+                f"expected one of {sorted(ARCHITECTURES)}"
+            )
+        model = architecture(**config["model_kwargs"])
         state = torch.load(directory / STATE_FILE, map_location="cpu", weights_only=True)
         model.load_state_dict(state)
         return cls(

@@ -22,6 +22,7 @@ if TYPE_CHECKING:
 REPORT_PNG = "report.png"
 REPORT_HTML = "report.html"
 WAVEFORM_CHANNELS = ("FCz", "Cz")
+DECODER_NAMES = {"eegnet": "EEGNet", "lda": "window-mean sLDA"}
 
 
 def difference_wave(epochs: EpochSet, channel: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -59,9 +60,11 @@ def draw_report(result: CalibrationResult) -> Figure:
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 3)
     tag = "SYNTHETIC (virtual subject) - " if epochs.synthetic else ""
+    kept = DECODER_NAMES.get(metrics.get("decoder", "eegnet"), "EEGNet")
     fig.suptitle(
-        f"{tag}ErrP calibration: test accuracy {metrics['test_accuracy']:.2f}, balanced "
-        f"{metrics['balanced_accuracy']:.2f}, ROC AUC {metrics['roc_auc']:.2f} "
+        f"{tag}ErrP calibration ({kept} kept): test accuracy "
+        f"{metrics['test_accuracy']:.2f}, balanced {metrics['balanced_accuracy']:.2f}, "
+        f"ROC AUC {metrics['roc_auc']:.2f} "
         f"({metrics['n_epochs']} epochs, {int(np.sum(epochs.y))} errors)"
     )
     channels = [c for c in WAVEFORM_CHANNELS if c in epochs.ch_names]
@@ -96,14 +99,27 @@ def draw_report(result: CalibrationResult) -> Figure:
 
     ax = axes[1, 0]
     passes = np.arange(1, len(history["train_loss"]) + 1)
-    ax.plot(passes, history["train_loss"], label="train loss")
-    ax.plot(passes, history["val_loss"], label="validation loss")
-    ax.axvline(metrics["best_pass"] + 1, color="k", ls="--", lw=0.8, label="kept")
-    ax.set(xlabel="training pass", ylabel="weighted cross-entropy", title="Training curves")
-    ax.legend(fontsize=8)
+    if passes.size:
+        ax.plot(passes, history["train_loss"], label="train loss")
+        ax.plot(passes, history["val_loss"], label="validation loss")
+        ax.axvline(metrics["best_pass"] + 1, color="k", ls="--", lw=0.8, label="kept pass")
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "EEGNet not trained", ha="center", transform=ax.transAxes)
+    ax.set(xlabel="training pass", ylabel="weighted cross-entropy", title="EEGNet training")
     ax = axes[1, 1]
-    ax.plot(passes, history["val_accuracy"], color="C2")
-    ax.set(xlabel="training pass", ylabel="accuracy", title="Validation accuracy", ylim=(0, 1))
+    if passes.size:
+        ax.plot(passes, history["val_accuracy"], color="C2", label="EEGNet")
+    for name, row in metrics.get("decoders", {}).items():
+        if name != "eegnet":
+            ax.axhline(row["val_accuracy"], color="C4", ls="--", label=DECODER_NAMES[name])
+    ax.legend(fontsize=8)
+    ax.set(
+        xlabel="training pass",
+        ylabel="accuracy",
+        title=f"Validation accuracy ({kept} kept)",
+        ylim=(0, 1),
+    )
 
     ax = axes[1, 2]
     cm = np.asarray(metrics["confusion_matrix"])
@@ -130,6 +146,7 @@ def write_report(result: CalibrationResult, out_dir: str | Path) -> tuple[Path, 
     draw_report(result).savefig(png, dpi=90)
     m = result.metrics
     keys = (
+        "decoder",
         "test_accuracy",
         "balanced_accuracy",
         "roc_auc",
@@ -151,6 +168,21 @@ def write_report(result: CalibrationResult, out_dir: str | Path) -> tuple[Path, 
         for k in keys
         if (v := m.get(k)) is not None
     )
+    decoder_rows = "\n".join(
+        f"<tr><td>{html.escape(DECODER_NAMES[name])}{' (kept)' if name == m.get('decoder') else ''}"
+        f"</td><td>{d['val_accuracy']:.3f}</td><td>{d['test_accuracy']:.3f}</td>"
+        f"<td>{d['balanced_accuracy']:.3f}</td><td>{d['roc_auc']:.3f}</td>"
+        f"<td>{d['n_params']}</td><td>"
+        + (f"{d['cv_accuracy_mean']:.3f} ± {d['cv_accuracy_std']:.3f}" if "cv_folds" in d else "-")
+        + "</td></tr>"
+        for name, d in m.get("decoders", {}).items()
+    )
+    decoders = (
+        "<h2>Decoders (same split; the better on validation is kept)</h2><table><tr>"
+        "<th>decoder</th><th>validation accuracy</th><th>test accuracy</th>"
+        "<th>balanced accuracy</th><th>ROC AUC</th><th>parameters</th>"
+        f"<th>5-fold CV accuracy (training split)</th></tr>{decoder_rows}</table>"
+    )
     banner = (
         '<p style="color:#b00;font-weight:bold">SYNTHETIC data (virtual subject), not a '
         "real recording.</p>"
@@ -160,7 +192,7 @@ def write_report(result: CalibrationResult, out_dir: str | Path) -> tuple[Path, 
     page.write_text(
         "<!doctype html><html><head><meta charset='utf-8'><title>ErrP calibration report"
         f"</title></head><body><h1>ErrP calibration report</h1>{banner}"
-        f"<table>{rows}</table><p>Confusion matrix (rows true, columns predicted; "
+        f"<table>{rows}</table>{decoders}<p>Confusion matrix (rows true, columns predicted; "
         f"correct, error): {html.escape(str(m['confusion_matrix']))}</p>"
         f"<img src='{REPORT_PNG}' alt='calibration report figure' style='max-width:100%'>"
         "</body></html>"

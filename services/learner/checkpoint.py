@@ -22,8 +22,9 @@ from services.learner.feedback import HFPolicy
 from services.learner.optimizer import FlatAdam
 from services.learner.seeding import TrainingResets
 
-CHECKPOINT_VERSION = 2
-"""2: the training reset seeds are a stream of their own (``resets``)."""
+CHECKPOINT_VERSION = 3
+"""2: the training reset seeds are a stream of their own (``resets``); 3: the best
+evaluation's step, SPL and weights (``best_agent``)."""
 
 
 @dataclass
@@ -44,6 +45,10 @@ class RunState:
     """Per finished episode: (env step at its end, length, success, collision, followed pi_HF)."""
     curve: list[tuple[int, float]] = field(default_factory=list)
     metrics: list[dict[str, float]] = field(default_factory=list)
+    best_step: int | None = None
+    """Env step of the best evaluation so far (the first of equal bests)."""
+    best_spl: float | None = None
+    """SPL of that evaluation."""
 
 
 @dataclass
@@ -61,6 +66,8 @@ class Checkpoint:
     state: RunState
     hf_model: dict[str, torch.Tensor] | None
     """Fhat's weights (pi_HF), when the run is guided."""
+    best_agent: dict[str, torch.Tensor] | None = None
+    """pi_RL's weights at the best evaluation so far (``state.best_step``)."""
 
     @classmethod
     def capture(
@@ -72,6 +79,8 @@ class Checkpoint:
         resets: TrainingResets,
         state: RunState,
         hf_policy: HFPolicy | None,
+        *,
+        best_agent: dict[str, torch.Tensor] | None = None,
     ) -> Checkpoint:
         """Everything a run needs to continue exactly (``config`` is ``asdict(PPOConfig)``)."""
         return cls(
@@ -82,6 +91,7 @@ class Checkpoint:
             resets=resets.state,
             state=state,
             hf_model=None if hf_policy is None else hf_policy.model.state_dict(),
+            best_agent=best_agent,
         )
 
     def restore(

@@ -194,9 +194,9 @@ def compare_studies(folders: Sequence[str | Path], out_dir: str | Path) -> list[
         for row in summarize(runs)
     ]
     lines = [
-        "| task | study | PPO overrides | method | seeds | final SPL | last-5 SPL | "
+        "| task | study | PPO overrides | method | seeds | final SPL | last-5 SPL | best SPL | "
         "mean SPL over training | runs reaching 0.7 | median steps to 0.7 | HF policy SPL |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(rows, key=lambda r: (r["task"], r["group"], r["study"])):
         override_text = ", ".join(f"{k}={v}" for k, v in sorted(r["ppo_overrides"].items()))
@@ -206,6 +206,7 @@ def compare_studies(folders: Sequence[str | Path], out_dir: str | Path) -> list[
             f"| {r['task'].upper()} | {r['study']} | {override_text or '-'} | {r['group']} | "
             f"{r['n_seeds']} | {r['final_spl_mean']:.2f} ± {r['final_spl_std']:.2f} | "
             f"{r['last5_spl_mean']:.2f} ± {r['last5_spl_std']:.2f} | "
+            f"{r['best_spl_mean']:.2f} ± {r['best_spl_std']:.2f} | "
             f"{np.mean(r['mean_spl_over_training']):.2f} | "
             f"{r['runs_reaching_0_7']}/{r['n_seeds']} | "
             f"{'-' if median is None else f'{median:.0f}'} | "

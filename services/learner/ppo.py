@@ -30,6 +30,14 @@ method (0.01 by default: +-100 terminal rewards become +-1; DESIGN §2 reports t
 mock-up only learned with 1/100). Time-limit truncation is bootstrapped with
 ``gamma * V(s_T)``.
 
+Stabilisers (off by default, so the paper's setting is unchanged): ``target_kl`` ends an
+update's epoch loop early once a minibatch's approx KL to the rollout policy exceeds it, and
+``anneal_lr`` anneals the learning rate linearly to 0 over the run (CleanRL, SB3).
+
+Best checkpoint. Like SB3's ``EvalCallback``, training keeps the weights of the best
+evaluation (the first of equal bests) beside the last: ``TrainResult.best_agent`` and
+``best_step``; both are in the checkpoint, so a resumed run keeps them too.
+
 Determinism and resume. All randomness comes from ``config.seed`` through one
 ``numpy.random.SeedSequence`` (:mod:`services.learner.seeding`): torch init (under a forked
 RNG), a numpy Generator for sampling and minibatches, and the training reset seeds are
@@ -91,7 +99,10 @@ class PPOConfig:
     minibatch_size: int = 64
     """Minibatch size of the PPO update."""
     learning_rate: float = 3e-4
-    """Adam learning rate (constant)."""
+    """Adam learning rate (the initial one with ``anneal_lr``)."""
+    anneal_lr: bool = False
+    """Anneal the learning rate linearly to 0 over the updates of the run (CleanRL's
+    ``anneal_lr``); off by default, as the authors' constant rate."""
     adam_eps: float = 1e-5
     """Adam epsilon."""
     gamma: float = 0.99
@@ -106,6 +117,11 @@ class PPOConfig:
     """Value loss coefficient."""
     max_grad_norm: float = 25.0
     """Global gradient-norm clip."""
+    target_kl: float | None = None
+    """Early stop of an update: the remaining minibatch steps of the ``n_epochs`` are skipped
+    once a minibatch's approx KL to the rollout policy exceeds this (checked before its
+    step, as SB3 does, without SB3's factor 1.5). None (default): all epochs, as the
+    authors."""
     norm_adv: bool = True
     """Normalise advantages per minibatch (CleanRL default)."""
     reward_scale: float = 0.01
@@ -150,6 +166,8 @@ class PPOConfig:
             raise ValueError("hf_t_trans_fraction must be in (0, 1]")
         if self.eval_every < 1 or not self.eval_seeds:
             raise ValueError("eval_every must be >= 1 and eval_seeds non-empty")
+        if self.target_kl is not None and not self.target_kl > 0.0:
+            raise ValueError(f"target_kl must be > 0 or None, got {self.target_kl}")
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PPOConfig:
@@ -370,14 +388,17 @@ def train(
         state = RunState()
         checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
 
+        best_agent: dict[str, torch.Tensor] | None = None  # weights at state.best_step
+
         def save() -> None:
             assert checkpoint is not None
             snapshot = (asdict(config), agent, optimizer, rng, resets, state, hf_policy)
-            save_checkpoint(checkpoint, Checkpoint.capture(*snapshot))
+            save_checkpoint(checkpoint, Checkpoint.capture(*snapshot, best_agent=best_agent))
 
         if checkpoint is not None and checkpoint.exists():
             restored = load_checkpoint(checkpoint, asdict(config))
             state = restored.restore(agent, optimizer, rng, resets, hf_policy)
+            best_agent = restored.best_agent
             obs, _ = env.reset(seed=state.episode_seed)
             for action in state.episode_actions:  # replay the episode in progress
                 obs, *_ = env.step(action)
@@ -392,13 +413,18 @@ def train(
             return int(torch.argmax(logits))
 
         def evaluate() -> bool:
+            nonlocal best_agent
             spl = evaluate_spl(eval_env, greedy, config.eval_seeds)
             state.curve.append((state.global_step, spl))
+            if state.best_spl is None or spl > state.best_spl:  # the first of equal bests
+                state.best_step, state.best_spl = state.global_step, spl
+                best_agent = {k: v.detach().clone() for k, v in agent.state_dict().items()}
             return callback.on_eval(state.global_step, spl)
 
         keep_going = evaluate() if not state.curve else True
         rollout = Rollout.empty(config.n_steps, env.observation_space.shape[0])
         truncated_is = config.hf_treatment == "truncated_is"
+        n_updates_total = -(-config.total_steps // config.n_steps)
         last_returns: list[float] = []
 
         while keep_going and state.global_step < config.total_steps:
@@ -506,22 +532,41 @@ def train(
                 else [None] * len(index),  # all weights 1: skip the multiplication
                 strict=True,
             )
+            if config.anneal_lr:  # linear to 0 over the run, from the update count
+                optimizer.lr = config.learning_rate * (1.0 - state.n_updates / n_updates_total)
             n_minibatches = config.n_steps // config.minibatch_size  # per epoch
-            stats_sum: dict[str, float] = {}  # loss statistics of the last epoch
+            early_stop = config.target_kl is not None  # needs every minibatch's approx KL
+            stats_sum: dict[str, float] = {}  # loss statistics of the last epoch (begun)
+            n_in_epoch = n_done = 0
             for i, minibatch in enumerate(minibatches):
                 last_epoch = i >= len(index) - n_minibatches
-                loss, stats = ppo_loss(agent, *minibatch, config, with_stats=last_epoch)
+                if i % n_minibatches == 0:
+                    stats_sum, n_in_epoch = {}, 0
+                loss, stats = ppo_loss(
+                    agent, *minibatch, config, with_stats=last_epoch or early_stop
+                )
+                for key, val in stats.items():
+                    stats_sum[key] = stats_sum.get(key, 0.0) + val
+                n_in_epoch += 1
+                if early_stop and stats["losses/approx_kl"] > config.target_kl:
+                    break  # this minibatch is already too far from the rollout policy
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.clip_grad_norm_(config.max_grad_norm)
                 optimizer.step()
-                for key, val in stats.items():
-                    stats_sum[key] = stats_sum.get(key, 0.0) + val
+                n_done += 1
             state.n_updates += 1
-            metrics = {key: val / n_minibatches for key, val in stats_sum.items()}
+            metrics = {key: val / max(n_in_epoch, 1) for key, val in stats_sum.items()}
+            metrics["losses/update_epochs"] = n_done / n_minibatches
             metrics.update(
                 _update_metrics(
-                    config, state, rollout, returns, last_returns, hf_policy is not None
+                    config,
+                    state,
+                    rollout,
+                    returns,
+                    last_returns,
+                    hf_policy is not None,
+                    optimizer.lr,
                 )
             )
             metrics["charts/SPS"] = config.n_steps / max(time.perf_counter() - rollout_start, 1e-9)
@@ -548,6 +593,8 @@ def train(
         episodes=[tuple(e) for e in state.episodes],
         stopped_early=state.global_step < config.total_steps,
         wall_seconds=time.perf_counter() - start_time,
+        best_step=state.best_step,
+        best_agent=best_agent,
     )
 
 
@@ -558,6 +605,7 @@ def _update_metrics(
     returns: np.ndarray,
     last_returns: list[float],
     guided: bool,
+    learning_rate: float,
 ) -> dict[str, float]:
     """CleanRL-named metrics of an update besides the loss statistics."""
     var_returns = float(np.var(returns))
@@ -568,5 +616,5 @@ def _update_metrics(
         "charts/eps_hf": hf_epsilon(state.global_step, config) if guided else 0.0,
         "charts/hf_step_fraction": float(np.mean(rollout.is_hf)) if guided else 0.0,
         "charts/episodic_return": float(np.mean(last_returns)) if last_returns else float("nan"),
-        "charts/learning_rate": config.learning_rate,
+        "charts/learning_rate": learning_rate,
     }

@@ -62,6 +62,11 @@ class RunRecord:
     """Stage 2's summary (Fhat's validation accuracies, realised label accuracy)."""
     spec: dict[str, Any] | None = None
     """The :class:`RunSpec` as a dict."""
+    best_step: int | None = None
+    """Env step of the best evaluation (the first of equal bests), whose weights a run
+    keeps beside the last (None in records written before it was kept)."""
+    best_spl: float | None = None
+    """SPL of that evaluation."""
 
     @property
     def run_spec(self) -> RunSpec:
@@ -181,6 +186,7 @@ def run_one(
     checkpoint_path: str | Path | None = None,
     checkpoint_every: int = 10,
     model_path: str | Path | None = None,
+    last_model_path: str | Path | None = None,
     hf_policy: HFPolicy | None = None,
     on_label: Callable[[FeedbackRecord], None] | None = None,
 ) -> RunRecord:
@@ -188,7 +194,8 @@ def run_one(
 
     ``callback``, ``checkpoint_path`` and ``checkpoint_every`` go to :func:`train` (a job
     worker reports progress, stops on cancel and resumes from the checkpoint); with
-    ``model_path`` the trained policy is exported there as TorchScript. A given
+    ``model_path`` the policy of the best evaluation (``record.best_step``) is exported
+    there as TorchScript, with ``last_model_path`` the last one. A given
     ``hf_policy`` (e.g. learned from a subject's decoded EEG in an online session) guides
     an hf_sparse run instead of stage 2's simulated feedback; ``on_label`` goes to stage 2's
     label collection (see :func:`learn_hf_policy`).
@@ -217,7 +224,9 @@ def run_one(
         checkpoint_every=checkpoint_every,
     )
     if model_path is not None:
-        result.export_torchscript(model_path)
+        result.export_torchscript(model_path, which="best")
+    if last_model_path is not None:
+        result.export_torchscript(last_model_path, which="last")
     curve = [[int(step), float(spl)] for step, spl in result.curve]
     return RunRecord(
         task=spec.task,
@@ -235,6 +244,8 @@ def run_one(
         training_episodes=episode_stats(result.episodes, config.eval_every, result.global_step),
         hf=hf_summary,
         spec=spec.to_dict(),
+        best_step=result.best_step,
+        best_spl=float(result.best_spl),
     )
 
 

@@ -16,7 +16,16 @@ from services.learner.evaluation import eval_seeds
 from services.learner.ppo import PPOConfig
 
 TASK_ENV_IDS = {"sssg": "services.sim:BrainNav-SSSG-v0", "vssg": "services.sim:BrainNav-VSSG-v0"}
-METHODS = ("rl_sparse", "rl_rich", "hf_sparse")
+METHODS = ("rl_sparse", "rl_rich", "rl_shaped", "hf_sparse")
+PAPER_METHODS = ("rl_sparse", "rl_rich", "hf_sparse")
+"""The paper's three methods (Fig. 3); rl_shaped is ours, a hand-designed-reward baseline."""
+REWARD_MODES = {
+    "rl_sparse": "sparse",
+    "rl_rich": "rich",
+    "rl_shaped": "shaped",
+    "hf_sparse": "sparse",
+}
+"""The env's reward of each method (rl_shaped: sparse + potential-based shaping)."""
 ACCURACIES = (0.55, 0.6, 0.7)
 TREATMENTS = ("authors", "truncated_is")
 N_VSSG_EVAL_STARTS = 5
@@ -93,12 +102,10 @@ class RunSpec:
 
     def ppo_config(self) -> PPOConfig:
         """The run's PPOConfig: the same network and hyperparameters for every method."""
-        env_kwargs: dict[str, Any] = {
-            "reward_mode": "rich" if self.method == "rl_rich" else "sparse"
-        }
+        env_kwargs: dict[str, Any] = {"reward_mode": REWARD_MODES[self.method]}
         if self.map_path is not None:
             env_kwargs["map_path"] = self.map_path
-        return PPOConfig(
+        config = PPOConfig(
             env_id=TASK_ENV_IDS[self.task],
             env_kwargs=env_kwargs,
             seed=self.seed,
@@ -106,6 +113,9 @@ class RunSpec:
             hf_treatment=self.hf_treatment or "authors",  # type: ignore[arg-type]
             **self.ppo_overrides,
         )
+        if self.method == "rl_shaped":  # policy invariance needs the learner's discount
+            config.env_kwargs["shaping_gamma"] = config.gamma
+        return config
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (the ``spec`` of a run in ``results.json``)."""
@@ -128,7 +138,7 @@ def build_specs(
     *,
     seeds: int,
     tasks: Sequence[str] = ("sssg", "vssg"),
-    methods: Sequence[str] = METHODS,
+    methods: Sequence[str] = PAPER_METHODS,
     accuracies: Sequence[float] = ACCURACIES,
     treatments: Sequence[str] = ("authors",),
     first_seed: int = 0,

@@ -48,6 +48,7 @@ def summarize(runs: Sequence[RunRecord]) -> list[dict[str, Any]]:
     for (task, label), members in groups.items():
         finals = np.array([r.final_spl for r in members])
         tails = np.array([np.mean([spl for _, spl in r.curve[-LAST_EVALS:]]) for r in members])
+        bests = np.array([max(spl for _, spl in r.curve) for r in members])  # the kept policy
         areas = [float(np.mean([spl for _, spl in r.curve])) for r in members]
         curves = [np.array(r.curve) for r in members]
         length = min(len(c) for c in curves)
@@ -67,6 +68,8 @@ def summarize(runs: Sequence[RunRecord]) -> list[dict[str, Any]]:
                 "last5_spl_mean": float(tails.mean()),
                 "last5_spl_std": float(tails.std()),
                 "last5_spl": tails.tolist(),
+                "best_spl_mean": float(bests.mean()),
+                "best_spl_std": float(bests.std()),
                 "mean_spl_over_training": areas,
                 "max_mean_curve_spl": float(mean_curve.max()),
                 "mean_curve_steps_to_0_7": steps_to_reach(

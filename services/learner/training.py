@@ -6,11 +6,12 @@ and the TorchScript export of a trained policy (:class:`PolicyExport`).
 
 from __future__ import annotations
 
+import copy
 import json
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
@@ -18,6 +19,9 @@ from torch import nn
 
 if TYPE_CHECKING:
     from services.learner.ppo import ActorCritic, PPOConfig
+
+Checkpointed = Literal["last", "best"]
+"""Which weights of a run: the ``last`` (end of training) or the ``best`` evaluation's."""
 
 
 class PolicyExport(nn.Module):
@@ -72,11 +76,27 @@ class TrainResult:
     followed pi_HF)."""
     stopped_early: bool
     wall_seconds: float
+    best_step: int | None = None
+    """Env step of the best evaluation (the first of equal bests)."""
+    best_agent: dict[str, torch.Tensor] | None = None
+    """pi_RL's weights at ``best_step`` (the last weights are ``agent``'s)."""
 
     @property
     def final_spl(self) -> float:
         """SPL at the last evaluation."""
         return self.curve[-1][1]
+
+    @property
+    def best_spl(self) -> float:
+        """SPL at the best evaluation."""
+        return max(spl for _, spl in self.curve)
+
+    def best_policy(self) -> ActorCritic:
+        """A copy of the agent with the best evaluation's weights (``agent`` is the last)."""
+        best = copy.deepcopy(self.agent)
+        if self.best_agent is not None:
+            best.load_state_dict(self.best_agent)
+        return best
 
     def act(self, obs: np.ndarray) -> int:
         """Greedy action of the trained policy."""
@@ -84,13 +104,33 @@ class TrainResult:
             logits, _ = self.agent(torch.as_tensor(np.asarray(obs, dtype=np.float32)))
         return int(torch.argmax(logits))
 
-    def export_torchscript(self, path: str | Path) -> Path:
-        """Save normalisation + actor as TorchScript (``torch.jit.load`` needs no project)."""
+    def export_torchscript(self, path: str | Path, *, which: Checkpointed = "last") -> Path:
+        """Save normalisation + actor as TorchScript (``torch.jit.load`` needs no project).
+
+        ``which``: the ``last`` weights or the ``best`` evaluation's; the file's
+        ``bgrl_meta.json`` says which, at what step and SPL.
+        """
+        if which not in ("last", "best"):
+            raise ValueError(f"which must be 'last' or 'best', not {which!r}")
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        agent = self.agent if which == "last" else self.best_policy()
         with warnings.catch_warnings():  # TorchScript is deprecated but still the format
             warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit.load reads anywhere
-            scripted = torch.jit.script(PolicyExport(self.agent).eval())
-        meta = {"config": asdict(self.config), "final_spl": self.final_spl}
+            scripted = torch.jit.script(PolicyExport(agent).eval())
+        step, spl = (
+            (self.global_step, self.final_spl)
+            if which == "last"
+            else (self.best_step, self.best_spl)
+        )
+        meta = {
+            "config": asdict(self.config),
+            "final_spl": self.final_spl,
+            "checkpoint": which,
+            "step": step,
+            "spl": spl,
+            "best_step": self.best_step,
+            "best_spl": self.best_spl,
+        }
         scripted.save(str(path), _extra_files={"bgrl_meta.json": json.dumps(meta)})
         return path

@@ -35,9 +35,14 @@ COLLISION_REWARD = -100.0
 STEP_REWARD = -1.0
 RICH_DISTANCE_COEF = -1.0
 RICH_HEADING_COEF = -0.3
+SHAPING_GAMMA = 0.99
+"""Default discount of the shaping term: the learner's gamma (PPOConfig.gamma)."""
+NO_PATH_STEPS = 120.0
+"""Cost-to-go given to a pose from which the oracle finds no way to the goal (about 0.7 %
+of a random walk's poses, pressed against a wall): the episode's time limit."""
 
 Task = Literal["sssg", "vssg"]
-RewardMode = Literal["sparse", "rich"]
+RewardMode = Literal["sparse", "rich", "shaped"]
 
 _TWO_PI = 2.0 * math.pi
 _N_HEADINGS = round(_TWO_PI / TURN_STEP_RAD)
@@ -79,7 +84,17 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
     ``reward_mode="sparse"``: +100 on reaching the goal, -100 on a collision, -1 otherwise.
     ``reward_mode="rich"`` adds ``-1.0 * d - 0.3 * |theta|`` every step, with ``d`` the
     distance to the goal and ``theta`` the angle between heading and goal bearing after the
-    action.
+    action (the paper's rich reward).
+    ``reward_mode="shaped"`` adds the potential-based shaping term
+    ``F = gamma * Phi(s') - Phi(s)`` to the sparse reward (Ng, Harada and Russell 1999, the
+    paper's reference for reward shaping), with ``Phi(s) = -c(s)``, ``c`` the oracle's
+    shortest path from the pose to the goal in actions (``NO_PATH_STEPS`` where it finds
+    none), times the step cost 1, and ``Phi = 0`` at terminal states (goal or collision),
+    so that the discounted sum of ``F`` over an episode is ``gamma^T Phi(s_T) - Phi(s_0)``
+    and the optimal policies of the shaped and the sparse reward are the same.
+    ``-c`` is the sparse reward's undiscounted optimal value up to a constant, the
+    potential Ng et al. recommend; unlike the Euclidean distance it does not lead into
+    obstacles. ``gamma`` is ``shaping_gamma`` and must be the learner's discount.
 
     ## Starting State
 
@@ -117,11 +132,17 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         render_width: int = rendering.FRAME_WIDTH,
         render_height: int = rendering.FRAME_HEIGHT,
         oracle_cache_dir: str | Path | None = None,
+        shaping_gamma: float = SHAPING_GAMMA,
     ) -> None:
         if task not in ("sssg", "vssg"):
             raise ValueError(f"task must be 'sssg' or 'vssg', got {task!r}")
-        if reward_mode not in ("sparse", "rich"):
-            raise ValueError(f"reward_mode must be 'sparse' or 'rich', got {reward_mode!r}")
+        if reward_mode not in ("sparse", "rich", "shaped"):
+            raise ValueError(
+                f"reward_mode must be 'sparse', 'rich' or 'shaped', got {reward_mode!r}"
+            )
+        if not 0.0 < shaping_gamma <= 1.0:
+            raise ValueError(f"shaping_gamma must be in (0, 1], got {shaping_gamma!r}")
+        self.shaping_gamma = float(shaping_gamma)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.task: Task = task
@@ -172,6 +193,7 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self._rays = [RAY_LENGTH_M] * N_RAYS
         self._body_synced = False
         self._sssg_shortest_steps: int | None = None
+        self._potential = 0.0
 
     # ------------------------------------------------------------------ world
     def _build_world(self) -> tuple[int, float]:
@@ -275,7 +297,14 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         obs, _, _ = self._observation()
         info = self._info(success=False, collision=False)
         info["shortest_path_steps"] = self._shortest_path_steps()
+        self._potential = -float(info["shortest_path_steps"]) * abs(STEP_REWARD)
         return obs, info
+
+    def potential(self) -> float:
+        """The shaping potential ``Phi`` of the current (non-terminal) pose: minus the
+        oracle's shortest path to the goal, in actions (see Rewards)."""
+        steps = self.oracle.cost_to_go(self._x, self._y, self._yaw)
+        return -(steps if math.isfinite(steps) else NO_PATH_STEPS) * abs(STEP_REWARD)
 
     def _shortest_path_steps(self) -> int:
         """The oracle policy's path length from the current pose (cached for SSSG)."""
@@ -333,6 +362,10 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         if self.reward_mode == "rich":
             heading_error = abs(wrap_angle(bearing - self._yaw))
             reward += RICH_DISTANCE_COEF * distance + RICH_HEADING_COEF * heading_error
+        elif self.reward_mode == "shaped":
+            next_potential = 0.0 if success or collision else self.potential()
+            reward += self.shaping_gamma * next_potential - self._potential
+            self._potential = next_potential
         return (
             obs,
             reward,

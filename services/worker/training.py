@@ -2,7 +2,9 @@
 run of a reproduction). Both execute the learner's run (stage 2 for HF+sparse, then guided
 PPO, Akinola et al. 2020, Algorithm 1) with progress, the SPL curve and checkpoints written
 to the job, and store the trained policy (TorchScript, with its observation normalisation)
-as the job's model.
+as the job's model: the policy of the best evaluation (as SB3's ``EvalCallback`` keeps),
+whose step and SPL the result gives as ``best_step`` / ``best_spl``; the last policy is a
+second artifact, ``last_model_artifact_id`` in the result (``/api/v1/artifacts/{id}/download``).
 
 Resume: the checkpoint lives in the artifact store at ``checkpoint/job-<id>/checkpoint.pt``.
 A job claimed again (after its worker died, or a failed attempt) finds it there and the
@@ -169,20 +171,30 @@ def train_spec(
     context.check_stop()
     with tempfile.TemporaryDirectory(prefix="bgrl-job-") as work_dir:
         model_path = Path(work_dir) / "policy.pt"
+        last_model_path = Path(work_dir) / "policy_last.pt"
         record: RunRecord = run_one(
             spec,
             callback=JobProgress(context, total_steps, curve),
             checkpoint_path=checkpoint,
             checkpoint_every=checkpoint_every,
             model_path=model_path,
+            last_model_path=last_model_path,
             hf_policy=hf_policy,
             on_label=lambda _record: context.check_stop(),  # cancel during stage 2 too
         )
         context.check_stop()
         weights = weights_sha256(model_path)
+        last_weights = weights_sha256(last_model_path)
         model_id = context.store_file(model_path, kind="model", name="policy.pt")
+        last_model_id = context.store_file(last_model_path, kind="model", name="policy_last.pt")
     return JobOutcome(
-        result={**record.to_dict(), "weights_sha256": weights},
+        result={
+            **record.to_dict(),
+            "model": "best",  # the job's model is the best evaluation's policy
+            "weights_sha256": weights,
+            "last_model_artifact_id": last_model_id,
+            "last_weights_sha256": last_weights,
+        },
         values={
             "model_artifact_id": model_id,
             "curve": record.curve,

@@ -89,13 +89,22 @@ def test_calibration_on_virtual_subject_beats_chance() -> None:
     assert m["balanced_accuracy"] > 0.6, m
 
 
-def test_save_load_round_trip_and_torchscript(tmp_path) -> None:
+@pytest.mark.parametrize(
+    ("decoders", "kept", "n_params"),
+    [(("eegnet",), "eegnet", 786), (("lda",), "lda", 145), (("eegnet", "lda"), None, None)],
+)
+def test_save_load_round_trip_and_torchscript(tmp_path, decoders, kept, n_params) -> None:
     epochs = _toy_epochs()
-    result = calibrate(epochs, seed=1, out_dir=tmp_path, config=TrainingConfig(max_passes=4))
+    config = TrainingConfig(max_passes=4, decoders=decoders)
+    result = calibrate(epochs, seed=1, out_dir=tmp_path, config=config)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     for key in ("test_accuracy", "balanced_accuracy", "roc_auc", "n_epochs", "n_params"):
         assert key in metrics
-    assert metrics["n_epochs"] == 120 and metrics["n_params"] == 786
+    assert set(metrics["decoders"]) == set(decoders)
+    kept = kept or metrics["decoder"]
+    assert metrics["decoder"] == kept
+    assert metrics["n_params"] == (n_params or metrics["decoders"][kept]["n_params"])
+    assert metrics["n_epochs"] == 120
     assert (tmp_path / "report.png").stat().st_size > 10_000
     assert "SYNTHETIC" in (tmp_path / "report.html").read_text()
 

@@ -39,7 +39,9 @@ def test_cli_calibrate_tiny_bdf_misnamed_edf_without_library_noise(tmp_path) -> 
     for noise in ("torchvision", "Warning", "deprecated", "Traceback"):
         assert noise not in done.stderr, done.stderr
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["n_epochs"] == 60 and metrics["n_params"] == 786
+    assert metrics["n_epochs"] == 60 and metrics["decoders"]["eegnet"]["n_params"] == 786
+    assert metrics["n_params"] == metrics["decoders"][metrics["decoder"]]["n_params"]
+    assert f"{metrics['decoder']} (kept): validation accuracy" in done.stdout
     assert metrics["passes_run"] == 3 and metrics["training_config"]["max_passes"] == 3
     assert {"test_accuracy", "balanced_accuracy", "roc_auc"} <= metrics.keys()
     assert (out / "classifier.json").is_file() and (out / "report.html").is_file()

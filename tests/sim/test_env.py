@@ -43,9 +43,10 @@ def test_spaces_and_reset_observation(env: BrainNavEnv) -> None:
     assert info["is_success"] is False and info["collision"] is False
 
 
-def test_check_env_passes() -> None:
+@pytest.mark.parametrize("reward_mode", ["rich", "shaped"])
+def test_check_env_passes(reward_mode: str) -> None:
     environment = gym.make(
-        "services.sim:BrainNav-VSSG-v0", reward_mode="rich", render_mode="rgb_array"
+        "services.sim:BrainNav-VSSG-v0", reward_mode=reward_mode, render_mode="rgb_array"
     )
     try:
         with warnings.catch_warnings():
@@ -84,6 +85,64 @@ def test_turn_rewards_sparse_and_rich() -> None:
             assert not terminated and info["collision"] is False
         finally:
             environment.close()
+
+
+def _oracle_path(environment: BrainNavEnv) -> list[int]:
+    return environment.oracle.rollout(*environment.pose)
+
+
+@pytest.mark.parametrize("gamma", [0.99, 0.9])
+@pytest.mark.parametrize(
+    ("name", "seed", "plan"),
+    [
+        ("to the goal", 3, _oracle_path),
+        ("into the wall", 4, lambda e: [Action.FORWARD] * 20),
+        ("turn, then drive", 5, lambda e: [Action.TURN_LEFT] * 3 + [Action.FORWARD] * 40),
+        ("random, cut off", 6, lambda e: list(np.random.default_rng(6).integers(0, 3, 25))),
+    ],
+)
+def test_shaped_reward_is_potential_based(name: str, seed: int, plan, gamma: float) -> None:
+    """Over a trajectory, sum_t gamma^t F_t = gamma^T Phi(s_T) - Phi(s_0) (Ng et al. 1999),
+    with F the shaped minus the sparse reward, Phi = -(oracle's path) and Phi = 0 at the
+    end of a terminated episode."""
+    sparse = BrainNavEnv(task="vssg", reward_mode="sparse")
+    shaped = BrainNavEnv(task="vssg", reward_mode="shaped", shaping_gamma=gamma)
+    try:
+        _, info = sparse.reset(seed=seed)
+        _, shaped_info = shaped.reset(seed=seed)
+        phi_0 = -float(info["shortest_path_steps"])
+        assert phi_0 == shaped.potential() and info == shaped_info
+        discounted, t, terminated = 0.0, 0, False
+        for action in plan(sparse):
+            _, r_sparse, terminated, _, step_info = sparse.step(int(action))
+            _, r_shaped, shaped_terminated, _, _ = shaped.step(int(action))
+            assert shaped_terminated == terminated
+            discounted += gamma**t * (r_shaped - r_sparse)
+            t += 1
+            if terminated:
+                break
+        phi_t = 0.0 if terminated else shaped.potential()
+        assert discounted == pytest.approx(gamma**t * phi_t - phi_0, abs=1e-9)
+        outcome = "goal" if step_info["is_success"] else "collision" if terminated else "cut"
+        assert outcome == {"to the goal": "goal", "into the wall": "collision"}.get(name, outcome)
+    finally:
+        sparse.close()
+        shaped.close()
+
+
+def test_shaped_reward_prefers_the_oracle_action() -> None:
+    """From the start, an optimal action earns more than a step away from the path."""
+    environment = BrainNavEnv(reward_mode="shaped")
+    try:
+        environment.reset(seed=0)
+        best = environment.oracle.policy_action(*environment.pose)
+        _, good, *_ = environment.step(best)
+        environment.reset(seed=0)
+        worse = next(a for a in range(3) if a not in environment.optimal_actions())
+        _, bad, *_ = environment.step(worse)
+        assert good > -1.0 > bad  # the sparse step reward is -1 either way
+    finally:
+        environment.close()
 
 
 def test_collision_terminates_and_keeps_pose(env: BrainNavEnv) -> None:
@@ -144,6 +203,8 @@ def test_invalid_arguments_are_rejected(env: BrainNavEnv) -> None:
         BrainNavEnv(task="maze")
     with pytest.raises(ValueError, match="reward_mode"):
         BrainNavEnv(reward_mode="dense")
+    with pytest.raises(ValueError, match="shaping_gamma"):
+        BrainNavEnv(reward_mode="shaped", shaping_gamma=0.0)
     with pytest.raises(ValueError, match="render_mode"):
         BrainNavEnv(render_mode="human")
 

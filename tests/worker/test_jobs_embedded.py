@@ -50,8 +50,21 @@ def test_guided_ppo_lifecycle_and_duplicate_delivery(fs_platform: Platform, work
     model = artifact(fs_platform, job.model_artifact_id)
     path = fs_platform.settings.resolved_artifact_dir / model.relpath
     assert model.kind == "model" and model.sha256 == sha256_file(path)
-    policy = torch.jit.load(str(path))
+    extra = {"bgrl_meta.json": ""}
+    policy = torch.jit.load(str(path), _extra_files=extra)
     assert policy(torch.zeros(1, 13)).shape == (1, 3)  # normalisation + actor, raw observations
+    # the job's model is the best evaluation's policy; the result says which and has the last
+    meta = json.loads(extra["bgrl_meta.json"])
+    assert job.result["model"] == meta["checkpoint"] == "best"
+    assert [job.result["best_step"], job.result["best_spl"]] in job.curve
+    assert job.result["best_spl"] == max(spl for _, spl in job.curve) == meta["spl"]
+    last = artifact(fs_platform, job.result["last_model_artifact_id"])
+    last_path = fs_platform.settings.resolved_artifact_dir / last.relpath
+    assert last.kind == "model" and last.id != model.id and last.job_id == job_id
+    assert last.sha256 == sha256_file(last_path)
+    extra = {"bgrl_meta.json": ""}
+    torch.jit.load(str(last_path), _extra_files=extra)
+    assert json.loads(extra["bgrl_meta.json"])["checkpoint"] == "last"
     checkpoint = artifact(fs_platform, job.checkpoint_artifact_id)
     assert checkpoint.kind == "checkpoint" and checkpoint.relpath.endswith("checkpoint.pt")
 

@@ -22,7 +22,7 @@ JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
 
 Task = Literal["sssg", "vssg"]
-Method = Literal["rl_sparse", "rl_rich", "hf_sparse"]
+Method = Literal["rl_sparse", "rl_rich", "rl_shaped", "hf_sparse"]
 Treatment = Literal["authors", "truncated_is"]
 MAX_TOTAL_STEPS = 2_000_000
 MAX_REPRODUCE_RUNS = 2000
@@ -46,6 +46,7 @@ class PPOOverrides(StrictRequest):
     n_epochs: int | None = Field(None, ge=1, le=1000)
     minibatch_size: int | None = Field(None, ge=1, le=100_000)
     learning_rate: float | None = Field(None, gt=0, le=1)
+    anneal_lr: bool | None = None
     adam_eps: float | None = Field(None, gt=0, le=1)
     gamma: float | None = Field(None, ge=0, le=1)
     gae_lambda: float | None = Field(None, ge=0, le=1)
@@ -53,6 +54,7 @@ class PPOOverrides(StrictRequest):
     ent_coef: float | None = Field(None, ge=0, le=10)
     vf_coef: float | None = Field(None, ge=0, le=100)
     max_grad_norm: float | None = Field(None, gt=0, le=1e6)
+    target_kl: float | None = Field(None, gt=0, le=10)
     norm_adv: bool | None = None
     reward_scale: float | None = Field(None, gt=0, le=1e6)
     hidden_sizes: list[int] | None = Field(None, min_length=1, max_length=8)
