@@ -14,6 +14,10 @@ if TYPE_CHECKING:
     from services.learner.runs import RunFailure, RunRecord
 
 
+PRESETS = ("paper", "platform")
+"""``bgrl reproduce --preset``: the paper's settings or the platform's recommended ones."""
+
+
 def _split(value: str) -> list[str]:
     return [item.strip() for item in value.split(",") if item.strip()]
 
@@ -85,18 +89,38 @@ def reproduce(
             "--ppo n_epochs=10 --ppo reward_scale=1 --ppo hf_guide_sampling=true."
         ),
     ] = None,
+    preset: Annotated[
+        str,
+        typer.Option(
+            help="paper: the paper's settings; platform: the recommended ones (HF steps "
+            "truncated_is, hf_guide_sampling=true, the recommended stage-2 method)."
+        ),
+    ] = "paper",
 ) -> None:
     """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG.
+
+    ``--preset platform`` replaces the default ``--treatments`` by truncated_is, adds
+    ``--ppo hf_guide_sampling=true`` unless given, and learns pi_HF with the recommended
+    stage-2 method (docs/stage2.md).
 
     Exits with 1 naming the failed runs if any run fails (the others finish and are kept in
     results.json; the failed ones, with their tracebacks, under "failed"; a rerun retries
     them), with 2 on bad input.
     """
+    from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
     from services.learner.pool import reproduce as run_reproduction
     from services.learner.pool import validate_maps
     from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, build_specs
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
+    if preset not in PRESETS:
+        raise typer.BadParameter(f"unknown preset {preset!r}; expected one of {PRESETS}")
+    hf_method = PAPER_METHOD
+    if preset == "platform":
+        hf_method = RECOMMENDED_METHOD
+        treatments = "truncated_is" if treatments == "authors" else treatments
+        if not any(item.partition("=")[0].strip() == "hf_guide_sampling" for item in ppo or []):
+            ppo = [*(ppo or []), "hf_guide_sampling=true"]
     try:
         overrides = parse_ppo_overrides(ppo or [])
         specs = build_specs(
@@ -108,6 +132,7 @@ def reproduce(
             treatments=_split(treatments),
             map_path=None if map_path is None else str(map_path),
             ppo_overrides=overrides,
+            hf_method=hf_method,
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
@@ -130,7 +155,15 @@ def reproduce(
                 out,
                 specs,
                 workers=workers,
-                config_note={"cli": {"quick": quick, "seeds": n_seeds, "overrides": overrides}},
+                config_note={
+                    "cli": {
+                        "quick": quick,
+                        "seeds": n_seeds,
+                        "overrides": overrides,
+                        "preset": preset,
+                        "hf_method": hf_method,
+                    }
+                },
                 on_done=done,
                 on_failure=failed,
                 on_resume=bar.update,
@@ -161,30 +194,49 @@ def hf_sweep(
     accuracies: Annotated[
         str, typer.Option(help="Comma-separated feedback accuracies C.")
     ] = "0.55,0.6,0.7",
+    labels: Annotated[
+        str, typer.Option(help="Comma-separated label budgets N (every labelled action).")
+    ] = "1000",
+    method: Annotated[
+        str,
+        typer.Option(help="Comma-separated stage-2 methods (paper = the paper's Fhat)."),
+    ] = "paper",
 ) -> None:
-    """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs feedback accuracy C."""
+    """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs C, labels and method."""
+    from services.learner.hf_methods import get_method
     from services.learner.pool import hf_policy_sweep
 
     try:
+        budgets = [int(n) for n in _split(labels)]
+        if not budgets or min(budgets) < 1:
+            raise ValueError(f"--labels must be integers >= 1, got {labels!r}")
+        methods = _split(method)
+        for name in methods:
+            get_method(name)
         rows, failures = hf_policy_sweep(
             out,
             tasks=_split(tasks),
             accuracies=[float(c) for c in _split(accuracies)],
             seeds=seeds,
+            labels=budgets,
+            methods=methods,
             workers=workers,
             on_failure=lambda failure: typer.echo(f"run failed: {failure}", err=True),
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
-    groups: dict[tuple[str, float], list[dict]] = {}
+    groups: dict[tuple[str, str, int, float], list[dict]] = {}
     for row in rows:
-        groups.setdefault((row["task"], row["accuracy"]), []).append(row)
-    for (task, accuracy), members in sorted(groups.items()):
+        key = (row.get("method", "paper"), row["task"], row["n_labels"], row["accuracy"])
+        groups.setdefault(key, []).append(row)
+    for (name, task, n_labels, accuracy), members in sorted(groups.items()):
         greedy = [m["greedy_spl"] for m in members]
         sampled = [m["sampled_success_rate"] for m in members]
+        useful = sum(g >= 0.5 for g in greedy)
         typer.echo(
-            f"{task} C={accuracy:g} n={len(members)} greedy SPL "
-            f"{sum(greedy) / len(greedy):.2f}, sampled success {sum(sampled) / len(sampled):.2f}"
+            f"{name} {task} C={accuracy:g} labels={n_labels} n={len(members)} greedy SPL "
+            f"{sum(greedy) / len(greedy):.2f} (>= 0.5: {useful}), sampled success "
+            f"{sum(sampled) / len(sampled):.2f}"
         )
     _exit_on_failures(failures, out / "hf_policies.json")
 
