@@ -202,9 +202,14 @@ def hf_sweep(
         typer.Option(help="Comma-separated stage-2 methods (paper = the paper's Fhat)."),
     ] = "paper",
 ) -> None:
-    """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs C, labels and method."""
+    """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs C, labels and method.
+
+    Writes hf_policies.json (one row per run, resumable), summary.md (the table) and
+    spl_vs_labels.png.
+    """
     from services.learner.hf_methods import get_method
     from services.learner.pool import hf_policy_sweep
+    from services.learner.stage2_report import write_report
 
     try:
         budgets = [int(n) for n in _split(labels)]
@@ -225,19 +230,10 @@ def hf_sweep(
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
-    groups: dict[tuple[str, str, int, float], list[dict]] = {}
-    for row in rows:
-        key = (row.get("method", "paper"), row["task"], row["n_labels"], row["accuracy"])
-        groups.setdefault(key, []).append(row)
-    for (name, task, n_labels, accuracy), members in sorted(groups.items()):
-        greedy = [m["greedy_spl"] for m in members]
-        sampled = [m["sampled_success_rate"] for m in members]
-        useful = sum(g >= 0.5 for g in greedy)
-        typer.echo(
-            f"{name} {task} C={accuracy:g} labels={n_labels} n={len(members)} greedy SPL "
-            f"{sum(greedy) / len(greedy):.2f} (>= 0.5: {useful}), sampled success "
-            f"{sum(sampled) / len(sampled):.2f}"
-        )
+    write_report(out, rows)
+    if rows:
+        typer.echo((out / "summary.md").read_text())
+        typer.echo(f"wrote {out / 'hf_policies.json'}, summary.md and spl_vs_labels.png")
     _exit_on_failures(failures, out / "hf_policies.json")
 
 

@@ -7,10 +7,11 @@ Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
   action. ``sigmoid(Fhat(s)[a])`` is the predicted probability that ``a`` is judged correct.
   Training uses binary cross-entropy on the output of the *taken* action only
   (:func:`services.learner.hf_methods.label_nll`, ``paper``).
-* :class:`FeedbackReplayBuffer` keeps every training label. The "newer is more important"
-  rule (DESIGN §2, from the authors' code): each replay minibatch is, with probability
-  ``newest_fraction`` (0.3), the ``batch_size`` newest labels, otherwise a uniform sample of
-  all labels. So the newest labels are replayed far more often than old ones.
+* :class:`~services.learner.feedback_buffer.FeedbackReplayBuffer` keeps every training
+  label. The "newer is more important" rule (from the authors' code): each replay
+  minibatch is, with probability ``newest_fraction`` (0.3), the ``batch_size`` newest
+  labels, otherwise a uniform sample of all labels, so the newest labels are replayed far
+  more often than old ones.
 * :class:`FeedbackLearner` applies Algorithm 1's update per label: one SGD step on the new
   label, then ``replay_updates`` (K_HF) minibatch steps from the buffer. Every label is held
   out for validation with probability ``validation_fraction`` (0.2) and never trained on.
@@ -20,18 +21,17 @@ Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
 * ``FeedbackConfig.method`` names the stage-2 method (:mod:`services.learner.hf_methods`):
   the paper's BCE (``paper``, the default), a noise-aware or categorical likelihood, active
   queries from a bootstrapped ensemble.
-* Feedback sources share the :class:`FeedbackSource` protocol: the noisy oracle
-  (:class:`OracleFeedbackSource`), decoded EEG feedback from a queue or callable
-  (:class:`StreamFeedbackSource`) and stored labels (:class:`ReplayFeedbackSource`).
+* :func:`collect_feedback` takes labels from any
+  :class:`~services.learner.feedback_sources.FeedbackSource` (the noisy oracle, decoded EEG,
+  stored labels).
 """
 
 from __future__ import annotations
 
-import queue
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -39,6 +39,8 @@ import torch
 from torch import nn
 
 from services.core.actions import N_ACTIONS
+from services.learner.feedback_buffer import FeedbackRecord, FeedbackReplayBuffer
+from services.learner.feedback_sources import FeedbackSource
 from services.learner.hf_methods import (
     DEFAULT_ASSUMED_ACCURACY,
     FhatEnsemble,
@@ -135,82 +137,6 @@ class FeedbackModel(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """Logits of "action judged correct", shape (..., n_actions)."""
         return self.output(torch.tanh(self.hidden(self.normalizer(obs))))
-
-
-class FeedbackReplayBuffer:
-    """All training labels ``(s, a, f)``; replay minibatches favour the newest labels.
-
-    Rule: with probability ``newest_fraction`` a minibatch is the ``batch_size`` newest labels;
-    otherwise it is drawn uniformly (with replacement) from all labels.
-    """
-
-    def __init__(self, n_obs: int, capacity: int = 100_000) -> None:
-        self.obs = np.zeros((capacity, n_obs), dtype=np.float32)
-        self.actions = np.zeros(capacity, dtype=np.int64)
-        self.labels = np.zeros(capacity, dtype=np.float32)
-        self.size = 0
-
-    def __len__(self) -> int:
-        return self.size
-
-    def add(self, obs: np.ndarray, action: int, label: bool) -> None:
-        """Append one label."""
-        if self.size == len(self.labels):
-            raise OverflowError(f"feedback buffer is full ({self.size} labels)")
-        self.obs[self.size] = obs
-        self.actions[self.size] = action
-        self.labels[self.size] = float(label)
-        self.size += 1
-
-    def sample_indices(
-        self, rng: np.random.Generator, batch_size: int, newest_fraction: float
-    ) -> np.ndarray:
-        """Indices of one replay minibatch under the recency rule."""
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty feedback buffer")
-        if rng.random() < newest_fraction:
-            return np.arange(max(0, self.size - batch_size), self.size)
-        return rng.integers(0, self.size, size=min(batch_size, self.size))
-
-    def tensors(self, indices: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(obs, actions, labels) tensors of the given rows."""
-        return (
-            torch.from_numpy(self.obs[indices]),
-            torch.from_numpy(self.actions[indices]),
-            torch.from_numpy(self.labels[indices]),
-        )
-
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        """The stored labels as tensors (only the filled rows), for checkpoints."""
-        return {
-            "obs": torch.from_numpy(self.obs[: self.size].copy()),
-            "actions": torch.from_numpy(self.actions[: self.size].copy()),
-            "labels": torch.from_numpy(self.labels[: self.size].copy()),
-        }
-
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        """Replace the contents with those of :meth:`state_dict`."""
-        size = int(state["labels"].shape[0])
-        if size > len(self.labels):
-            raise OverflowError(f"{size} labels exceed the buffer's capacity {len(self.labels)}")
-        self.obs[:size] = state["obs"].numpy()
-        self.actions[:size] = state["actions"].numpy()
-        self.labels[:size] = state["labels"].numpy()
-        self.size = size
-
-
-@dataclass
-class FeedbackRecord:
-    """One labelled step of a feedback session."""
-
-    obs: list[float]
-    action: int
-    label: bool
-    """The feedback received (True = judged correct)."""
-    optimal: bool | None
-    """The oracle's truth, when known (simulation); None for real EEG feedback."""
-    validation: bool
-    """Held out for validation (never trained on)."""
 
 
 class FeedbackLearner:
@@ -397,7 +323,10 @@ class FeedbackLearner:
             self.member = int(ensemble["member"])
 
     def validation_accuracy(self) -> tuple[float | None, float | None]:
-        """Accuracy of ``sigmoid(Fhat(s)[a]) > 0.5`` on held-out labels: (noisy, true).
+        """Accuracy of ``P(a optimal) > 0.5`` on held-out labels: (noisy, true).
+
+        P(optimal) is the method's: ``sigmoid(Fhat(s)[a])`` (the paper), a softmax for the
+        categorical methods.
 
         The second figure uses the oracle's truth and is None when no truth is known.
         """
@@ -406,8 +335,8 @@ class FeedbackLearner:
         obs = torch.tensor([r.obs for r in self.validation], dtype=torch.float32)
         actions = torch.tensor([r.action for r in self.validation])
         with torch.no_grad():
-            logits = self.model(obs).gather(-1, actions.unsqueeze(-1)).squeeze(-1)
-        predicted = (logits > 0).numpy()
+            p_optimal = optimality(self.model(obs), self.method.likelihood)
+        predicted = (p_optimal.gather(-1, actions.unsqueeze(-1)).squeeze(-1) > 0.5).numpy()
         noisy = np.array([r.label for r in self.validation])
         acc_noisy = float(np.mean(predicted == noisy))
         known = [r for r in self.validation if r.optimal is not None]
@@ -455,107 +384,6 @@ class HFPolicy:
             return int(np.argmax(self.scores(obs)))
         probs = self.sampling_probs(obs)
         return int(min(np.searchsorted(np.cumsum(probs), rng.random()), len(probs) - 1))
-
-
-@runtime_checkable
-class FeedbackSource(Protocol):
-    """Anything that judges the action just taken.
-
-    ``feedback(obs, action, optimal)`` returns True (correct), False (error) or None (no
-    label for this step, e.g. a rejected EEG epoch). ``optimal`` is the oracle's truth when
-    the caller knows it (simulation), else None.
-    """
-
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None: ...
-
-
-class OracleFeedbackSource:
-    """Simulated feedback: the Dijkstra oracle's judgement flipped at the given accuracy.
-
-    Parameters
-    ----------
-    accuracy : float, optional
-        Probability C that the feedback matches the truth, for good and bad actions alike.
-    good_accuracy, bad_accuracy : float, optional
-        Separate accuracies for optimal and sub-optimal actions (instead of ``accuracy``).
-    seed : int, optional
-        Seed of the label noise.
-    """
-
-    def __init__(
-        self,
-        accuracy: float | None = None,
-        *,
-        good_accuracy: float | None = None,
-        bad_accuracy: float | None = None,
-        seed: int | None = None,
-    ) -> None:
-        from services.sim.oracle import NoisyOracleFeedback
-
-        self.noisy = NoisyOracleFeedback(
-            accuracy, good_accuracy=good_accuracy, bad_accuracy=bad_accuracy, seed=seed
-        )
-
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool:
-        """Noisy version of ``optimal`` (which must be known)."""
-        if optimal is None:
-            raise ValueError("OracleFeedbackSource needs the oracle's truth (optimal=None given)")
-        return bool(self.noisy.feedback(optimal))
-
-
-class StreamFeedbackSource:
-    """Decoded EEG feedback arriving from a live pipeline.
-
-    Parameters
-    ----------
-    stream : queue.Queue or callable
-        A queue of ``bool`` feedback items, or a callable ``get(timeout_s) -> bool | None``.
-    timeout_s : float
-        How long to wait for the decision of the current action; a missing decision yields
-        None (the step gets no label). Default 1.5 s, one action period.
-    """
-
-    def __init__(
-        self,
-        stream: queue.Queue[bool] | Callable[[float], bool | None],
-        timeout_s: float = 1.5,
-    ) -> None:
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be positive, got {timeout_s}")
-        self.stream = stream
-        self.timeout_s = timeout_s
-
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
-        """The next decoded decision, or None if none arrives in time."""
-        if isinstance(self.stream, queue.Queue):
-            try:
-                item = self.stream.get(timeout=self.timeout_s)
-            except queue.Empty:
-                return None
-        else:
-            item = self.stream(self.timeout_s)
-        return None if item is None else bool(item)
-
-
-class ReplayFeedbackSource:
-    """Stored labels replayed in order (reproduces a recorded session in a seeded env)."""
-
-    def __init__(self, labels: Iterable[bool | None]) -> None:
-        self.labels = list(labels)
-        self.position = 0
-
-    @classmethod
-    def from_records(cls, records: Sequence[FeedbackRecord]) -> ReplayFeedbackSource:
-        """Replay the labels of a previous session's records."""
-        return cls(r.label for r in records)
-
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
-        """The next stored label; raises when the recording is exhausted."""
-        if self.position >= len(self.labels):
-            raise IndexError(f"all {len(self.labels)} stored labels have been replayed")
-        label = self.labels[self.position]
-        self.position += 1
-        return None if label is None else bool(label)
 
 
 @dataclass

@@ -24,12 +24,12 @@ import numpy as np
 from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
 from services.learner.feedback import (
     FeedbackConfig,
-    FeedbackRecord,
     HFPolicy,
     HFResult,
-    OracleFeedbackSource,
     collect_feedback,
 )
+from services.learner.feedback_buffer import FeedbackRecord
+from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.hf_methods import PAPER_METHOD, get_method
 from services.learner.ppo import Callback, PPOConfig, train
 from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds

@@ -13,13 +13,15 @@ from services.learner.feedback import (
     FeedbackConfig,
     FeedbackLearner,
     FeedbackModel,
-    FeedbackReplayBuffer,
-    FeedbackSource,
     HFPolicy,
+    collect_feedback,
+)
+from services.learner.feedback_buffer import FeedbackReplayBuffer
+from services.learner.feedback_sources import (
+    FeedbackSource,
     OracleFeedbackSource,
     ReplayFeedbackSource,
     StreamFeedbackSource,
-    collect_feedback,
 )
 from services.learner.hf_methods import label_nll
 from services.learner.networks import ObsNormalizer

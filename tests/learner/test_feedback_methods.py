@@ -13,9 +13,9 @@ from services.learner.feedback import (
     FeedbackConfig,
     FeedbackLearner,
     HFPolicy,
-    OracleFeedbackSource,
     collect_feedback,
 )
+from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.hf_methods import (
     HF_METHODS,
     RECOMMENDED_METHOD,

@@ -8,7 +8,7 @@ import gymnasium as gym
 import pytest
 import torch
 
-from services.learner.feedback import OracleFeedbackSource
+from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.runs import learn_hf_policy
 from services.learner.seeding import RunSeeds, Stream
