@@ -59,6 +59,24 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
     return overrides
 
 
+def apply_preset(preset: str, treatments: str, ppo: list[str]) -> tuple[str, list[str], str]:
+    """(treatments, --ppo items, stage-2 method) of ``bgrl reproduce --preset``.
+
+    ``paper`` changes nothing (the paper's Fhat); ``platform`` replaces the default
+    treatment by truncated_is, adds ``hf_guide_sampling=true`` unless ``--ppo`` sets it, and
+    selects the recommended stage-2 method.
+    """
+    from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
+
+    if preset not in PRESETS:
+        raise ValueError(f"--preset: unknown preset {preset!r}; expected one of {PRESETS}")
+    if preset == "paper":
+        return treatments, ppo, PAPER_METHOD
+    if not any(item.partition("=")[0].strip() == "hf_guide_sampling" for item in ppo):
+        ppo = [*ppo, "hf_guide_sampling=true"]
+    return ("truncated_is" if treatments == "authors" else treatments), ppo, RECOMMENDED_METHOD
+
+
 def reproduce(
     out: Annotated[Path, typer.Option(help="Output folder (results.json, CSV, plots).")],
     quick: Annotated[
@@ -107,22 +125,14 @@ def reproduce(
     results.json; the failed ones, with their tracebacks, under "failed"; a rerun retries
     them), with 2 on bad input.
     """
-    from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
     from services.learner.pool import reproduce as run_reproduction
     from services.learner.pool import validate_maps
     from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, build_specs
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
-    if preset not in PRESETS:
-        raise typer.BadParameter(f"unknown preset {preset!r}; expected one of {PRESETS}")
-    hf_method = PAPER_METHOD
-    if preset == "platform":
-        hf_method = RECOMMENDED_METHOD
-        treatments = "truncated_is" if treatments == "authors" else treatments
-        if not any(item.partition("=")[0].strip() == "hf_guide_sampling" for item in ppo or []):
-            ppo = [*(ppo or []), "hf_guide_sampling=true"]
     try:
-        overrides = parse_ppo_overrides(ppo or [])
+        treatments, ppo, hf_method = apply_preset(preset, treatments, ppo or [])
+        overrides = parse_ppo_overrides(ppo)
         specs = build_specs(
             seeds=n_seeds,
             first_seed=first_seed,
