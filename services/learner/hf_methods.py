@@ -81,7 +81,7 @@ HFMethodName = Literal[
 ]
 """The names of :data:`HF_METHODS` (for request schemas)."""
 PAPER_METHOD = "paper"
-RECOMMENDED_METHOD = "categorical_thompson"
+RECOMMENDED_METHOD = "categorical"
 """The platform's stage-2 method (``bgrl reproduce --preset platform``, online sessions and
 guided-PPO jobs); measured in docs/stage2.md."""
 

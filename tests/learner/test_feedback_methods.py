@@ -122,7 +122,9 @@ def test_active_query_picks_the_most_informative_action_on_a_hand_built_ensemble
     assert most_informative_action(implausible, 0.7, 0.7) == 0
 
 
-@pytest.mark.parametrize("method", ["paper", RECOMMENDED_METHOD, "categorical_info"])
+@pytest.mark.parametrize(
+    "method", ["paper", RECOMMENDED_METHOD, "categorical_thompson", "categorical_info"]
+)
 def test_label_budget_is_exact_and_collection_is_deterministic(toy_env_id, method) -> None:
     config = FeedbackConfig(replay_updates=2, method=method, good_accuracy=0.7, bad_accuracy=0.7)
 
@@ -140,7 +142,7 @@ def test_label_budget_is_exact_and_collection_is_deterministic(toy_env_id, metho
 
 
 def test_ensemble_learner_resumes_bit_for_bit() -> None:
-    config = FeedbackConfig(replay_updates=3, method=RECOMMENDED_METHOD)
+    config = FeedbackConfig(replay_updates=3, method="categorical_thompson")
     rng = np.random.default_rng(2)
     data = [
         (rng.uniform(-1, 1, 3).astype(np.float32), int(rng.integers(3)), bool(rng.integers(2)))
