@@ -14,6 +14,10 @@ if TYPE_CHECKING:
     from services.learner.runs import RunFailure, RunRecord
 
 
+PRESETS = ("paper", "platform")
+"""``bgrl reproduce --preset``: the paper's settings or the platform's recommended ones."""
+
+
 def _split(value: str) -> list[str]:
     return [item.strip() for item in value.split(",") if item.strip()]
 
@@ -56,6 +60,24 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
     return overrides
 
 
+def apply_preset(preset: str, treatments: str, ppo: list[str]) -> tuple[str, list[str], str]:
+    """(treatments, --ppo items, stage-2 method) of ``bgrl reproduce --preset``.
+
+    ``paper`` changes nothing (the paper's Fhat); ``platform`` replaces the default
+    treatment by truncated_is, adds ``hf_guide_sampling=true`` unless ``--ppo`` sets it, and
+    selects the recommended stage-2 method.
+    """
+    from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
+
+    if preset not in PRESETS:
+        raise ValueError(f"--preset: unknown preset {preset!r}; expected one of {PRESETS}")
+    if preset == "paper":
+        return treatments, ppo, PAPER_METHOD
+    if not any(item.partition("=")[0].strip() == "hf_guide_sampling" for item in ppo):
+        ppo = [*ppo, "hf_guide_sampling=true"]
+    return ("truncated_is" if treatments == "authors" else treatments), ppo, RECOMMENDED_METHOD
+
+
 def reproduce(
     out: Annotated[Path, typer.Option(help="Output folder (results.json, CSV, plots).")],
     quick: Annotated[
@@ -86,8 +108,19 @@ def reproduce(
             "--ppo n_epochs=10 --ppo reward_scale=1 --ppo hf_guide_sampling=true."
         ),
     ] = None,
+    preset: Annotated[
+        str,
+        typer.Option(
+            help="paper: the paper's settings; platform: the recommended ones (HF steps "
+            "truncated_is, hf_guide_sampling=true, the recommended stage-2 method)."
+        ),
+    ] = "paper",
 ) -> None:
     """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG.
+
+    ``--preset platform`` replaces the default ``--treatments`` by truncated_is, adds
+    ``--ppo hf_guide_sampling=true`` unless given, and learns pi_HF with the recommended
+    stage-2 method (docs/stage2.md).
 
     Exits with 1 naming the failed runs if any run fails (the others finish and are kept in
     results.json; the failed ones, with their tracebacks, under "failed"; a rerun retries
@@ -99,7 +132,8 @@ def reproduce(
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
     try:
-        overrides = parse_ppo_overrides(ppo or [])
+        treatments, ppo, hf_method = apply_preset(preset, treatments, ppo or [])
+        overrides = parse_ppo_overrides(ppo)
         specs = build_specs(
             seeds=n_seeds,
             first_seed=first_seed,
@@ -109,6 +143,7 @@ def reproduce(
             treatments=_split(treatments),
             map_path=None if map_path is None else str(map_path),
             ppo_overrides=overrides,
+            hf_method=hf_method,
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
@@ -131,7 +166,15 @@ def reproduce(
                 out,
                 specs,
                 workers=workers,
-                config_note={"cli": {"quick": quick, "seeds": n_seeds, "overrides": overrides}},
+                config_note={
+                    "cli": {
+                        "quick": quick,
+                        "seeds": n_seeds,
+                        "overrides": overrides,
+                        "preset": preset,
+                        "hf_method": hf_method,
+                    }
+                },
                 on_done=done,
                 on_failure=failed,
                 on_resume=bar.update,
@@ -162,31 +205,46 @@ def hf_sweep(
     accuracies: Annotated[
         str, typer.Option(help="Comma-separated feedback accuracies C.")
     ] = "0.55,0.6,0.7",
+    labels: Annotated[
+        str, typer.Option(help="Comma-separated label budgets N (every labelled action).")
+    ] = "1000",
+    method: Annotated[
+        str,
+        typer.Option(help="Comma-separated stage-2 methods (paper = the paper's Fhat)."),
+    ] = "paper",
 ) -> None:
-    """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs feedback accuracy C."""
+    """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs C, labels and method.
+
+    Writes hf_policies.json (one row per run, resumable), summary.md (the table) and
+    spl_vs_labels.png.
+    """
+    from services.learner.hf_methods import get_method
     from services.learner.pool import hf_policy_sweep
+    from services.learner.stage2_report import write_report
 
     try:
+        budgets = [int(n) for n in _split(labels)]
+        if not budgets or min(budgets) < 1:
+            raise ValueError(f"--labels must be integers >= 1, got {labels!r}")
+        methods = _split(method)
+        for name in methods:
+            get_method(name)
         rows, failures = hf_policy_sweep(
             out,
             tasks=_split(tasks),
             accuracies=[float(c) for c in _split(accuracies)],
             seeds=seeds,
+            labels=budgets,
+            methods=methods,
             workers=workers,
             on_failure=lambda failure: typer.echo(f"run failed: {failure}", err=True),
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
-    groups: dict[tuple[str, float], list[dict]] = {}
-    for row in rows:
-        groups.setdefault((row["task"], row["accuracy"]), []).append(row)
-    for (task, accuracy), members in sorted(groups.items()):
-        greedy = [m["greedy_spl"] for m in members]
-        sampled = [m["sampled_success_rate"] for m in members]
-        typer.echo(
-            f"{task} C={accuracy:g} n={len(members)} greedy SPL "
-            f"{sum(greedy) / len(greedy):.2f}, sampled success {sum(sampled) / len(sampled):.2f}"
-        )
+    write_report(out, rows)
+    if rows:
+        typer.echo((out / "summary.md").read_text())
+        typer.echo(f"wrote {out / 'hf_policies.json'}, summary.md and spl_vs_labels.png")
     _exit_on_failures(failures, out / "hf_policies.json")
 
 

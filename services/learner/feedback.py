@@ -5,29 +5,33 @@ Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
 
 * :class:`FeedbackModel` is Fhat: observation (13) -> hidden (16, tanh) -> one logit per
   action. ``sigmoid(Fhat(s)[a])`` is the predicted probability that ``a`` is judged correct.
-  Training uses binary cross-entropy on the output of the *taken* action only.
-* :class:`FeedbackReplayBuffer` keeps every training label. The "newer is more important"
-  rule (DESIGN §2, from the authors' code): each replay minibatch is, with probability
-  ``newest_fraction`` (0.3), the ``batch_size`` newest labels, otherwise a uniform sample of
-  all labels. So the newest labels are replayed far more often than old ones.
+  Training uses binary cross-entropy on the output of the *taken* action only
+  (:func:`services.learner.hf_methods.label_nll`, ``paper``).
+* :class:`~services.learner.feedback_buffer.FeedbackReplayBuffer` keeps every training
+  label. The "newer is more important" rule (from the authors' code): each replay
+  minibatch is, with probability ``newest_fraction`` (0.3), the ``batch_size`` newest
+  labels, otherwise a uniform sample of all labels, so the newest labels are replayed far
+  more often than old ones.
 * :class:`FeedbackLearner` applies Algorithm 1's update per label: one SGD step on the new
   label, then ``replay_updates`` (K_HF) minibatch steps from the buffer. Every label is held
   out for validation with probability ``validation_fraction`` (0.2) and never trained on.
 * :class:`HFPolicy` samples from ``softmax(beta * sigmoid(Fhat(s)))`` (beta = 8) while
   labels are collected, so the labelled actions stay diverse, and acts greedily
   (``argmax_a Fhat(s, a)``, the paper's pi_HF) when it guides RL.
-* Feedback sources share the :class:`FeedbackSource` protocol: the noisy oracle
-  (:class:`OracleFeedbackSource`), decoded EEG feedback from a queue or callable
-  (:class:`StreamFeedbackSource`) and stored labels (:class:`ReplayFeedbackSource`).
+* ``FeedbackConfig.method`` names the stage-2 method (:mod:`services.learner.hf_methods`):
+  the paper's BCE (``paper``, the default), a noise-aware or categorical likelihood, active
+  queries from a bootstrapped ensemble.
+* :func:`collect_feedback` takes labels from any
+  :class:`~services.learner.feedback_sources.FeedbackSource` (the noisy oracle, decoded EEG,
+  stored labels).
 """
 
 from __future__ import annotations
 
-import queue
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -35,6 +39,17 @@ import torch
 from torch import nn
 
 from services.core.actions import N_ACTIONS
+from services.learner.feedback_buffer import FeedbackRecord, FeedbackReplayBuffer
+from services.learner.feedback_sources import FeedbackSource
+from services.learner.hf_methods import (
+    DEFAULT_ASSUMED_ACCURACY,
+    FhatEnsemble,
+    get_method,
+    label_nll,
+    mean_label_loss,
+    most_informative_action,
+    optimality,
+)
 from services.learner.networks import ObsNormalizer, layer_init
 
 
@@ -56,8 +71,31 @@ class FeedbackConfig:
     """Probability that a label is held out for validation instead of trained on."""
     beta: float = 8.0
     """Inverse temperature of the sampling policy softmax(beta * sigmoid(Fhat))."""
+    method: str = "paper"
+    """Stage-2 method (:data:`services.learner.hf_methods.HF_METHODS`); ``paper`` = BCE."""
+    good_accuracy: float | None = None
+    """Label-noise model: P(label "correct" | optimal action); None = 0.6 assumed."""
+    bad_accuracy: float | None = None
+    """Label-noise model: P(label "error" | sub-optimal action); None = 0.6 assumed."""
+    ensemble_size: int = 5
+    """Members of the bootstrapped ensemble of the active-query methods."""
+    thompson_period: int = 20
+    """Collection actions between two Thompson draws of the member to follow."""
 
     def __post_init__(self) -> None:
+        get_method(self.method)  # ValueError naming the known methods
+        for name in ("good_accuracy", "bad_accuracy"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {value}")
+        good, bad = self.noise_model
+        if get_method(self.method).uses_noise_model and good + bad <= 1.0:
+            raise ValueError(
+                f"good_accuracy + bad_accuracy must exceed 1 for method {self.method!r} "
+                f"(labels must carry information), got {good} + {bad}"
+            )
+        if self.ensemble_size < 2 or self.thompson_period < 1:
+            raise ValueError("ensemble_size must be >= 2 and thompson_period >= 1")
         if self.hidden_size < 1 or self.batch_size < 1 or self.replay_updates < 0:
             raise ValueError("hidden_size and batch_size must be >= 1, replay_updates >= 0")
         if not 0.0 <= self.newest_fraction <= 1.0:
@@ -66,6 +104,13 @@ class FeedbackConfig:
             raise ValueError(
                 f"validation_fraction must be in [0, 1), got {self.validation_fraction}"
             )
+
+    @property
+    def noise_model(self) -> tuple[float, float]:
+        """(good, bad) per-class label accuracies, 0.6 where none was given."""
+        good = DEFAULT_ASSUMED_ACCURACY if self.good_accuracy is None else self.good_accuracy
+        bad = DEFAULT_ASSUMED_ACCURACY if self.bad_accuracy is None else self.bad_accuracy
+        return good, bad
 
 
 class FeedbackModel(nn.Module):
@@ -93,87 +138,6 @@ class FeedbackModel(nn.Module):
         """Logits of "action judged correct", shape (..., n_actions)."""
         return self.output(torch.tanh(self.hidden(self.normalizer(obs))))
 
-    def loss(self, obs: torch.Tensor, actions: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-        """Binary cross-entropy on the taken action's output only."""
-        logits = self(obs).gather(-1, actions.long().unsqueeze(-1)).squeeze(-1)
-        return nn.functional.binary_cross_entropy_with_logits(logits, labels.float())
-
-
-class FeedbackReplayBuffer:
-    """All training labels ``(s, a, f)``; replay minibatches favour the newest labels.
-
-    Rule: with probability ``newest_fraction`` a minibatch is the ``batch_size`` newest labels;
-    otherwise it is drawn uniformly (with replacement) from all labels.
-    """
-
-    def __init__(self, n_obs: int, capacity: int = 100_000) -> None:
-        self.obs = np.zeros((capacity, n_obs), dtype=np.float32)
-        self.actions = np.zeros(capacity, dtype=np.int64)
-        self.labels = np.zeros(capacity, dtype=np.float32)
-        self.size = 0
-
-    def __len__(self) -> int:
-        return self.size
-
-    def add(self, obs: np.ndarray, action: int, label: bool) -> None:
-        """Append one label."""
-        if self.size == len(self.labels):
-            raise OverflowError(f"feedback buffer is full ({self.size} labels)")
-        self.obs[self.size] = obs
-        self.actions[self.size] = action
-        self.labels[self.size] = float(label)
-        self.size += 1
-
-    def sample_indices(
-        self, rng: np.random.Generator, batch_size: int, newest_fraction: float
-    ) -> np.ndarray:
-        """Indices of one replay minibatch under the recency rule."""
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty feedback buffer")
-        if rng.random() < newest_fraction:
-            return np.arange(max(0, self.size - batch_size), self.size)
-        return rng.integers(0, self.size, size=min(batch_size, self.size))
-
-    def tensors(self, indices: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(obs, actions, labels) tensors of the given rows."""
-        return (
-            torch.from_numpy(self.obs[indices]),
-            torch.from_numpy(self.actions[indices]),
-            torch.from_numpy(self.labels[indices]),
-        )
-
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        """The stored labels as tensors (only the filled rows), for checkpoints."""
-        return {
-            "obs": torch.from_numpy(self.obs[: self.size].copy()),
-            "actions": torch.from_numpy(self.actions[: self.size].copy()),
-            "labels": torch.from_numpy(self.labels[: self.size].copy()),
-        }
-
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        """Replace the contents with those of :meth:`state_dict`."""
-        size = int(state["labels"].shape[0])
-        if size > len(self.labels):
-            raise OverflowError(f"{size} labels exceed the buffer's capacity {len(self.labels)}")
-        self.obs[:size] = state["obs"].numpy()
-        self.actions[:size] = state["actions"].numpy()
-        self.labels[:size] = state["labels"].numpy()
-        self.size = size
-
-
-@dataclass
-class FeedbackRecord:
-    """One labelled step of a feedback session."""
-
-    obs: list[float]
-    action: int
-    label: bool
-    """The feedback received (True = judged correct)."""
-    optimal: bool | None
-    """The oracle's truth, when known (simulation); None for real EEG feedback."""
-    validation: bool
-    """Held out for validation (never trained on)."""
-
 
 class FeedbackLearner:
     """Online training of Fhat from a stream of labels (Algorithm 1, stage 2)."""
@@ -190,14 +154,67 @@ class FeedbackLearner:
         self.rng = np.random.default_rng(seed)
         self.validation: list[FeedbackRecord] = []
         self.n_updates = 0
+        self.method = get_method(self.config.method)
+        self.policy = HFPolicy(self.model, self.config.beta, self.config.method)
+        self.ensemble: FhatEnsemble | None = None
+        self.n_collection_actions = 0
+        self.member = 0
+        if self.method.uses_ensemble:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed + 1)
+                self.ensemble = FhatEnsemble(
+                    normalizer, self.config.ensemble_size, self.config.hidden_size, N_ACTIONS
+                )
+            self.ensemble_optimizer = torch.optim.Adam(
+                self.ensemble.parameters(), lr=self.config.lr
+            )
+            # bootstrap weights (0 or 2 per member and label) from their own stream, so the
+            # validation split and replay batches match the paper's for the same labels
+            self.ensemble_rng = np.random.default_rng([seed, 2])
+            self.bootstrap = np.zeros((len(self.buffer.labels), self.config.ensemble_size))
 
-    def _step(self, obs: torch.Tensor, actions: torch.Tensor, labels: torch.Tensor) -> float:
-        loss = self.model.loss(obs, actions, labels)
+    def _step(
+        self,
+        indices: np.ndarray | None,
+        obs: torch.Tensor,
+        actions: torch.Tensor,
+        labels: torch.Tensor,
+    ) -> float:
+        good, bad = self.config.noise_model
+        likelihood = self.method.likelihood
+        loss = mean_label_loss(self.model(obs), actions, labels, likelihood, good, bad)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
         self.n_updates += 1
+        if self.ensemble is not None:
+            rows = np.array([self.buffer.size]) if indices is None else indices
+            weights = torch.from_numpy(self.bootstrap[rows].T).float()  # (K, N)
+            nll = label_nll(self.ensemble(obs), actions, labels, likelihood, good, bad)
+            member_loss = (weights * nll).mean(dim=1).sum()
+            self.ensemble_optimizer.zero_grad(set_to_none=True)
+            member_loss.backward()
+            self.ensemble_optimizer.step()
         return float(loss.detach())
+
+    def collection_action(self, obs: np.ndarray, rng: np.random.Generator) -> int:
+        """The action to execute (and so to label) while labels are collected.
+
+        ``paper``-style methods sample pi_HF (softmax(beta * P(optimal))); ``thompson``
+        follows one bootstrapped member greedily, redrawn every ``thompson_period`` actions;
+        ``info`` asks where the label is most informative (:mod:`~services.learner.hf_methods`).
+        """
+        if self.ensemble is None:
+            return self.policy.act(obs, rng)
+        if self.n_collection_actions % self.config.thompson_period == 0:
+            self.member = int(rng.integers(self.ensemble.size))
+        self.n_collection_actions += 1
+        with torch.no_grad():
+            logits = self.ensemble(torch.as_tensor(np.asarray(obs, np.float32))[None])[:, 0]
+            p_optimal = optimality(logits, self.method.likelihood).numpy()
+        if self.method.collection == "thompson":
+            return int(np.argmax(p_optimal[self.member]))
+        return most_informative_action(p_optimal, *self.config.noise_model)
 
     def add(
         self, obs: np.ndarray, action: int, label: bool, optimal: bool | None = None
@@ -215,7 +232,12 @@ class FeedbackLearner:
         if is_validation:
             self.validation.append(record)
             return record
+        if self.ensemble is not None:
+            self.bootstrap[self.buffer.size] = 2.0 * self.ensemble_rng.integers(
+                0, 2, self.config.ensemble_size
+            )
         self._step(
+            None,
             torch.from_numpy(obs[None]),
             torch.tensor([int(action)]),
             torch.tensor([float(label)]),
@@ -225,7 +247,7 @@ class FeedbackLearner:
             indices = self.buffer.sample_indices(
                 self.rng, self.config.batch_size, self.config.newest_fraction
             )
-            self._step(*self.buffer.tensors(indices))
+            self._step(indices, *self.buffer.tensors(indices))
         return record
 
     def state_dict(self) -> dict[str, Any]:
@@ -250,6 +272,21 @@ class FeedbackLearner:
             },
             "rng": self.rng.bit_generator.state,
             "n_updates": self.n_updates,
+            **self._ensemble_state(),
+        }
+
+    def _ensemble_state(self) -> dict[str, Any]:
+        if self.ensemble is None:
+            return {}
+        return {
+            "ensemble": {
+                "model": self.ensemble.state_dict(),
+                "optimizer": self.ensemble_optimizer.state_dict(),
+                "bootstrap": torch.from_numpy(self.bootstrap[: self.buffer.size].copy()),
+                "rng": self.ensemble_rng.bit_generator.state,
+                "n_collection_actions": self.n_collection_actions,
+                "member": self.member,
+            }
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -276,9 +313,20 @@ class FeedbackLearner:
         ]
         self.rng.bit_generator.state = state["rng"]
         self.n_updates = int(state["n_updates"])
+        if self.ensemble is not None:
+            ensemble = state["ensemble"]
+            self.ensemble.load_state_dict(ensemble["model"])
+            self.ensemble_optimizer.load_state_dict(ensemble["optimizer"])
+            self.bootstrap[: self.buffer.size] = ensemble["bootstrap"].numpy()
+            self.ensemble_rng.bit_generator.state = ensemble["rng"]
+            self.n_collection_actions = int(ensemble["n_collection_actions"])
+            self.member = int(ensemble["member"])
 
     def validation_accuracy(self) -> tuple[float | None, float | None]:
-        """Accuracy of ``sigmoid(Fhat(s)[a]) > 0.5`` on held-out labels: (noisy, true).
+        """Accuracy of ``P(a optimal) > 0.5`` on held-out labels: (noisy, true).
+
+        P(optimal) is the method's: ``sigmoid(Fhat(s)[a])`` (the paper), a softmax for the
+        categorical methods.
 
         The second figure uses the oracle's truth and is None when no truth is known.
         """
@@ -287,8 +335,8 @@ class FeedbackLearner:
         obs = torch.tensor([r.obs for r in self.validation], dtype=torch.float32)
         actions = torch.tensor([r.action for r in self.validation])
         with torch.no_grad():
-            logits = self.model(obs).gather(-1, actions.unsqueeze(-1)).squeeze(-1)
-        predicted = (logits > 0).numpy()
+            p_optimal = optimality(self.model(obs), self.method.likelihood)
+        predicted = (p_optimal.gather(-1, actions.unsqueeze(-1)).squeeze(-1) > 0.5).numpy()
         noisy = np.array([r.label for r in self.validation])
         acc_noisy = float(np.mean(predicted == noisy))
         known = [r for r in self.validation if r.optimal is not None]
@@ -308,17 +356,21 @@ class HFPolicy:
         The feedback model Fhat.
     beta : float
         Inverse temperature of ``softmax(beta * sigmoid(Fhat(s)))`` used when sampling.
+    method : str
+        The stage-2 method Fhat was trained with: its P(optimal) is a sigmoid per action,
+        or a softmax over actions for the categorical methods (the argmax is the same).
     """
 
-    def __init__(self, model: FeedbackModel, beta: float = 8.0) -> None:
+    def __init__(self, model: FeedbackModel, beta: float = 8.0, method: str = "paper") -> None:
         self.model = model
         self.beta = beta
+        self.likelihood = get_method(method).likelihood
 
     def scores(self, obs: np.ndarray) -> np.ndarray:
-        """``sigmoid(Fhat(s, a))`` for every action."""
+        """P(action optimal) for every action (``sigmoid(Fhat(s, a))`` for the paper)."""
         with torch.no_grad():
             logits = self.model(torch.as_tensor(np.asarray(obs, dtype=np.float32)))
-        return torch.sigmoid(logits).numpy()
+        return optimality(logits, self.likelihood).numpy()
 
     def sampling_probs(self, obs: np.ndarray) -> np.ndarray:
         """``softmax(beta * sigmoid(Fhat(s)))``, the label-collection policy."""
@@ -332,107 +384,6 @@ class HFPolicy:
             return int(np.argmax(self.scores(obs)))
         probs = self.sampling_probs(obs)
         return int(min(np.searchsorted(np.cumsum(probs), rng.random()), len(probs) - 1))
-
-
-@runtime_checkable
-class FeedbackSource(Protocol):
-    """Anything that judges the action just taken.
-
-    ``feedback(obs, action, optimal)`` returns True (correct), False (error) or None (no
-    label for this step, e.g. a rejected EEG epoch). ``optimal`` is the oracle's truth when
-    the caller knows it (simulation), else None.
-    """
-
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None: ...
-
-
-class OracleFeedbackSource:
-    """Simulated feedback: the Dijkstra oracle's judgement flipped at the given accuracy.
-
-    Parameters
-    ----------
-    accuracy : float, optional
-        Probability C that the feedback matches the truth, for good and bad actions alike.
-    good_accuracy, bad_accuracy : float, optional
-        Separate accuracies for optimal and sub-optimal actions (instead of ``accuracy``).
-    seed : int, optional
-        Seed of the label noise.
-    """
-
-    def __init__(
-        self,
-        accuracy: float | None = None,
-        *,
-        good_accuracy: float | None = None,
-        bad_accuracy: float | None = None,
-        seed: int | None = None,
-    ) -> None:
-        from services.sim.oracle import NoisyOracleFeedback
-
-        self.noisy = NoisyOracleFeedback(
-            accuracy, good_accuracy=good_accuracy, bad_accuracy=bad_accuracy, seed=seed
-        )
-
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool:
-        """Noisy version of ``optimal`` (which must be known)."""
-        if optimal is None:
-            raise ValueError("OracleFeedbackSource needs the oracle's truth (optimal=None given)")
-        return bool(self.noisy.feedback(optimal))
-
-
-class StreamFeedbackSource:
-    """Decoded EEG feedback arriving from a live pipeline.
-
-    Parameters
-    ----------
-    stream : queue.Queue or callable
-        A queue of ``bool`` feedback items, or a callable ``get(timeout_s) -> bool | None``.
-    timeout_s : float
-        How long to wait for the decision of the current action; a missing decision yields
-        None (the step gets no label). Default 1.5 s, one action period.
-    """
-
-    def __init__(
-        self,
-        stream: queue.Queue[bool] | Callable[[float], bool | None],
-        timeout_s: float = 1.5,
-    ) -> None:
-        if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be positive, got {timeout_s}")
-        self.stream = stream
-        self.timeout_s = timeout_s
-
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
-        """The next decoded decision, or None if none arrives in time."""
-        if isinstance(self.stream, queue.Queue):
-            try:
-                item = self.stream.get(timeout=self.timeout_s)
-            except queue.Empty:
-                return None
-        else:
-            item = self.stream(self.timeout_s)
-        return None if item is None else bool(item)
-
-
-class ReplayFeedbackSource:
-    """Stored labels replayed in order (reproduces a recorded session in a seeded env)."""
-
-    def __init__(self, labels: Iterable[bool | None]) -> None:
-        self.labels = list(labels)
-        self.position = 0
-
-    @classmethod
-    def from_records(cls, records: Sequence[FeedbackRecord]) -> ReplayFeedbackSource:
-        """Replay the labels of a previous session's records."""
-        return cls(r.label for r in records)
-
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
-        """The next stored label; raises when the recording is exhausted."""
-        if self.position >= len(self.labels):
-            raise IndexError(f"all {len(self.labels)} stored labels have been replayed")
-        label = self.labels[self.position]
-        self.position += 1
-        return None if label is None else bool(label)
 
 
 @dataclass
@@ -453,7 +404,7 @@ class HFResult:
     @property
     def policy(self) -> HFPolicy:
         """The greedy-capable pi_HF built on this Fhat."""
-        return HFPolicy(self.model, self.config.beta)
+        return HFPolicy(self.model, self.config.beta, self.config.method)
 
     def summary(self) -> dict[str, Any]:
         """JSON-able figures (no model weights, no records)."""
@@ -523,7 +474,6 @@ def collect_feedback(
     max_steps = 10 * n_labels if max_steps is None else max_steps
     start = time.perf_counter()
     learner = FeedbackLearner(ObsNormalizer.from_space(env.observation_space), config, seed)
-    policy = HFPolicy(learner.model, config.beta)
     rng = sampling_rng(seed)
     obs, _ = env.reset(seed=seed)
     records: list[FeedbackRecord] = []
@@ -533,7 +483,7 @@ def collect_feedback(
             raise RuntimeError(
                 f"only {len(records)}/{n_labels} labels arrived in {max_steps} steps"
             )
-        action = policy.act(obs, rng)
+        action = learner.collection_action(obs, rng)
         optimal = _optimal_now(env, action)
         next_obs, _, terminated, truncated, _ = env.step(action)
         n_steps += 1

@@ -20,6 +20,7 @@ from typing import Any, Protocol, TypeVar
 
 from services.core.files import write_json_atomic
 from services.learner.feedback import FeedbackConfig
+from services.learner.hf_methods import PAPER_METHOD
 from services.learner.outputs import Results, load_results, save_results, write_outputs
 from services.learner.ppo import PPOConfig
 from services.learner.runs import (
@@ -179,17 +180,21 @@ def hf_policy_sweep(
     tasks: Sequence[str] = ("sssg", "vssg"),
     accuracies: Sequence[float] = ACCURACIES,
     seeds: int = 10,
+    labels: Sequence[int] = (1000,),
+    methods: Sequence[str] = (PAPER_METHOD,),
     workers: int = 1,
     on_failure: Callable[[RunFailure], None] | None = None,
 ) -> tuple[list[dict[str, Any]], list[RunFailure]]:
-    """:func:`~services.learner.runs.hf_policy_run` over tasks x C x seeds.
+    """:func:`~services.learner.runs.hf_policy_run` over tasks x C x labels x methods x seeds.
 
     Writes ``out_dir/hf_policies.json`` (``{"runs": [...], "failed": [...]}``) after every
     run; runs already there are skipped, failed ones retried. Returns (rows, failures).
     """
     specs = [
-        HFPolicySpec(task, accuracy, seed)
+        HFPolicySpec(task, accuracy, seed, n_labels, method)
         for seed in range(seeds)
+        for method in methods
+        for n_labels in labels
         for task in tasks
         for accuracy in accuracies
     ]
@@ -197,7 +202,10 @@ def hf_policy_sweep(
     out.mkdir(parents=True, exist_ok=True)
     path = out / "hf_policies.json"
     rows: list[dict[str, Any]] = json.loads(path.read_text())["runs"] if path.exists() else []
-    done = {(r["task"], r["accuracy"], r["seed"]) for r in rows}
+    done = {
+        (r["task"], r["accuracy"], r["seed"], r["n_labels"], r.get("method", PAPER_METHOD))
+        for r in rows
+    }
     failures: list[RunFailure] = []
 
     def save() -> None:

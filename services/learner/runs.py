@@ -23,12 +23,14 @@ import numpy as np
 
 from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
 from services.learner.feedback import (
-    FeedbackRecord,
+    FeedbackConfig,
     HFPolicy,
     HFResult,
-    OracleFeedbackSource,
     collect_feedback,
 )
+from services.learner.feedback_buffer import FeedbackRecord
+from services.learner.feedback_sources import OracleFeedbackSource
+from services.learner.hf_methods import PAPER_METHOD, get_method
 from services.learner.ppo import Callback, PPOConfig, train
 from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
 from services.learner.specs import N_VSSG_EVAL_STARTS, TASK_ENV_IDS, RunSpec
@@ -160,9 +162,13 @@ def learn_hf_policy(
     seed: int,
     n_labels: int,
     *,
+    method: str = PAPER_METHOD,
     on_label: Callable[[FeedbackRecord], None] | None = None,
 ) -> HFResult:
     """Stage 2 from simulated feedback at accuracy C, on the run's label streams.
+
+    ``method`` is the stage-2 method (:mod:`services.learner.hf_methods`); its label-noise
+    model is the known C for both classes (the oracle's truth enters only the noise).
 
     The labels depend on ``seed`` only (not on method, treatment or PPO settings), so every
     study guides the runs of one seed with the same pi_HF. ``on_label`` is called after
@@ -174,6 +180,7 @@ def learn_hf_policy(
         env,
         source,
         n_labels,
+        config=FeedbackConfig(method=method, good_accuracy=accuracy, bad_accuracy=accuracy),
         seed=seeds.int_seed(Stream.LABEL_COLLECTION),
         on_label=on_label,
     )
@@ -211,7 +218,12 @@ def run_one(
         assert spec.accuracy is not None  # RunSpec guarantees it for hf_sparse
         with closing(gym.make(config.env_id, **config.env_kwargs)) as label_env:
             hf = learn_hf_policy(
-                label_env, spec.accuracy, spec.seed, spec.n_labels, on_label=on_label
+                label_env,
+                spec.accuracy,
+                spec.seed,
+                spec.n_labels,
+                method=spec.hf_method or PAPER_METHOD,
+                on_label=on_label,
             )
             hf_policy = hf.policy
             hf_policy_spl = evaluate_spl(label_env, hf_policy.act, config.eval_seeds)
@@ -251,12 +263,13 @@ def run_one(
 
 @dataclass(frozen=True)
 class HFPolicySpec:
-    """One stage-2-alone measurement: task, feedback accuracy C, seed, labels."""
+    """One stage-2-alone measurement: task, feedback accuracy C, seed, labels, method."""
 
     task: str
     accuracy: float
     seed: int
     n_labels: int = 1000
+    method: str = PAPER_METHOD
 
     def __post_init__(self) -> None:
         if self.task not in TASK_ENV_IDS:
@@ -265,16 +278,19 @@ class HFPolicySpec:
             raise ValueError(f"accuracy must be in [0, 1], got {self.accuracy}")
         if self.seed < 0 or self.n_labels < 1:
             raise ValueError("seed must be >= 0 and n_labels >= 1")
+        get_method(self.method)
 
     @property
     def key(self) -> tuple[Any, ...]:
         """Identity inside a sweep (what resuming matches on)."""
-        return (self.task, self.accuracy, self.seed)
+        return (self.task, self.accuracy, self.seed, self.n_labels, self.method)
 
     @property
     def label(self) -> str:
-        """E.g. ``vssg C=0.7 seed=3``."""
-        return f"{self.task} C={self.accuracy:g} seed={self.seed}"
+        """E.g. ``vssg C=0.7 seed=3 labels=1000 paper``."""
+        return (
+            f"{self.task} C={self.accuracy:g} seed={self.seed} labels={self.n_labels} {self.method}"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form."""
@@ -291,7 +307,7 @@ def hf_policy_run(spec: HFPolicySpec) -> dict[str, Any]:
     """
     start = time.perf_counter()
     with closing(gym.make(TASK_ENV_IDS[spec.task], reward_mode="sparse")) as env:
-        hf = learn_hf_policy(env, spec.accuracy, spec.seed, spec.n_labels)
+        hf = learn_hf_policy(env, spec.accuracy, spec.seed, spec.n_labels, method=spec.method)
         policy = hf.policy
         greedy_spl = evaluate_spl(env, policy.act, eval_seeds(spec.task, N_VSSG_EVAL_STARTS))
         rng = RunSeeds(spec.seed).generator(Stream.HF_PROBE)
@@ -303,6 +319,7 @@ def hf_policy_run(spec: HFPolicySpec) -> dict[str, Any]:
         "task": spec.task,
         "accuracy": spec.accuracy,
         "seed": spec.seed,
+        "method": spec.method,
         "greedy_spl": greedy_spl,
         "sampled_success_rate": float(np.mean(sampled)),
         **hf.summary(),

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from services.learner.evaluation import eval_seeds
+from services.learner.hf_methods import PAPER_METHOD, get_method
 from services.learner.ppo import PPOConfig
 
 TASK_ENV_IDS = {"sssg": "services.sim:BrainNav-SSSG-v0", "vssg": "services.sim:BrainNav-VSSG-v0"}
@@ -52,6 +53,9 @@ class RunSpec:
     n_labels: int = 1000
     map_path: str | None = None
     ppo_overrides: Mapping[str, Any] = field(default_factory=dict)
+    hf_method: str | None = None
+    """Stage-2 method that learns pi_HF (:mod:`services.learner.hf_methods`): ``paper`` by
+    default for hf_sparse, None otherwise."""
 
     def __post_init__(self) -> None:
         if self.task not in TASK_ENV_IDS:
@@ -75,6 +79,14 @@ class RunSpec:
             treatment = None
         if self.seed < 0 or self.n_labels < 1:
             raise ValueError("seed must be >= 0 and n_labels >= 1")
+        hf_method = self.hf_method
+        if self.method == "hf_sparse":
+            hf_method = get_method(hf_method or PAPER_METHOD).name
+        elif hf_method not in (None, PAPER_METHOD):
+            raise ValueError(f"hf_method applies to hf_sparse only, not {self.method}")
+        else:
+            hf_method = None
+        object.__setattr__(self, "hf_method", hf_method)
         fixed = RUN_FIXED_PPO_FIELDS & set(self.ppo_overrides)
         if fixed:
             raise ValueError(f"ppo_overrides cannot set {sorted(fixed)}: the spec sets them")
@@ -89,8 +101,10 @@ class RunSpec:
 
     @property
     def key(self) -> tuple[Any, ...]:
-        """Identity of the run inside a reproduction (what resuming matches on)."""
-        return (self.task, self.method, self.accuracy, self.seed, self.hf_treatment)
+        """Identity of the run inside a reproduction (what resuming matches on); a stage-2
+        method other than the paper's is appended, so earlier keys stay as they were."""
+        key = (self.task, self.method, self.accuracy, self.seed, self.hf_treatment)
+        return key if self.hf_method in (None, PAPER_METHOD) else (*key, self.hf_method)
 
     @property
     def label(self) -> str:
@@ -98,6 +112,8 @@ class RunSpec:
         parts = [self.task, self.method]
         if self.accuracy is not None:
             parts += [f"C={self.accuracy:g}", f"[{self.hf_treatment}]"]
+            if self.hf_method != PAPER_METHOD:
+                parts.append(self.hf_method)
         return " ".join([*parts, f"seed={self.seed}"])
 
     def ppo_config(self) -> PPOConfig:
@@ -144,6 +160,7 @@ def build_specs(
     first_seed: int = 0,
     map_path: str | None = None,
     ppo_overrides: Mapping[str, Any] | None = None,
+    hf_method: str | None = None,
 ) -> list[RunSpec]:
     """Every run of a reproduction, seed-major so early results cover every method."""
     overrides = dict(ppo_overrides or {})
@@ -158,7 +175,15 @@ def build_specs(
                     for accuracy in accuracies:
                         specs.append(
                             RunSpec(
-                                task, method, seed, accuracy, treatment, 1000, map_path, overrides
+                                task,
+                                method,
+                                seed,
+                                accuracy,
+                                treatment,
+                                1000,
+                                map_path,
+                                overrides,
+                                hf_method,
                             )
                         )
     return specs

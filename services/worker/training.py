@@ -25,6 +25,7 @@ from sqlalchemy import select
 
 from services.core.db.models import Artifact, HFModel
 from services.learner.feedback import HFPolicy
+from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.ppo import Callback
 from services.learner.runs import RunRecord, run_one
 from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec
@@ -38,7 +39,7 @@ PROGRESS_EVERY_S = 1.0
 GUIDED_PPO_FIELDS = frozenset(
     {
         "task", "method", "accuracy", "seed", "total_steps", "ppo", "hf_treatment", "n_labels",
-        "hf_model_id", "checkpoint_every",
+        "hf_model_id", "checkpoint_every", "hf_method",
     }
 )  # fmt: skip
 
@@ -109,6 +110,7 @@ def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
             hf_treatment=config.get("hf_treatment"),
             n_labels=config.get("n_labels", 1000),
             ppo_overrides=overrides,
+            hf_method=config.get("hf_method", RECOMMENDED_METHOD),
         )
     except (TypeError, ValueError) as exc:
         raise JobConfigError(str(exc)) from None

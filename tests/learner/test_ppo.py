@@ -13,7 +13,8 @@ import pytest
 import torch
 from torch import nn
 
-from services.learner.feedback import FeedbackConfig, OracleFeedbackSource, collect_feedback
+from services.learner.feedback import FeedbackConfig, collect_feedback
+from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.networks import ObsNormalizer
 from services.learner.optimizer import FlatAdam
 from services.learner.ppo import (

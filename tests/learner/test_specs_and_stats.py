@@ -31,10 +31,18 @@ def test_run_spec_validates_and_round_trips() -> None:
     assert spec.to_dict() == {
         "task": "vssg", "method": "hf_sparse", "seed": 3, "accuracy": 0.7,
         "hf_treatment": "authors", "n_labels": 1000, "map_path": None,
-        "ppo_overrides": {"n_epochs": 2},
+        "ppo_overrides": {"n_epochs": 2}, "hf_method": "paper",
     }  # fmt: skip
     assert RunSpec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
     assert spec.label == "vssg hf_sparse C=0.7 [authors] seed=3"
+    assert RunSpec("sssg", "rl_sparse", 0).hf_method is None
+    with pytest.raises(ValueError, match="unknown stage-2 method 'nope'"):
+        RunSpec("sssg", "hf_sparse", 0, 0.6, hf_method="nope")
+    with pytest.raises(ValueError, match="hf_method applies to hf_sparse only"):
+        RunSpec("sssg", "rl_sparse", 0, hf_method="categorical")
+    platform = RunSpec("sssg", "hf_sparse", 0, 0.6, hf_method="categorical_thompson")
+    assert platform.label.endswith("[authors] categorical_thompson seed=0")
+    assert platform.key != RunSpec("sssg", "hf_sparse", 0, 0.6).key
     config = spec.ppo_config()
     assert (config.seed, config.n_epochs, config.env_kwargs) == (3, 2, {"reward_mode": "sparse"})
     assert len(config.eval_seeds) == 5

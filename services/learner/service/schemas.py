@@ -10,6 +10,7 @@ from pydantic import BaseModel, Field, ValidationInfo, field_validator
 from services.core.actions import Action
 from services.core.feedback import is_error
 from services.core.schemas import StrictRequest
+from services.learner.hf_methods import RECOMMENDED_METHOD, HFMethodName
 from services.sim.env import OBS_SIZE
 
 Observation = Annotated[
@@ -56,6 +57,20 @@ class FhatSettings(StrictRequest):
     beta: float | None = Field(
         None, gt=0, le=1000, description="Inverse temperature of pi_HF's sampling (8)."
     )
+    good_accuracy: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="Label-noise model: the classifier's accuracy on "
+        "correct actions (its calibration recall); 0.6 assumed when omitted.",
+    )
+    bad_accuracy: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="Label-noise model: the classifier's accuracy on "
+        "erroneous actions; 0.6 assumed when omitted.",
+    )
 
     def overrides(self) -> dict[str, Any]:
         """The fields given."""
@@ -80,7 +95,12 @@ class HFSessionCreate(StrictRequest):
         "sampling are those of `bgrl reproduce`'s stage 2 for this seed.",
     )
     label_budget: int = Field(1000, strict=True, ge=1, description="Labels to collect.")
-    method: Literal["paper"] = Field("paper", description="How Fhat is trained (the paper's).")
+    method: HFMethodName = Field(
+        RECOMMENDED_METHOD,
+        description="Stage-2 method: how Fhat is trained and which actions are labelled "
+        "(docs/stage2.md); 'paper' is the paper's Fhat, the default is the platform's "
+        "recommended method.",
+    )
     fhat: FhatSettings = Field(default_factory=FhatSettings)
 
 

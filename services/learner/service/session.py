@@ -32,7 +32,6 @@ from gymnasium import spaces
 from services.learner.feedback import (
     FeedbackConfig,
     FeedbackLearner,
-    HFPolicy,
     sampling_rng,
 )
 from services.learner.networks import ObsNormalizer
@@ -101,7 +100,7 @@ class HFSession:
         self.config = FeedbackConfig(**spec.fhat)
         normalizer = ObsNormalizer.from_space(observation_space(load_map(Path(spec.map_path))))
         self.learner = FeedbackLearner(normalizer, self.config, spec.learner_seed)
-        self.policy = HFPolicy(self.learner.model, self.config.beta)
+        self.policy = self.learner.policy
         self.rng = sampling_rng(spec.learner_seed)
         self.labels = LabelTable(spec.label_budget, normalizer.n_obs)
         self.lock = threading.Lock()
@@ -123,7 +122,9 @@ class HFSession:
     def act(self, observation: list[float], greedy: bool) -> int:
         """pi_HF's action: a sample (label collection) or the greedy argmax (guidance)."""
         obs = np.asarray(observation, dtype=np.float32)
-        return self.policy.act(obs, None if greedy else self.rng)
+        if greedy:
+            return self.policy.act(obs)
+        return self.learner.collection_action(obs, self.rng)
 
     def add_label(
         self,

@@ -14,6 +14,7 @@ from fastapi.testclient import TestClient
 from services.core.platform import PlatformSettings
 from services.core.settings import SettingsError, load_settings
 from services.learner.feedback import FeedbackConfig
+from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.service.settings import LearnerSettings
 
 PAPER_FHAT = {
@@ -24,7 +25,14 @@ PAPER_FHAT = {
     "newest_fraction": 0.3,
     "validation_fraction": 0.2,
     "beta": 8.0,
+    "method": "paper",
+    "good_accuracy": None,
+    "bad_accuracy": None,
+    "ensemble_size": 5,
+    "thompson_period": 20,
 }
+PLATFORM_FHAT = {**PAPER_FHAT, "method": RECOMMENDED_METHOD}
+"""What a session gets by default: the paper's settings with the recommended stage-2 method."""
 
 
 def observation(i: int) -> list[float]:
@@ -60,8 +68,8 @@ def test_create_act_label_read_list(client):
         "task": "sssg",
         "map": "default",
         "seed": 3,
-        "method": "paper",
-        "fhat": PAPER_FHAT,
+        "method": RECOMMENDED_METHOD,
+        "fhat": PLATFORM_FHAT,
         "label_budget": 50,
         "labels": 0,
         "model_version": 0,

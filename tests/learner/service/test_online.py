@@ -8,7 +8,8 @@ import gymnasium as gym
 import pytest
 import torch
 
-from services.learner.feedback import OracleFeedbackSource
+from services.learner.feedback_sources import OracleFeedbackSource
+from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.runs import learn_hf_policy
 from services.learner.seeding import RunSeeds, Stream
 from services.learner.specs import RunSpec
@@ -16,6 +17,8 @@ from services.learner.specs import RunSpec
 SEED = 11
 ACCURACY = 0.8
 N_LABELS = 48
+NOISE_MODEL = {"good_accuracy": ACCURACY, "bad_accuracy": ACCURACY}
+"""The session's label-noise model: the simulated feedback's C (as in `bgrl reproduce`)."""
 
 
 def _env() -> gym.Env:
@@ -35,7 +38,8 @@ def _online(make_client, data_dir, restart_after: set[int]) -> str:
             with make_client(data_dir=data_dir) as client:
                 if session_id is None:
                     created = client.post(
-                        "/hf-sessions", json={"seed": SEED, "label_budget": N_LABELS}
+                        "/hf-sessions",
+                        json={"seed": SEED, "label_budget": N_LABELS, "fhat": NOISE_MODEL},
                     )
                     session_id = created.json()["id"]
                 while n_labels < N_LABELS:
@@ -70,7 +74,7 @@ def _online(make_client, data_dir, restart_after: set[int]) -> str:
 @pytest.mark.slow
 def test_online_session_equals_offline_collection_across_restarts(make_client, tmp_path):
     with closing(_env()) as env:
-        offline = learn_hf_policy(env, ACCURACY, SEED, N_LABELS)
+        offline = learn_hf_policy(env, ACCURACY, SEED, N_LABELS, method=RECOMMENDED_METHOD)
 
     session_id = _online(make_client, tmp_path, restart_after={1, 17, 30})
     with make_client(data_dir=tmp_path) as client:

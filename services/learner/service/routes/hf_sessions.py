@@ -37,7 +37,7 @@ def session_public(session: HFSession) -> HFSessionPublic:
 @router.post("", status_code=201)
 def create_session(body: HFSessionCreate, store: StoreDep) -> HFSessionPublic:
     """Start an HF session: a fresh Fhat seeded as `bgrl reproduce`'s stage 2 for ``seed``."""
-    fhat = FeedbackConfig(**body.fhat.overrides()) if body.fhat.overrides() else FeedbackConfig()
+    fhat = FeedbackConfig(**body.fhat.overrides(), method=body.method)
     session = store.create(
         task=body.task,
         map_spec=body.map,

@@ -1,0 +1,118 @@
+"""Where stage 2's labels come from: the :class:`FeedbackSource` protocol and its sources.
+
+The noisy Dijkstra oracle (:class:`OracleFeedbackSource`, simulation), decoded EEG feedback
+from a queue or callable (:class:`StreamFeedbackSource`) and stored labels
+(:class:`ReplayFeedbackSource`); :func:`services.learner.feedback.collect_feedback` takes any.
+"""
+
+from __future__ import annotations
+
+import queue
+from collections.abc import Callable, Iterable, Sequence
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from services.learner.feedback_buffer import FeedbackRecord
+
+
+@runtime_checkable
+class FeedbackSource(Protocol):
+    """Anything that judges the action just taken.
+
+    ``feedback(obs, action, optimal)`` returns True (correct), False (error) or None (no
+    label for this step, e.g. a rejected EEG epoch). ``optimal`` is the oracle's truth when
+    the caller knows it (simulation), else None.
+    """
+
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None: ...
+
+
+class OracleFeedbackSource:
+    """Simulated feedback: the Dijkstra oracle's judgement flipped at the given accuracy.
+
+    Parameters
+    ----------
+    accuracy : float, optional
+        Probability C that the feedback matches the truth, for good and bad actions alike.
+    good_accuracy, bad_accuracy : float, optional
+        Separate accuracies for optimal and sub-optimal actions (instead of ``accuracy``).
+    seed : int, optional
+        Seed of the label noise.
+    """
+
+    def __init__(
+        self,
+        accuracy: float | None = None,
+        *,
+        good_accuracy: float | None = None,
+        bad_accuracy: float | None = None,
+        seed: int | None = None,
+    ) -> None:
+        from services.sim.oracle import NoisyOracleFeedback
+
+        self.noisy = NoisyOracleFeedback(
+            accuracy, good_accuracy=good_accuracy, bad_accuracy=bad_accuracy, seed=seed
+        )
+
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool:
+        """Noisy version of ``optimal`` (which must be known)."""
+        if optimal is None:
+            raise ValueError("OracleFeedbackSource needs the oracle's truth (optimal=None given)")
+        return bool(self.noisy.feedback(optimal))
+
+
+class StreamFeedbackSource:
+    """Decoded EEG feedback arriving from a live pipeline.
+
+    Parameters
+    ----------
+    stream : queue.Queue or callable
+        A queue of ``bool`` feedback items, or a callable ``get(timeout_s) -> bool | None``.
+    timeout_s : float
+        How long to wait for the decision of the current action; a missing decision yields
+        None (the step gets no label). Default 1.5 s, one action period.
+    """
+
+    def __init__(
+        self,
+        stream: queue.Queue[bool] | Callable[[float], bool | None],
+        timeout_s: float = 1.5,
+    ) -> None:
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be positive, got {timeout_s}")
+        self.stream = stream
+        self.timeout_s = timeout_s
+
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
+        """The next decoded decision, or None if none arrives in time."""
+        if isinstance(self.stream, queue.Queue):
+            try:
+                item = self.stream.get(timeout=self.timeout_s)
+            except queue.Empty:
+                return None
+        else:
+            item = self.stream(self.timeout_s)
+        return None if item is None else bool(item)
+
+
+class ReplayFeedbackSource:
+    """Stored labels replayed in order (reproduces a recorded session in a seeded env)."""
+
+    def __init__(self, labels: Iterable[bool | None]) -> None:
+        self.labels = list(labels)
+        self.position = 0
+
+    @classmethod
+    def from_records(cls, records: Sequence[FeedbackRecord]) -> ReplayFeedbackSource:
+        """Replay the labels of a previous session's records."""
+        return cls(r.label for r in records)
+
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
+        """The next stored label; raises when the recording is exhausted."""
+        if self.position >= len(self.labels):
+            raise IndexError(f"all {len(self.labels)} stored labels have been replayed")
+        label = self.labels[self.position]
+        self.position += 1
+        return None if label is None else bool(label)

@@ -1,0 +1,65 @@
+"""`bgrl hf-sweep --labels/--method` and `bgrl reproduce --preset` (stage 2's interface)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from services.cli.learner import apply_preset
+from services.cli.main import app
+from services.learner import pool
+from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
+
+
+def test_presets() -> None:
+    assert apply_preset("paper", "authors", []) == ("authors", [], PAPER_METHOD)
+    assert apply_preset("platform", "authors", ["n_epochs=10"]) == (
+        "truncated_is", ["n_epochs=10", "hf_guide_sampling=true"], RECOMMENDED_METHOD,
+    )  # fmt: skip
+    # what the command line gives explicitly is kept
+    assert apply_preset("platform", "authors,truncated_is", ["hf_guide_sampling=false"]) == (
+        "authors,truncated_is", ["hf_guide_sampling=false"], RECOMMENDED_METHOD,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="--preset: unknown preset 'lab'"):
+        apply_preset("lab", "authors", [])
+
+
+def _in_process(function, specs, *, workers, on_result, on_failure) -> None:
+    """``pool.run_isolated`` without the spawned workers (they cost seconds each to start)."""
+    for spec in specs:
+        on_result(function(spec))
+
+
+def test_hf_sweep_over_labels_and_methods_writes_rows_table_plot_and_resumes(
+    tmp_path, monkeypatch
+) -> None:
+    monkeypatch.setattr(pool, "run_isolated", _in_process)
+    args = [
+        "hf-sweep", "--out", str(tmp_path), "--seeds", "1", "--tasks", "sssg",
+        "--accuracies", "0.7", "--labels", "20,30", "--method", "paper,categorical",
+    ]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    rows = json.loads((tmp_path / "hf_policies.json").read_text())["runs"]
+    assert sorted((r["method"], r["n_labels"]) for r in rows) == [
+        ("categorical", 20), ("categorical", 30), ("paper", 20), ("paper", 30),
+    ]  # fmt: skip
+    assert all(r["config"]["method"] == r["method"] for r in rows)  # recorded in the model's config
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| categorical | SSSG | 0.7 | 30 | 1 |" in summary
+    assert (tmp_path / "spl_vs_labels.png").stat().st_size > 0
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 0
+    assert len(json.loads((tmp_path / "hf_policies.json").read_text())["runs"]) == 4
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [("--method=nope", "unknown stage-2 method 'nope'"), ("--labels=0", "--labels must be")],
+)
+def test_hf_sweep_refuses_bad_input_naming_the_option(tmp_path, option, message) -> None:
+    result = CliRunner().invoke(app, ["hf-sweep", "--out", str(tmp_path / "x"), option])
+    assert result.exit_code == 2 and message in result.output
+    assert not (tmp_path / "x").exists()
