@@ -26,7 +26,7 @@ Two treatments of the steps that pi_HF chose (``hf_treatment``):
   ``pi_old/mu = 1`` and everything reduces to standard PPO.
 
 Reward scale. Rewards are multiplied by ``reward_scale`` before GAE, identically for every
-method (0.01 by default: +-100 terminal rewards become +-1; DESIGN §2 reports that a 2-D
+method (0.01 by default: +-100 terminal rewards become +-1; a 2-D
 mock-up only learned with 1/100). Time-limit truncation is bootstrapped with
 ``gamma * V(s_T)``.
 
@@ -81,7 +81,7 @@ HFTreatment = Literal["authors", "truncated_is"]
 
 @dataclass
 class PPOConfig:
-    """Hyperparameters of (guided) PPO; defaults follow DESIGN §2 (the authors' code)."""
+    """Hyperparameters of (guided) PPO; defaults follow the authors' public code."""
 
     env_id: str = "services.sim:BrainNav-SSSG-v0"
     """Gymnasium id of the task (its TimeLimit applies)."""

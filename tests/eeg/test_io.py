@@ -214,24 +214,34 @@ def test_error_messages_name_the_file_never_its_folder(raw, tmp_path):
 
 
 def test_generator_blocks_equal_the_recording_and_the_previous_generator(tmp_path):
-    """Block-wise generation gives the samples the one-shot generator gave (pinned hash)."""
+    """Block-wise generation gives the samples of the one-shot generator (pinned figures,
+    to a tolerance: the exact float32 bits depend on the CPU's FFT kernels), and the chunked
+    BDF writer stores them within one 24-bit step."""
     labels = (np.random.default_rng(0).random(90) < 0.7).tolist()
     recording = SyntheticRecording(labels, quality=0.7, seed=3)
     assert recording.n_times == 284672  # two generation blocks of 2**18 samples
     blocks = [block for _, block in recording.iter_chunks()]
     assert [b.dtype for b in blocks] == [np.float32, np.float32]
     data = np.concatenate(blocks, axis=1)
-    assert hashlib.sha256(data.tobytes()).hexdigest() == (
-        "6b57b1a74caf64a1f9a7de96fcf1ed39acb655711eeab7ee5fc04980e49bfebc"
+    wide = data.astype(np.float64)
+    np.testing.assert_allclose(
+        wide.std(axis=1)[:4],
+        [2.33076984e-05, 2.55548247e-05, 2.12476264e-05, 3.79030867e-05],
+        rtol=1e-4,
     )
-    # The chunked BDF writer gives the bytes edfio's whole-array writer gave.
+    np.testing.assert_allclose(
+        wide[:3, 1000], [-2.06870463e-05, 6.07477159e-06, -2.47621392e-06], rtol=1e-4
+    )
+    np.testing.assert_allclose(np.abs(wide).sum(), 2801.1491654075794, rtol=1e-4)
     recording.info.set_meas_date(MEAS_DATE)
     raw = recording.to_raw()
     np.testing.assert_array_equal(raw.get_data(), data)  # a second pass: the same samples
     written = write_bdf(recording, tmp_path / "generated.bdf")
-    assert file_sha256(written) == (
-        "57372e8095dfac0859ff96fdbc64f9da0a437c2ddb3ce321a44c5814fd95f7b8"
-    )
+    back = mne.io.read_raw_bdf(written, preload=True, verbose="error")
+    eeg = [name != STIM_CHANNEL for name in back.ch_names]
+    step = np.ptp(wide[eeg], axis=1, keepdims=True) / 2**23
+    assert np.all(np.abs(back.get_data()[eeg] - wide[eeg]) <= step)
+    np.testing.assert_array_equal(action_events(back), action_events(raw))
 
 
 def test_flat_check_is_exact_under_a_large_dc_offset(raw):
