@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import tempfile
+from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,8 @@ from services.core.markers import ActionMarker
 from services.eeg.classifier import ErrPClassifier
 from services.eeg.live import LiveIngest
 from services.eeg.live_session import LiveSession
+from services.learner.feedback import FeedbackConfig
+from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.service.export import torchscript_bytes
 from services.learner.service.session import HFSession, SessionSpec
 from services.sim.registry import resolve_map
@@ -109,8 +112,8 @@ def _hf_session(runtime_data_dir: Path, run: LiveRun, budget: int) -> HFSession:
         map_path=str(map_path),
         seed=int(options.get("seed", 0)),
         label_budget=budget,
-        method="paper",
-        fhat={},
+        method=RECOMMENDED_METHOD,  # what a live session's learner session uses by default
+        fhat=asdict(FeedbackConfig(method=RECOMMENDED_METHOD)),
         created_at=datetime.now(UTC).replace(microsecond=0),
     )
     return HFSession(spec)

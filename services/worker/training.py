@@ -110,7 +110,9 @@ def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
             hf_treatment=config.get("hf_treatment"),
             n_labels=config.get("n_labels", 1000),
             ppo_overrides=overrides,
-            hf_method=config.get("hf_method", RECOMMENDED_METHOD),
+            hf_method=config.get(
+                "hf_method", RECOMMENDED_METHOD if method == "hf_sparse" else None
+            ),
         )
     except (TypeError, ValueError) as exc:
         raise JobConfigError(str(exc)) from None

@@ -160,7 +160,7 @@ def test_reproduce_fans_out_and_writes_the_reproduction(
 def test_sigkill_mid_job_resumes_from_checkpoint_with_the_same_result(
     fs_platform: Platform, workers: list
 ) -> None:
-    config = {**GUIDED, "seed": 5, "total_steps": 2048, "checkpoint_every": 2}
+    config = {**GUIDED, "seed": 5, "total_steps": 4096, "checkpoint_every": 2}
     reference = fs_platform.submit("guided_ppo", config)
     victim = fs_platform.submit("guided_ppo", config)
 
@@ -181,7 +181,7 @@ def test_sigkill_mid_job_resumes_from_checkpoint_with_the_same_result(
     ref = fs_platform.wait(reference, {"succeeded", "failed"}, timeout=120)
     assert done.status == ref.status == "succeeded", (done.error, ref.error)
     assert done.attempts == 2
-    assert done.resumed_from_step is not None and 0 < done.resumed_from_step < 2048
+    assert done.resumed_from_step is not None and 0 < done.resumed_from_step < config["total_steps"]
     assert done.resumed_from_step % 256 == 0  # a checkpoint every 2 updates of 128 steps
     for key in ("curve", "final_spl", "n_episodes", "training_episodes", "weights_sha256"):
         assert done.result[key] == ref.result[key], key

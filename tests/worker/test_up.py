@@ -138,7 +138,7 @@ def test_up_serves_restarts_a_dead_worker_and_sigterm_stops_everything(tmp_path:
             proc.kill()
     assert took < 10.0, f"stopping took {took:.1f} s"
     for name in ("api", "sim", "eeg", "learner"):
-        assert f"http://127.0.0.1:{ports[name]}  (docs: http://127.0.0.1:{ports[name]}/docs)" in out
+        assert f"http://127.0.0.1:{ports[name]}  (docs: http://127.0.0.1:{ports[name]}/docs" in out
     assert "worker-1 exited with code -9; restarting it" in (tmp_path / "err.log").read_text()
     assert [pid for pid in spawned if alive(pid)] == []
     assert all(port_free(port) for port in ports.values())
