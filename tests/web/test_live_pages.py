@@ -177,8 +177,8 @@ def test_live_view_and_display_show_frames_feedback_and_reconnect(
     display = ctx.new_page()
     display.goto(f"/sessions/{sid}/display")
     # Frames arrive through the relay before any action (the sim streams at 2 fps).
-    live.wait_for_function("() => document.getElementById('live-frame').naturalWidth > 0")
-    display.wait_for_function("() => document.getElementById('display-frame').naturalWidth > 0")
+    live.wait_for_function("() => document.getElementById('live-frame')?.naturalWidth > 0")
+    display.wait_for_function("() => document.getElementById('display-frame')?.naturalWidth > 0")
     assert display.locator("nav").is_hidden() and display.locator("button:visible").count() == 0
 
     for step in range(STEPS // 2):
@@ -323,7 +323,7 @@ def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
     form.wait_for(state="hidden")
 
     # Frames arrive through the relay while the worker runs the session, and they move.
-    page.wait_for_function("() => document.getElementById('live-frame').naturalWidth > 0")
+    page.wait_for_function("() => document.getElementById('live-frame')?.naturalWidth > 0")
     page.wait_for_function(
         "() => document.getElementById('current-action').textContent.startsWith('Now: ')"
     )
