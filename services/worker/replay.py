@@ -35,13 +35,13 @@ from services.eeg.classifier import ErrPClassifier
 from services.eeg.live import LiveIngest
 from services.eeg.live_session import LiveSession
 from services.learner.feedback import FeedbackConfig
-from services.learner.hf_methods import RECOMMENDED_METHOD
+from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
 from services.learner.service.export import torchscript_bytes
 from services.learner.service.session import HFSession, SessionSpec
 from services.sim.registry import resolve_map
 from services.worker.live_eeg import EPOCH_END_S
 from services.worker.live_finish import hf_policy_spl
-from services.worker.runtime import JobConfigError, JobContext, JobOutcome
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome, Runtime
 from services.worker.session_data import (
     SessionStream,
     StoredSession,
@@ -102,7 +102,18 @@ def decode_session(
     return out
 
 
-def _hf_session(runtime_data_dir: Path, run: LiveRun, budget: int) -> HFSession:
+def _original_method(runtime: Runtime, run: LiveRun) -> str:
+    """The stage-2 method the original session trained with: recorded in its HF model (a
+    model exported before methods were recorded was the paper's); a session that exported
+    none used the learner service's default."""
+    with runtime.sessions() as db:
+        original = db.get(HFModel, run.hf_model_id) if run.hf_model_id else None
+        if original is None:
+            return RECOMMENDED_METHOD
+        return str((original.metrics or {}).get("hf_method", PAPER_METHOD))
+
+
+def _hf_session(runtime_data_dir: Path, run: LiveRun, budget: int, method: str) -> HFSession:
     options = run.options
     map_name, map_path, _ = resolve_map(options.get("map"), (), runtime_data_dir / "sim" / "oracle")
     spec = SessionSpec(
@@ -112,8 +123,8 @@ def _hf_session(runtime_data_dir: Path, run: LiveRun, budget: int) -> HFSession:
         map_path=str(map_path),
         seed=int(options.get("seed", 0)),
         label_budget=budget,
-        method=RECOMMENDED_METHOD,  # what a live session's learner session uses by default
-        fhat=asdict(FeedbackConfig(method=RECOMMENDED_METHOD)),
+        method=method,
+        fhat=asdict(FeedbackConfig(method=method)),
         created_at=datetime.now(UTC).replace(microsecond=0),
     )
     return HFSession(spec)
@@ -151,7 +162,7 @@ def session_replay(context: JobContext) -> JobOutcome:
     decisions = decode_session(stored, stream, classifier, f"platform-{classifier_id}")
     context.check_stop()
 
-    hf = _hf_session(runtime.settings.data_dir, run, budget)
+    hf = _hf_session(runtime.settings.data_dir, run, budget, _original_method(runtime, run))
     labels: list[dict[str, Any]] = []
     for row in stored.markers:
         decision = decisions.get(row.step)
@@ -194,7 +205,7 @@ def session_replay(context: JobContext) -> JobOutcome:
         for step, d in decisions.items()
         if d["status"] == "ok" and by_step[step].oracle_correct is not None
     )
-    metrics = hf.metrics()
+    metrics = hf.model_metrics()
     meta = {
         "kind": "hf_policy",
         "replay_of_session": session_id,

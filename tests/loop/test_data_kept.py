@@ -17,6 +17,7 @@ from sqlalchemy import select
 
 from services.core.db.live import LiveDecision, LiveMarker, LiveRun
 from services.core.db.models import Artifact, FeedbackLabel, HFModel, Job, LabSession
+from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.worker.bids import ACTION_EVENT_ID, bids_export, export_subject
 from services.worker.live_session import live_session
 from services.worker.replay import session_replay
@@ -78,6 +79,8 @@ def test_replay_with_the_same_classifier_reproduces_the_labels(
         assert run is not None
         first = db.get(HFModel, run.hf_model_id)
         assert first is not None
+        assert first.metrics["hf_method"] == RECOMMENDED_METHOD  # the learner's default
+        assert model.metrics["hf_method"] == first.metrics["hf_method"]
         paths = [
             loop.runtime.store.path(
                 db.scalar(select(Artifact.relpath).where(Artifact.id == m.torchscript_artifact_id))

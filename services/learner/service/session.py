@@ -189,6 +189,11 @@ class HFSession:
             "fhat_updates": self.learner.n_updates,
         }
 
+    def model_metrics(self) -> dict[str, Any]:
+        """What an exported pi_HF records of its training: :meth:`metrics` and the stage-2
+        method (``hf_method``)."""
+        return {**self.metrics(), "hf_method": self.spec.method}
+
     def state_dict(self) -> dict[str, Any]:
         """Everything the next label and action depend on (``torch.load(weights_only=True)``)."""
         return {

@@ -182,7 +182,7 @@ class SessionStore:
         """Store the TorchScript greedy pi_HF in the artifact store (kind ``model``)."""
         with session.lock:
             version = session.model_version
-            metrics = session.metrics()
+            metrics = session.model_metrics()
             meta = {
                 "kind": "hf_policy",
                 "session": session.spec.to_json(),
