@@ -20,12 +20,11 @@ from typing import Any
 import httpx
 import pytest
 
-SERVICE_APPS = {
-    "sim": "services.sim.app:app",
-    "eeg": "services.eeg.app:app",
-    "learner": "services.learner.service.app:app",
-}
-"""The internal services' ASGI apps, as ``uvicorn`` takes them on its command line."""
+from services.cli.serve import SERVICES
+
+SERVICE_APPS = {spec.name: spec.asgi_app for spec in SERVICES if spec.name != "api"}
+"""The internal services' ASGI apps (sim, eeg, learner) as ``bgrl up`` starts them with
+uvicorn."""
 
 
 def free_port() -> int:
