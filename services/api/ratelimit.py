@@ -52,16 +52,16 @@ class LoginLimiter:
         db.rollback()
         if wait:
             return wait
-        if db.get_bind().dialect.name == "postgresql":
-            db.execute(
-                text("SELECT pg_advisory_xact_lock(:space, :key)"),
-                {
-                    "space": PG_LOCK_SPACE,
-                    "key": int.from_bytes(bytes.fromhex(key[:8]), "big", signed=True),
-                },
-            )
-        # on SQLite this first write of the transaction takes the database's write lock
-        db.execute(delete(LoginAttempt).where(LoginAttempt.at <= now - self.window))
+        self._lock(db, key)
+        # Prune: rows another attempt is deleting are skipped (PostgreSQL), so concurrent
+        # attempts never wait on each other's rows. On SQLite this first write of the
+        # transaction takes the database's write lock.
+        stale = (
+            select(LoginAttempt.id)
+            .where(LoginAttempt.at <= now - self.window)
+            .with_for_update(skip_locked=True)
+        )
+        db.execute(delete(LoginAttempt).where(LoginAttempt.id.in_(stale)))
         wait = self._wait(db, key, now)
         if not wait:
             db.add(LoginAttempt(key=key, at=now))
@@ -70,7 +70,20 @@ class LoginLimiter:
 
     def succeeded(self, db: Session, key: str) -> None:
         """Forget the attempts of ``key`` after a successful login (the caller commits)."""
+        self._lock(db, key)
         db.execute(delete(LoginAttempt).where(LoginAttempt.key == key))
+
+    @staticmethod
+    def _lock(db: Session, key: str) -> None:
+        """PostgreSQL: wait for the key's advisory lock (held until the transaction ends)."""
+        if db.get_bind().dialect.name == "postgresql":
+            db.execute(
+                text("SELECT pg_advisory_xact_lock(:space, :key)"),
+                {
+                    "space": PG_LOCK_SPACE,
+                    "key": int.from_bytes(bytes.fromhex(key[:8]), "big", signed=True),
+                },
+            )
 
     def _wait(self, db: Session, key: str, now: datetime) -> int:
         """Seconds until ``key`` has fewer than ``max_failures`` attempts in the window."""
