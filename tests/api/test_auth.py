@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import stat
+import subprocess
+import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
@@ -83,6 +89,61 @@ def test_two_api_instances_on_one_database_share_the_limit(tmp_path: Path, any_d
         assert 1 <= int(blocked.headers["retry-after"]) <= 300
         with one.app.state.sessions() as db:
             assert db.scalar(select(func.count()).select_from(LoginAttempt)) == 3
+
+
+@pytest.mark.slow
+def test_two_uvicorn_processes_share_the_limit(tmp_path: Path, any_db_url: str) -> None:
+    """Two api processes (replicas on two hosts, or ``BGRL_API_WORKERS``) on one database."""
+    env = {
+        **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
+        "BGRL_DATA_DIR": str(tmp_path / "data"),
+        "BGRL_DATABASE_URL": any_db_url,
+        "BGRL_ADMIN_EMAIL": ADMIN_EMAIL,
+        "BGRL_ADMIN_PASSWORD": ADMIN_PASSWORD,
+        "BGRL_EEG_URL": "",
+        "BGRL_SIM_URL": "",
+        "BGRL_LOGIN_MAX_FAILURES": "3",
+    }
+    processes: list[subprocess.Popen[bytes]] = []
+    urls = []
+    try:
+        for _ in range(2):  # one after the other: the first migrates and creates the admin
+            with socket.socket() as sock:
+                sock.bind(("127.0.0.1", 0))
+                port = sock.getsockname()[1]
+            command = [
+                sys.executable, "-m", "uvicorn", "services.api.app:app",
+                "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
+            ]  # fmt: skip
+            processes.append(subprocess.Popen(command, env=env))
+            urls.append(f"http://127.0.0.1:{port}")
+            deadline = time.monotonic() + 120
+            while True:
+                assert processes[-1].poll() is None, "the api process exited"
+                assert time.monotonic() < deadline, "the api process did not start"
+                try:
+                    if httpx.get(f"{urls[-1]}/readyz", timeout=2).status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.2)
+
+        def status(url: str, password: str) -> int:
+            form = _token_form(ADMIN_EMAIL, password)
+            return httpx.post(f"{url}/api/v1/auth/token", data=form, timeout=30).status_code
+
+        one, two = urls
+        assert [status(one, "nope"), status(two, "nope"), status(one, "nope")] == [401] * 3
+        assert [status(two, ADMIN_PASSWORD), status(one, ADMIN_PASSWORD)] == [429, 429]
+    finally:
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            try:
+                process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
 
 
 def test_concurrent_failures_on_two_instances_are_counted_once_each(
