@@ -14,10 +14,6 @@ if TYPE_CHECKING:
     from services.learner.runs import RunFailure, RunRecord
 
 
-PRESETS = ("paper", "platform")
-"""``bgrl reproduce --preset``: the paper's settings or the platform's recommended ones."""
-
-
 def _split(value: str) -> list[str]:
     return [item.strip() for item in value.split(",") if item.strip()]
 
@@ -58,24 +54,6 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
         overrides[key] = value
     PPOConfig(**overrides)  # validates combinations (e.g. n_steps vs minibatch_size)
     return overrides
-
-
-def apply_preset(preset: str, treatments: str, ppo: list[str]) -> tuple[str, list[str], str]:
-    """(treatments, --ppo items, stage-2 method) of ``bgrl reproduce --preset``.
-
-    ``paper`` changes nothing (the paper's Fhat); ``platform`` replaces the default
-    treatment by truncated_is, adds ``hf_guide_sampling=true`` unless ``--ppo`` sets it, and
-    selects the recommended stage-2 method.
-    """
-    from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
-
-    if preset not in PRESETS:
-        raise ValueError(f"--preset: unknown preset {preset!r}; expected one of {PRESETS}")
-    if preset == "paper":
-        return treatments, ppo, PAPER_METHOD
-    if not any(item.partition("=")[0].strip() == "hf_guide_sampling" for item in ppo):
-        ppo = [*ppo, "hf_guide_sampling=true"]
-    return ("truncated_is" if treatments == "authors" else treatments), ppo, RECOMMENDED_METHOD
 
 
 def reproduce(
@@ -128,19 +106,20 @@ def reproduce(
     """
     from services.learner.pool import reproduce as run_reproduction
     from services.learner.pool import validate_maps
-    from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, build_specs
+    from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, apply_preset, build_specs
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
     try:
-        treatments, ppo, hf_method = apply_preset(preset, treatments, ppo or [])
-        overrides = parse_ppo_overrides(ppo)
+        treatment_list, overrides, hf_method = apply_preset(
+            preset, _split(treatments), parse_ppo_overrides(ppo or [])
+        )
         specs = build_specs(
             seeds=n_seeds,
             first_seed=first_seed,
             tasks=_split(tasks),
             methods=_split(methods),
             accuracies=[float(c) for c in _split(accuracies)],
-            treatments=_split(treatments),
+            treatments=treatment_list,
             map_path=None if map_path is None else str(map_path),
             ppo_overrides=overrides,
             hf_method=hf_method,

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from services.learner.evaluation import eval_seeds
-from services.learner.hf_methods import PAPER_METHOD, get_method
+from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD, get_method
 from services.learner.ppo import PPOConfig
 
 TASK_ENV_IDS = {"sssg": "services.sim:BrainNav-SSSG-v0", "vssg": "services.sim:BrainNav-VSSG-v0"}
@@ -32,6 +32,9 @@ TREATMENTS = ("authors", "truncated_is")
 N_VSSG_EVAL_STARTS = 5
 QUICK_SEEDS = 2
 FULL_SEEDS = 10
+PRESETS = ("paper", "platform")
+"""Settings of a reproduction (``bgrl reproduce --preset``, ``reproduce`` jobs): the paper's
+or the platform's recommended ones."""
 RUN_FIXED_PPO_FIELDS = frozenset({"env_id", "env_kwargs", "seed", "eval_seeds", "hf_treatment"})
 """PPOConfig fields a spec sets per run; ``ppo_overrides`` may not change them."""
 
@@ -187,3 +190,25 @@ def build_specs(
                             )
                         )
     return specs
+
+
+def apply_preset(
+    preset: str, treatments: Sequence[str], ppo_overrides: Mapping[str, Any]
+) -> tuple[list[str], dict[str, Any], str]:
+    """(treatments, PPO overrides, stage-2 method) of a reproduction with ``preset``.
+
+    ``paper`` changes nothing (the paper's Fhat); ``platform`` replaces the default
+    treatment (authors) by truncated_is, adds ``hf_guide_sampling=True`` unless the
+    overrides set it, and selects the recommended stage-2 method (docs/stage2.md).
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"preset: unknown preset {preset!r}; expected one of {PRESETS}")
+    treatments, overrides = list(treatments), dict(ppo_overrides)
+    if preset == "paper":
+        return treatments, overrides, PAPER_METHOD
+    overrides.setdefault("hf_guide_sampling", True)
+    return (
+        (["truncated_is"] if treatments == ["authors"] else treatments),
+        overrides,
+        (RECOMMENDED_METHOD),
+    )

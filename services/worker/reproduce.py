@@ -21,13 +21,13 @@ from services.core.queue import enqueue_job
 from services.learner.outputs import Results, load_results, save_results
 from services.learner.pool import reproduce as write_reproduction
 from services.learner.runs import RunFailure, RunRecord
-from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, RunSpec, build_specs
+from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, RunSpec, apply_preset, build_specs
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome, JobStoppedError
 
 REPRODUCE_FIELDS = frozenset(
     {
         "quick", "seeds", "first_seed", "tasks", "methods", "accuracies", "treatments", "ppo",
-        "checkpoint_every",
+        "checkpoint_every", "preset",
     }
 )  # fmt: skip
 PLOT_SUFFIXES = (".png",)
@@ -58,6 +58,11 @@ def specs_from_config(config: dict[str, Any]) -> list[RunSpec]:
     if not isinstance(overrides, dict):
         raise JobConfigError("ppo must be an object of PPO settings")
     try:
+        treatments, overrides, hf_method = apply_preset(
+            config.get("preset", "paper"),
+            _items(config.get("treatments", "authors"), "treatments"),
+            overrides,
+        )
         return build_specs(
             seeds=seeds,
             first_seed=first_seed,
@@ -66,8 +71,9 @@ def specs_from_config(config: dict[str, Any]) -> list[RunSpec]:
             accuracies=[
                 float(c) for c in _items(config.get("accuracies", "0.55,0.6,0.7"), "accuracies")
             ],
-            treatments=_items(config.get("treatments", "authors"), "treatments"),
+            treatments=treatments,
             ppo_overrides=overrides,
+            hf_method=hf_method,
         )
     except (TypeError, ValueError) as exc:
         raise JobConfigError(str(exc)) from None

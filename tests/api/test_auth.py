@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import stat
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import func, select
 
 from services.api.app import create_app
+from services.core.db.models import LoginAttempt
 from tests.api.conftest import ADMIN_EMAIL, ADMIN_PASSWORD, PASSWORD, Api, login, make_settings
 
 
@@ -59,6 +68,125 @@ def test_failed_logins_are_rate_limited(tmp_path: Path) -> None:
         # another account from the same address is not affected
         other = client.post("/api/v1/auth/token", data=_token_form("x@lab.test", "nope"))
         assert other.status_code == 401
+
+
+def _login_status(client: TestClient, password: str) -> int:
+    return client.post("/api/v1/auth/token", data=_token_form(ADMIN_EMAIL, password)).status_code
+
+
+def test_two_api_instances_on_one_database_share_the_limit(tmp_path: Path, any_db_url: str) -> None:
+    settings = make_settings(tmp_path / "data", any_db_url, login_max_failures=3)
+    with TestClient(create_app(settings)) as one, TestClient(create_app(settings)) as two:
+        assert one.app.state.engine is not two.app.state.engine
+        assert [_login_status(one, "nope"), _login_status(two, "nope")] == [401, 401]
+        # a success on either clears the key for both
+        assert _login_status(two, ADMIN_PASSWORD) == 200
+        statuses = [_login_status(c, "nope") for c in (one, two, one)]
+        assert statuses == [401, 401, 401]
+        assert _login_status(two, "nope") == 429
+        blocked = one.post("/api/v1/auth/token", data=_token_form(ADMIN_EMAIL, ADMIN_PASSWORD))
+        assert blocked.status_code == 429
+        assert 1 <= int(blocked.headers["retry-after"]) <= 300
+        with one.app.state.sessions() as db:
+            assert db.scalar(select(func.count()).select_from(LoginAttempt)) == 3
+
+
+@pytest.mark.slow
+def test_two_uvicorn_processes_share_the_limit(tmp_path: Path, any_db_url: str) -> None:
+    """Two api processes (replicas on two hosts, or ``BGRL_API_WORKERS``) on one database."""
+    env = {
+        **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
+        "BGRL_DATA_DIR": str(tmp_path / "data"),
+        "BGRL_DATABASE_URL": any_db_url,
+        "BGRL_ADMIN_EMAIL": ADMIN_EMAIL,
+        "BGRL_ADMIN_PASSWORD": ADMIN_PASSWORD,
+        "BGRL_EEG_URL": "",
+        "BGRL_SIM_URL": "",
+        "BGRL_LOGIN_MAX_FAILURES": "3",
+    }
+    processes: list[subprocess.Popen[bytes]] = []
+    urls = []
+    try:
+        for _ in range(2):  # one after the other: the first migrates and creates the admin
+            with socket.socket() as sock:
+                sock.bind(("127.0.0.1", 0))
+                port = sock.getsockname()[1]
+            command = [
+                sys.executable, "-m", "uvicorn", "services.api.app:app",
+                "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
+            ]  # fmt: skip
+            processes.append(subprocess.Popen(command, env=env))
+            urls.append(f"http://127.0.0.1:{port}")
+            deadline = time.monotonic() + 120
+            while True:
+                assert processes[-1].poll() is None, "the api process exited"
+                assert time.monotonic() < deadline, "the api process did not start"
+                try:
+                    if httpx.get(f"{urls[-1]}/readyz", timeout=2).status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.2)
+
+        def status(url: str, password: str) -> int:
+            form = _token_form(ADMIN_EMAIL, password)
+            return httpx.post(f"{url}/api/v1/auth/token", data=form, timeout=30).status_code
+
+        one, two = urls
+        assert [status(one, "nope"), status(two, "nope"), status(one, "nope")] == [401] * 3
+        assert [status(two, ADMIN_PASSWORD), status(one, ADMIN_PASSWORD)] == [429, 429]
+    finally:
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            try:
+                process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+def test_concurrent_failures_on_two_instances_are_counted_once_each(
+    tmp_path: Path, any_db_url: str
+) -> None:
+    settings = make_settings(tmp_path / "data", any_db_url, login_max_failures=4)
+    with TestClient(create_app(settings)) as one, TestClient(create_app(settings)) as two:
+        clients = [one, two] * 8
+        with ThreadPoolExecutor(max_workers=16) as pool:
+            statuses = list(pool.map(lambda c: _login_status(c, "nope"), clients))
+        assert sorted(statuses) == [401] * 4 + [429] * 12
+        with one.app.state.sessions() as db:
+            assert db.scalar(select(func.count()).select_from(LoginAttempt)) == 4
+
+
+def test_window_slides_and_stale_attempts_are_pruned(tmp_path: Path) -> None:
+    from datetime import timedelta
+
+    from services.api.ratelimit import LoginLimiter, limit_key
+    from services.core.db.base import utcnow
+    from services.core.db.migrate import upgrade_database
+    from services.core.db.session import make_engine, make_session_factory
+
+    url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    upgrade_database(url)
+    engine = make_engine(url)
+    now = [utcnow()]
+    limiter = LoginLimiter(max_failures=2, window_s=60, clock=lambda: now[0])
+    key, other = limit_key("10.0.0.1", "a@lab.test"), limit_key("10.0.0.2", "a@lab.test")
+    try:
+        with make_session_factory(engine)() as db:
+            assert limiter.begin(db, other) == 0
+            now[0] += timedelta(seconds=10)
+            assert [limiter.begin(db, key) for _ in range(3)] == [0, 0, 60]
+            now[0] += timedelta(seconds=59)
+            assert limiter.begin(db, key) == 1  # both failures are still in the window
+            now[0] += timedelta(seconds=1)
+            assert limiter.begin(db, key) == 0  # they left it; this attempt is the only one
+            assert db.scalars(select(LoginAttempt.key)).all() == [key]  # the rest pruned
+            assert limiter.begin(db, key) == 0
+            assert limiter.begin(db, key) == 60
+    finally:
+        engine.dispose()
 
 
 def test_api_token_create_use_revoke(api: Api) -> None:

@@ -20,7 +20,7 @@ from services.core.db.migrate import (
     head_revision,
     upgrade_database,
 )
-from services.core.db.models import Artifact, Job, User
+from services.core.db.models import Artifact, Job, LoginAttempt, User
 from services.core.db.session import make_engine, make_session_factory
 from services.core.errors import BadRequestError, PayloadTooLargeError
 
@@ -42,6 +42,7 @@ TABLES = {
     "live_decisions",
     "live_model_versions",
     "live_frames_shown",
+    "login_attempts",
     "alembic_version",
 }
 
@@ -50,7 +51,7 @@ def test_empty_database_upgrades_to_head_matching_the_models(any_db_url: str) ->
     upgrade_database(any_db_url)
     engine = make_engine(any_db_url)
     try:
-        assert current_revision(engine) == head_revision() == "0003"
+        assert current_revision(engine) == head_revision() == "0004"
         assert set(inspect(engine).get_table_names()) == TABLES
         with engine.connect() as connection:
             diff = compare_metadata(
@@ -76,7 +77,7 @@ def test_previous_revision_upgrades_and_keeps_its_rows(any_db_url: str) -> None:
             )
             db.commit()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0003"
+        assert current_revision(engine) == "0004"
         with sessions() as db:
             job = db.get(Job, "j" * 32)
             assert (job.config, job.status, job.curve, job.attempts) == (
@@ -89,6 +90,29 @@ def test_previous_revision_upgrades_and_keeps_its_rows(any_db_url: str) -> None:
         assert "subjects" not in inspect(engine).get_table_names()
         downgrade_database(any_db_url, "base")
         assert set(inspect(engine).get_table_names()) == {"alembic_version"}
+    finally:
+        engine.dispose()
+
+
+def test_revision_0003_upgrades_to_the_shared_login_limit_and_back(any_db_url: str) -> None:
+    upgrade_database(any_db_url, "0003")
+    engine = make_engine(any_db_url)
+    try:
+        sessions = make_session_factory(engine)
+        with sessions() as db:
+            db.add(User(email="a@lab.test", password_hash="x", role="admin"))
+            db.commit()
+        assert "login_attempts" not in inspect(engine).get_table_names()
+        upgrade_database(any_db_url)
+        assert current_revision(engine) == "0004"
+        with sessions() as db:
+            assert db.scalar(select(User.email)) == "a@lab.test"
+            db.add(LoginAttempt(key="k" * 64, at=datetime(2026, 12, 2, tzinfo=UTC)))
+            db.commit()
+        downgrade_database(any_db_url, "0003")
+        assert "login_attempts" not in inspect(engine).get_table_names()
+        with sessions() as db:
+            assert db.scalar(select(User.email)) == "a@lab.test"
     finally:
         engine.dispose()
 

@@ -96,6 +96,15 @@ def test_submit_commits_the_row_then_enqueues_it(api_any_db: Api) -> None:
             {"task": "SSSG", "method": "rl_sparse", "ppo": {"learning_rate": "fast"}},
             "config.ppo.learning_rate",
         ),
+        ({"task": "SSSG", "method": "rl_sparse", "hf_method": "paper"}, "config.hf_method"),
+        (
+            {"task": "SSSG", "method": "hf_sparse", "accuracy": 0.7, "hf_method": "best"},
+            "config.hf_method",
+        ),
+        (
+            {"task": "SSSG", "method": "hf_sparse", "hf_model_id": 1, "hf_method": "paper"},
+            "config.hf_method",
+        ),
     ],
 )
 def test_guided_ppo_config_is_checked_field_by_field(api: Api, config: dict, field: str) -> None:
@@ -103,6 +112,24 @@ def test_guided_ppo_config_is_checked_field_by_field(api: Api, config: dict, fie
     assert response.status_code == 422, response.text
     assert response.json()["detail"][0]["field"] == field
     assert broker_messages(api) == []
+
+
+def test_hf_method_is_taken_for_hf_sparse_and_refused_for_the_others(api: Api) -> None:
+    response = submit(api, "guided_ppo", {**GUIDED, "hf_method": "thompson"})
+    assert response.status_code == 201, response.text
+    assert response.json()["config"]["hf_method"] == "thompson"
+    default = submit(api, "guided_ppo", GUIDED).json()
+    assert "hf_method" not in default["config"]  # the worker uses the recommended method
+    refused = submit(api, "guided_ppo", {"task": "VSSG", "method": "rl_rich", "hf_method": "paper"})
+    assert refused.status_code == 422
+    assert refused.json()["detail"][0]["field"] == "config.hf_method"
+    assert refused.json()["message"] == (
+        "config.hf_method: Value error, hf_method applies to hf_sparse only, not rl_rich"
+    )
+    assert broker_messages(api) == [
+        ("bgrl.jobs.guided_ppo", [response.json()["id"]]),
+        ("bgrl.jobs.guided_ppo", [default["id"]]),
+    ]
 
 
 def test_ppo_step_rule_is_explained(api: Api) -> None:
@@ -169,8 +196,15 @@ def test_reproduce_config_takes_the_cli_options(api: Api) -> None:
         "accuracies": [0.6],
         "treatments": ["truncated_is"],
         "ppo": {"hf_guide_sampling": True},
+        "preset": "paper",
     }
     assert broker_messages(api) == [("bgrl.jobs.reproduce", [response.json()["id"]])]
+    platform = submit(api, "reproduce", {"quick": True, "preset": "platform"})
+    assert platform.status_code == 201, platform.text
+    assert platform.json()["config"]["preset"] == "platform"
+    unknown = submit(api, "reproduce", {"quick": True, "preset": "lab"})
+    assert unknown.status_code == 422
+    assert unknown.json()["detail"][0]["field"] == "config.preset"
 
 
 def test_list_filters_and_pages(api: Api) -> None:

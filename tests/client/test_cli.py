@@ -114,6 +114,35 @@ def test_submit_list_wait_cancel(live_api: LiveApi, signed_in: Path, tmp_path: P
     )
 
 
+def test_submit_sets_the_stage2_method_and_the_preset(live_api: LiveApi, signed_in: Path) -> None:
+    code, out, err = bgrl(
+        "jobs", "submit", "guided_ppo", "--set", "task=sssg", "--set", "method=hf_sparse",
+        "--set", "accuracy=0.7", "--set", "hf_method=noise_aware",
+    )  # fmt: skip
+    assert code == 0, err
+    hf_job = out.strip()
+    code, out, err = bgrl(
+        "jobs", "submit", "reproduce", "--set", "quick=true", "--set", "preset=platform"
+    )
+    assert code == 0, err
+    sweep = out.strip()
+    token = json.loads(signed_in.read_text())["token"]
+    with PlatformClient(live_api.url, token) as client:
+        assert client.get_job(hf_job).config["hf_method"] == "noise_aware"
+        assert client.get_job(sweep).config["preset"] == "platform"
+    for job_id in (hf_job, sweep):
+        assert bgrl("jobs", "cancel", job_id)[0] == 0
+    code, _, err = bgrl(
+        "jobs", "submit", "guided_ppo", "--set", "task=sssg", "--set", "method=rl_rich",
+        "--set", "hf_method=paper",
+    )  # fmt: skip
+    assert (code, err) == (
+        2,
+        "error: HTTP 422: config.hf_method: Value error, hf_method applies to hf_sparse only, "
+        "not rl_rich (field config.hf_method)\n",
+    )
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

@@ -84,6 +84,20 @@ def test_bad_config_names_the_field(staff: PlatformClient) -> None:
     assert (unknown.value.status, unknown.value.field) == (422, "config.learning_rate")
 
 
+def test_stage2_method_and_reproduce_preset(staff: PlatformClient) -> None:
+    job = staff.submit_job("guided_ppo", {**GUIDED, "hf_method": "categorical_info"})
+    assert job.config["hf_method"] == "categorical_info"
+    with pytest.raises(PlatformError) as caught:
+        staff.submit_job(
+            "guided_ppo", {"task": "sssg", "method": "rl_sparse", "hf_method": "paper"}
+        )
+    assert (caught.value.status, caught.value.field) == (422, "config.hf_method")
+    sweep = staff.submit_job("reproduce", {"quick": True, "preset": "platform"})
+    assert sweep.config["preset"] == "platform"
+    for submitted in (job, sweep):
+        staff.cancel_job(submitted.id)
+
+
 def test_viewer_cannot_submit(live_api: LiveApi) -> None:
     with PlatformClient(live_api.url) as viewer:
         viewer.login(VIEWER_EMAIL, PASSWORD)

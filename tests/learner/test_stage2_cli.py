@@ -7,23 +7,23 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from services.cli.learner import apply_preset
 from services.cli.main import app
 from services.learner import pool
 from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
+from services.learner.specs import apply_preset
 
 
 def test_presets() -> None:
-    assert apply_preset("paper", "authors", []) == ("authors", [], PAPER_METHOD)
-    assert apply_preset("platform", "authors", ["n_epochs=10"]) == (
-        "truncated_is", ["n_epochs=10", "hf_guide_sampling=true"], RECOMMENDED_METHOD,
+    assert apply_preset("paper", ["authors"], {}) == (["authors"], {}, PAPER_METHOD)
+    assert apply_preset("platform", ["authors"], {"n_epochs": 10}) == (
+        ["truncated_is"], {"n_epochs": 10, "hf_guide_sampling": True}, RECOMMENDED_METHOD,
     )  # fmt: skip
-    # what the command line gives explicitly is kept
-    assert apply_preset("platform", "authors,truncated_is", ["hf_guide_sampling=false"]) == (
-        "authors,truncated_is", ["hf_guide_sampling=false"], RECOMMENDED_METHOD,
+    # what is given explicitly is kept
+    assert apply_preset("platform", ["authors", "truncated_is"], {"hf_guide_sampling": False}) == (
+        ["authors", "truncated_is"], {"hf_guide_sampling": False}, RECOMMENDED_METHOD,
     )  # fmt: skip
-    with pytest.raises(ValueError, match="--preset: unknown preset 'lab'"):
-        apply_preset("lab", "authors", [])
+    with pytest.raises(ValueError, match="preset: unknown preset 'lab'"):
+        apply_preset("lab", ["authors"], {})
 
 
 def _in_process(function, specs, *, workers, on_result, on_failure) -> None:

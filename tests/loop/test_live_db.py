@@ -9,7 +9,12 @@ from sqlalchemy import inspect
 
 from services.core.db.base import utcnow
 from services.core.db.live import LiveMarker, LiveRun
-from services.core.db.migrate import current_revision, downgrade_database, upgrade_database
+from services.core.db.migrate import (
+    current_revision,
+    downgrade_database,
+    head_revision,
+    upgrade_database,
+)
 from services.core.db.models import LabSession, Subject
 from services.core.db.session import make_engine, make_session_factory
 
@@ -32,7 +37,7 @@ def test_0002_upgrades_to_0003_keeping_rows_and_downgrades(tmp_path: Path) -> No
                 )
             )  # fmt: skip
         upgrade_database(url)
-        assert current_revision(engine) == "0003"
+        assert current_revision(engine) == head_revision()
         with sessions() as db:
             lab = db.get(LabSession, 1)
             assert lab is not None and (lab.kind, lab.status) == ("online", "scheduled")

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from services.api.schemas.jobs import HF_METHOD_NAMES
 from services.core.db.models import Classifier, Job
 from services.core.db.session import make_engine, make_session_factory
 from services.core.platform import PlatformSettings
@@ -295,6 +296,46 @@ def test_cancel_and_retry_from_the_list(context: tuple, server: Server) -> None:
     row.get_by_role("button", name="Cancel").click()  # and stop it again
     row.locator(".badge", has_text="cancelled").wait_for(timeout=30_000)
     assert server.call("GET", f"/api/v1/jobs/{job['id']}")["status"] == "cancelled"
+    assert watch.console_errors == []
+
+
+def test_job_form_sends_the_stage2_method_and_the_preset(context: tuple, server: Server) -> None:
+    ctx, watch = context
+    page = open_as(ctx, server, "staff", "/jobs")
+    form = page.locator("#job-form")
+    hf_method = form.locator("select[name=hf_method]")
+    form.locator("select[name=method]").select_option("rl_sparse")
+    assert hf_method.is_hidden()
+    form.locator("select[name=method]").select_option("hf_sparse")
+    options = hf_method.locator("option").evaluate_all("os => os.map((o) => o.value)")
+    assert options == ["", *HF_METHOD_NAMES]  # "": the recommended method
+    hf_method.select_option("noise_aware")
+    form.locator("input[name=seed]").fill("5")
+    form.locator("input[name=total_steps]").fill("256")
+    form.locator("input[name=n_labels]").fill("50")
+    form.get_by_role("button", name="Submit job").click()
+    page.get_by_text(re.compile(r"^Job \w{8} submitted\.$")).wait_for()
+    jobs = server.call("GET", "/api/v1/jobs", params={"kind": "guided_ppo"})["items"]
+    (job,) = [j for j in jobs if j["config"].get("hf_method")]
+    server.call("POST", f"/api/v1/jobs/{job['id']}/cancel")
+    assert job["config"] == {
+        "task": "sssg", "method": "hf_sparse", "accuracy": 0.7, "seed": 5, "total_steps": 256,
+        "hf_treatment": "authors", "ppo": {}, "n_labels": 50, "hf_method": "noise_aware",
+    }  # fmt: skip
+
+    page.reload()
+    form.locator("select[name=kind]").select_option("reproduce")
+    form.locator("input[name=seeds]").fill("1")
+    form.locator("input[value=vssg]").uncheck()
+    form.locator("input[value=rl_rich]").uncheck()
+    form.locator("input[value=hf_sparse]").uncheck()
+    form.locator("input[name=total_steps]").fill("256")
+    form.locator("select[name=preset]").select_option("platform")
+    form.get_by_role("button", name="Submit job").click()
+    page.get_by_text(re.compile(r"^Job \w{8} submitted\.$")).wait_for()
+    (sweep,) = server.call("GET", "/api/v1/jobs", params={"kind": "reproduce"})["items"]
+    server.call("POST", f"/api/v1/jobs/{sweep['id']}/cancel")
+    assert (sweep["config"]["preset"], sweep["config"]["methods"]) == ("platform", ["rl_sparse"])
     assert watch.console_errors == []
 
 

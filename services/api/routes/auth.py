@@ -12,6 +12,7 @@ from sqlalchemy import select
 
 from services.api.deps import DbDep, LimiterDep, SettingsDep
 from services.api.errors import TooManyRequestsError, UnauthorizedError
+from services.api.ratelimit import limit_key
 from services.api.schemas.auth import AccessToken
 from services.api.security import create_access_token, verify_nobody, verify_password
 from services.core.db.base import utcnow
@@ -38,8 +39,8 @@ def login(
     """Exchange e-mail (``username``) and password for a bearer access token."""
     email = form.username.strip().lower()
     client = request.client.host if request.client else "?"
-    key = f"{client}|{email}"
-    wait = limiter.retry_after(key)
+    key = limit_key(client, email)
+    wait = limiter.begin(db, key)
     if wait:
         raise TooManyRequestsError(
             f"too many failed logins; try again in {wait} s", retry_after_s=wait, field="username"
@@ -50,12 +51,11 @@ def login(
     else:
         valid = verify_password(user.password_hash, form.password)
     if user is None or not valid or not user.active:
-        limiter.failed(key)
         log.info("failed login for %s from %s", email, client)
         raise UnauthorizedError(
             "wrong e-mail or password, or account deactivated", field="password"
         )
-    limiter.succeeded(key)
+    limiter.succeeded(db, key)
     user.last_login_at = utcnow()
     db.commit()
     token, expires = create_access_token(

@@ -1,8 +1,11 @@
 """Schemas of jobs and of each kind's ``config`` (checked before a job is queued).
 
-The learner cannot be imported here (the api stays free of torch), so the PPO settings a
-job may override are listed below with their types and bounds; they are the fields of
-``services.learner.ppo.PPOConfig`` that ``bgrl reproduce --ppo`` accepts.
+The learner cannot be imported here (the api stays free of torch), so what a job config
+takes from it is listed below: the PPO settings a job may override with their types and
+bounds (the fields of ``services.learner.ppo.PPOConfig`` that ``bgrl reproduce --ppo``
+accepts), the stage-2 methods (``services.learner.hf_methods.HF_METHODS``) and the presets
+of ``bgrl reproduce --preset`` (``services.learner.specs.PRESETS``). Tests check that each
+list equals the learner's.
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from services.api.schemas.common import MAX_ROW_ID, PublicModel
 from services.core.db.models import JOB_STATUSES
@@ -24,6 +27,14 @@ assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined
 Task = Literal["sssg", "vssg"]
 Method = Literal["rl_sparse", "rl_rich", "rl_shaped", "hf_sparse"]
 Treatment = Literal["authors", "truncated_is"]
+HFMethodName = Literal[
+    "paper", "noise_aware", "categorical", "thompson", "categorical_thompson", "categorical_info"
+]
+"""Stage-2 methods that learn pi_HF (docs/stage2.md); the learner's ``HF_METHODS``."""
+HF_METHOD_NAMES: tuple[str, ...] = HFMethodName.__args__  # type: ignore[attr-defined]
+Preset = Literal["paper", "platform"]
+"""Settings of a reproduction (``bgrl reproduce --preset``); the learner's ``PRESETS``."""
+PRESETS: tuple[str, ...] = Preset.__args__  # type: ignore[attr-defined]
 MAX_TOTAL_STEPS = 2_000_000
 MAX_REPRODUCE_RUNS = 2000
 PPO_DEFAULT_N_STEPS = 128
@@ -109,11 +120,29 @@ class GuidedPPOConfig(StrictRequest):
     n_labels: int = Field(
         1000, ge=1, le=1_000_000, description="Feedback labels pi_HF is trained on (hf_sparse)."
     )
+    hf_method: HFMethodName | None = Field(
+        None,
+        description="Stage-2 method that learns pi_HF (hf_sparse; docs/stage2.md); default "
+        "the platform's recommended one, 'paper' the paper's Fhat.",
+    )
     checkpoint_every: int | None = Field(
         None, ge=1, le=100_000, description="PPO updates between checkpoints (worker default)."
     )
 
     _lower_task = field_validator("task", mode="before")(_task)
+
+    @field_validator("hf_method")
+    @classmethod
+    def _hf_method_for_hf_sparse(cls, value: str | None, info: ValidationInfo) -> str | None:
+        method = info.data.get("method")
+        if value is not None and method is not None and method != "hf_sparse":
+            raise ValueError(f"hf_method applies to hf_sparse only, not {method}")
+        if value is not None and info.data.get("hf_model_id") is not None:
+            raise ValueError(
+                "hf_method does not apply with hf_model_id: the stored pi_HF was learned "
+                "with its own method"
+            )
+        return value
 
     @model_validator(mode="after")
     def _consistent(self) -> GuidedPPOConfig:
@@ -131,7 +160,9 @@ class GuidedPPOConfig(StrictRequest):
 class ReproduceConfig(StrictRequest):
     """A reproduction of Fig. 3 (``bgrl reproduce`` options): one run per worker task.
 
-    ``--map`` is not offered: workers run every job on the sim's default map.
+    Not offered: ``--out`` (the results are the job's artifacts), ``--workers`` (the runs
+    are spread over the Celery workers) and ``--map`` (a path on the api's host; workers run
+    every job on the sim's default map).
     """
 
     quick: bool = Field(False, description="2 seeds (unless seeds is given).")
@@ -144,6 +175,12 @@ class ReproduceConfig(StrictRequest):
     accuracies: list[float] = Field(default_factory=lambda: [0.55, 0.6, 0.7], min_length=1)
     treatments: list[Treatment] = Field(default_factory=lambda: ["authors"], min_length=1)
     ppo: PPOOverrides = Field(default_factory=PPOOverrides)
+    preset: Preset = Field(
+        "paper",
+        description="paper: the paper's settings; platform: the recommended ones (treatments "
+        "['authors'] become ['truncated_is'], ppo.hf_guide_sampling true unless given, pi_HF "
+        "learned with the recommended stage-2 method).",
+    )
     checkpoint_every: int | None = Field(
         None, ge=1, le=100_000, description="PPO updates between checkpoints of each run."
     )

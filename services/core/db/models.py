@@ -86,6 +86,22 @@ class ApiToken(Base):
     last_used_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 
 
+class LoginAttempt(Base):
+    """A sign-in attempt counted against the failed-login limit (``login_attempts``).
+
+    One row per attempt of a key (the SHA-256 of client address and account), written before
+    the password is checked and deleted when the sign-in succeeds, so the rows of a key
+    within the window are its failures. Shared by every api process using the database.
+    """
+
+    __tablename__ = "login_attempts"
+    __table_args__ = (Index("ix_login_attempts_key_at", "key", "at"),)
+
+    id: Mapped[int] = mapped_column(BigIntId, primary_key=True)
+    key: Mapped[str] = mapped_column(String(64))
+    at: Mapped[datetime] = mapped_column(UtcDateTime, index=True)
+
+
 class AuditEntry(Base):
     """Who did what to which resource, and when (``audit_log``)."""
 

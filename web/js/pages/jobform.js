@@ -12,6 +12,16 @@ export const LIMITS = {
   defaultMinibatch: 64,
 };
 
+/** Stage-2 methods that learn pi_HF (docs/stage2.md); the API's HF_METHOD_NAMES. */
+export const HF_METHODS = [
+  ["paper", "paper (the paper's Fhat)"],
+  ["noise_aware", "noise_aware"],
+  ["categorical", "categorical"],
+  ["thompson", "thompson"],
+  ["categorical_thompson", "categorical_thompson"],
+  ["categorical_info", "categorical_info"],
+];
+
 function intIn(value, min, max, name) {
   if (value === "") return null;
   const n = Number(value);
@@ -84,6 +94,8 @@ function guidedForm(hfModels) {
   const accuracy = h("input", { type: "number", name: "accuracy", min: 0, max: 1, step: 0.01, value: "0.7" });
   const hfModel = h("select", { name: "hf_model_id" }, h("option", { value: "" }, "Train one from simulated feedback"),
     hfModels.map((m) => h("option", { value: m.id }, `${m.name} (${m.task.toUpperCase()})`)));
+  const hfMethod = h("select", { name: "hf_method" }, h("option", { value: "" }, "Recommended (default)"),
+    HF_METHODS.map(([v, l]) => h("option", { value: v }, l)));
   const nLabels = numberInput("n_labels", { min: 1, max: 1_000_000, value: "1000" });
   const seed = numberInput("seed", { min: 0, max: LIMITS.maxSeed, value: "0" });
   const totalSteps = numberInput("total_steps", { min: 1, max: LIMITS.maxTotalSteps, value: "40000", step: 1 });
@@ -93,6 +105,7 @@ function guidedForm(hfModels) {
     method: field("Method", method),
     accuracy: field("Feedback accuracy C", accuracy, "0 to 1; the simulated feedback's accuracy."),
     hf_model_id: field("Human-feedback policy", hfModel),
+    hf_method: field("Stage-2 method", hfMethod, "How pi_HF is learned from the labels (docs/stage2.md)."),
     n_labels: field("Feedback labels", nLabels, "1 to 1,000,000"),
     seed: field("Seed", seed),
     total_steps: field("Total steps", totalSteps, `1 to ${LIMITS.maxTotalSteps.toLocaleString("en")}`),
@@ -103,6 +116,8 @@ function guidedForm(hfModels) {
     fields,
     update() {
       for (const f of hfOnly) f.hidden = method.value !== "hf_sparse";
+      // a stored pi_HF was learned with its own method
+      fields.hf_method.hidden = method.value !== "hf_sparse" || hfModel.value !== "";
     },
     errors() {
       const total = Number(totalSteps.value);
@@ -125,6 +140,7 @@ function guidedForm(hfModels) {
       if (method.value === "hf_sparse") {
         if (accuracy.value !== "") config.accuracy = Number(accuracy.value);
         if (hfModel.value) config.hf_model_id = Number(hfModel.value);
+        else if (hfMethod.value) config.hf_method = hfMethod.value;
         config.n_labels = Number(nLabels.value);
       }
       const overrides = ppo.values();
@@ -144,6 +160,8 @@ function reproduceForm() {
   const accuracies = h("input", { name: "accuracies", value: "0.55, 0.6, 0.7" });
   const treatments = checkboxes("HF treatments", [["authors", "authors"], ["truncated_is", "truncated IS"]], ["authors"]);
   const totalSteps = numberInput("total_steps", { min: 1, max: LIMITS.maxTotalSteps, value: "40000" });
+  const preset = h("select", { name: "preset" }, h("option", { value: "paper" }, "paper: the paper's settings"),
+    h("option", { value: "platform" }, "platform: the recommended ones"));
   const ppo = ppoFields();
   const runs = h("p", { class: "hint", "aria-live": "polite" });
   const fields = {
@@ -154,6 +172,8 @@ function reproduceForm() {
     methods: h("div", { class: "field" }, methods),
     accuracies: field("Accuracies C", accuracies, "Comma-separated, each 0 to 1 (HF runs)."),
     treatments: h("div", { class: "field" }, treatments),
+    preset: field("Preset", preset,
+      "platform: HF steps truncated IS instead of authors, guide sampling, the recommended stage-2 method."),
     total_steps: field("Steps per run", totalSteps),
     ...ppo.fields,
   };
@@ -197,6 +217,7 @@ function reproduceForm() {
         methods: checked(methods),
         accuracies: parseAccuracies(),
         treatments: checked(treatments),
+        preset: preset.value,
         ppo: { total_steps: Number(totalSteps.value), ...ppo.values() },
       };
       if (seeds.value !== "") config.seeds = Number(seeds.value);

@@ -1,0 +1,36 @@
+"""The api's copies of the learner's lists (it cannot import the learner) equal the learner's."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import get_args
+
+from services.api.schemas.jobs import (
+    HF_METHOD_NAMES,
+    PRESETS,
+    Method,
+    PPOOverrides,
+    Task,
+    Treatment,
+)
+from services.learner.hf_methods import HF_METHODS
+from services.learner.ppo import PPOConfig
+from services.learner.specs import METHODS, RUN_FIXED_PPO_FIELDS, TASK_ENV_IDS, TREATMENTS
+from services.learner.specs import PRESETS as LEARNER_PRESETS
+
+
+def test_stage2_methods_are_the_learners() -> None:
+    assert set(HF_METHOD_NAMES) == set(HF_METHODS)
+    assert len(HF_METHOD_NAMES) == len(HF_METHODS)
+
+
+def test_presets_methods_tasks_and_treatments_are_the_learners() -> None:
+    assert PRESETS == LEARNER_PRESETS
+    assert get_args(Method) == METHODS
+    assert set(get_args(Task)) == set(TASK_ENV_IDS)
+    assert get_args(Treatment) == TREATMENTS
+
+
+def test_ppo_overrides_are_the_settings_a_run_may_change() -> None:
+    settings = {f.name for f in dataclasses.fields(PPOConfig)} - RUN_FIXED_PPO_FIELDS
+    assert set(PPOOverrides.model_fields) == settings

@@ -1,0 +1,61 @@
+"""The stage-2 method of a ``guided_ppo`` job (``hf_method``) and the preset of a
+``reproduce`` job run through a real ``bgrl worker`` on the embedded platform."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from sqlalchemy import select
+
+from services.core.db.models import Artifact, Job
+from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
+from tests.worker.conftest import TINY_PPO, Platform
+
+pytestmark = pytest.mark.slow
+
+HF_JOB = {
+    "task": "SSSG", "method": "hf_sparse", "accuracy": 0.7, "seed": 1, "n_labels": 200,
+    "total_steps": 256, "ppo": TINY_PPO,
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def worker(fs_platform: Platform):
+    return fs_platform.start_worker("methods")
+
+
+@pytest.mark.parametrize(
+    ("asked", "used"),
+    [("noise_aware", "noise_aware"), (PAPER_METHOD, PAPER_METHOD), (None, RECOMMENDED_METHOD)],
+)
+def test_guided_ppo_learns_pi_hf_with_the_method_asked_for(
+    fs_platform: Platform, worker, asked: str | None, used: str
+) -> None:
+    config = HF_JOB if asked is None else {**HF_JOB, "hf_method": asked}
+    job = fs_platform.wait(fs_platform.submit("guided_ppo", config), {"succeeded", "failed"}, 120)
+    assert job.status == "succeeded", job.error
+    assert job.result["spec"]["hf_method"] == used
+
+
+def test_reproduce_with_the_platform_preset(fs_platform: Platform, worker) -> None:
+    config = {
+        "seeds": 1, "tasks": ["sssg"], "methods": ["rl_sparse", "hf_sparse"],
+        "accuracies": [0.7], "preset": "platform", "ppo": {**TINY_PPO, "total_steps": 256},
+    }  # fmt: skip
+    job_id = fs_platform.submit("reproduce", config)
+    job = fs_platform.wait(job_id, {"succeeded", "failed"}, timeout=240)
+    assert job.status == "succeeded", job.error
+    with fs_platform.sessions() as session:
+        children = session.scalars(select(Job).where(Job.parent_id == job_id)).all()
+        results = session.get(Artifact, job.result["artifacts"]["results.json"])
+    specs = {child.config["method"]: child.config for child in children}
+    assert set(specs) == {"rl_sparse", "hf_sparse"}
+    # what `bgrl reproduce --preset platform` runs: truncated_is, guide sampling, the method
+    hf = specs["hf_sparse"]
+    assert (hf["hf_treatment"], hf["hf_method"]) == ("truncated_is", RECOMMENDED_METHOD)
+    assert hf["ppo_overrides"]["hf_guide_sampling"] is True
+    assert specs["rl_sparse"]["hf_method"] is None
+    data = json.loads((fs_platform.settings.resolved_artifact_dir / results.relpath).read_text())
+    by_method = {run["method"]: run["spec"] for run in data["runs"]}
+    assert by_method["hf_sparse"]["hf_method"] == RECOMMENDED_METHOD
