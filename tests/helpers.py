@@ -22,9 +22,11 @@ import pytest
 
 from services.cli.serve import SERVICES
 
-SERVICE_APPS = {spec.name: spec.asgi_app for spec in SERVICES if spec.name != "api"}
-"""The internal services' ASGI apps (sim, eeg, learner) as ``bgrl up`` starts them with
+ASGI_APPS = {spec.name: spec.asgi_app for spec in SERVICES}
+"""Every HTTP service's ASGI app (api, sim, eeg, learner), as ``bgrl up`` starts it with
 uvicorn."""
+INTERNAL_SERVICES = ("sim", "eeg", "learner")
+"""The services behind the api (loopback only, the internal token)."""
 
 
 def free_port() -> int:
@@ -79,25 +81,29 @@ def serve_in_thread(app: Any, start_timeout_s: float = 60.0) -> Iterator[str]:
 def start_service(
     name: str, port: int, *, env: dict[str, str], cwd: Path, log: Path
 ) -> subprocess.Popen[bytes]:
-    """The service ``name`` (a key of ``SERVICE_APPS``) as a uvicorn process on
+    """The service ``name`` (a key of ``ASGI_APPS``) as a uvicorn process on
     127.0.0.1:``port`` with exactly ``env``; its output appended to ``log``."""
     return subprocess.Popen(
-        [sys.executable, "-m", "uvicorn", SERVICE_APPS[name], "--host", "127.0.0.1",
+        [sys.executable, "-m", "uvicorn", ASGI_APPS[name], "--host", "127.0.0.1",
          "--port", str(port)],
         env=env, cwd=cwd, stdout=log.open("ab"), stderr=subprocess.STDOUT,
     )  # fmt: skip
 
 
 def wait_healthy(
-    url: str, proc: subprocess.Popen[bytes], log: Path, timeout_s: float = 120.0
+    url: str,
+    proc: subprocess.Popen[bytes],
+    log: Path,
+    timeout_s: float = 120.0,
+    path: str = "/health",
 ) -> None:
-    """Poll ``url/health`` until it answers 2xx; fail with the end of ``log`` if ``proc``
+    """Poll ``url`` + ``path`` until it answers 2xx; fail with the end of ``log`` if ``proc``
     (the process serving it) exits or ``timeout_s`` passes (torch and mne imports take long
     on a loaded machine)."""
     deadline = time.monotonic() + timeout_s
     while True:
         try:
-            if httpx.get(url + "/health", timeout=2).is_success:
+            if httpx.get(url + path, timeout=2).is_success:
                 return
         except httpx.HTTPError:
             pass

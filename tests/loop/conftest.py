@@ -25,7 +25,7 @@ from services.sim.settings import SimSettings
 from services.worker.runtime import Runtime
 from services.worker.settings import WorkerSettings
 from tests.helpers import (
-    SERVICE_APPS,
+    INTERNAL_SERVICES,
     env_without_bgrl,
     free_port,
     start_service,
@@ -42,7 +42,7 @@ class LoopPlatform:
     def __init__(self, root: Path) -> None:
         self.root = root
         self.data_dir = root / "data"
-        self.ports = {name: free_port() for name in SERVICE_APPS}
+        self.ports = {name: free_port() for name in INTERNAL_SERVICES}
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.env = {
             **env_without_bgrl(),
@@ -125,9 +125,9 @@ def loop(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopPlatform]:
     saved_env = dict(os.environ)  # the platform sets BGRL_* for its in-process runtime
     platform = LoopPlatform(tmp_path_factory.mktemp("loop"))
     try:
-        for name in SERVICE_APPS:
+        for name in INTERNAL_SERVICES:
             platform.start(name)
-        for name in SERVICE_APPS:
+        for name in INTERNAL_SERVICES:
             platform.wait_healthy(name)
         yield platform
     finally:
