@@ -2,29 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.core.actions import Action
 from services.core.markers import ActionMarker
-from services.core.schemas import FiniteModel, StrictRequest
+from services.core.schemas import ActionValue, FiniteModel, Seed, StrictRequest
 from services.sim.sessions import FrameView, PacedPolicy
 
 Observation = list[float | None]
-ActionValue = Annotated[
-    int,
-    Field(
-        strict=True,  # JSON integers only: no "1", true or 1.0
-        ge=min(Action),
-        le=max(Action),
-        description="0 forward 0.3 m, 1 turn left 30 deg, 2 turn right 30 deg.",
-    ),
-]
-
-Seed = Annotated[
-    int, Field(strict=True, ge=0, le=2**63 - 1, description="A JSON integer in [0, 2^63).")
-]
 
 
 class SessionCreate(StrictRequest):

@@ -9,13 +9,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from argon2 import PasswordHasher
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
-from services.api import security
 from services.api.app import create_app
 from services.api.settings import ApiSettings
+from tests.helpers import fast_password_hashing
 
 PG_ADMIN_URLS = (
     "postgresql+psycopg://postgres@127.0.0.1:5432/test",
@@ -44,10 +43,7 @@ _PG_URL = _postgres_admin_url()
 
 @pytest.fixture(autouse=True)
 def _fast_password_hashing(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Argon2 with minimal cost: the tests check the flow, not the hash's strength."""
-    monkeypatch.setattr(
-        security, "_hasher", PasswordHasher(time_cost=1, memory_cost=64, parallelism=1)
-    )
+    fast_password_hashing(monkeypatch)
 
 
 PG_SKIP_REASON = "no PostgreSQL at 127.0.0.1:5432 (database 'test', user postgres or root)"

@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import logging
-import os
-import socket
 import stat
 import subprocess
-import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -20,6 +16,7 @@ from sqlalchemy import func, select
 from services.api.app import create_app
 from services.core.db.models import LoginAttempt
 from tests.api.conftest import ADMIN_EMAIL, ADMIN_PASSWORD, PASSWORD, Api, login, make_settings
+from tests.helpers import env_without_bgrl, free_port, start_service, stop_processes, wait_healthy
 
 
 def _token_form(email: str, password: str) -> dict[str, str]:
@@ -95,7 +92,7 @@ def test_two_api_instances_on_one_database_share_the_limit(tmp_path: Path, any_d
 def test_two_uvicorn_processes_share_the_limit(tmp_path: Path, any_db_url: str) -> None:
     """Two api processes (replicas on two hosts, or ``BGRL_API_WORKERS``) on one database."""
     env = {
-        **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
+        **env_without_bgrl(),
         "BGRL_DATA_DIR": str(tmp_path / "data"),
         "BGRL_DATABASE_URL": any_db_url,
         "BGRL_ADMIN_EMAIL": ADMIN_EMAIL,
@@ -107,26 +104,11 @@ def test_two_uvicorn_processes_share_the_limit(tmp_path: Path, any_db_url: str) 
     processes: list[subprocess.Popen[bytes]] = []
     urls = []
     try:
-        for _ in range(2):  # one after the other: the first migrates and creates the admin
-            with socket.socket() as sock:
-                sock.bind(("127.0.0.1", 0))
-                port = sock.getsockname()[1]
-            command = [
-                sys.executable, "-m", "uvicorn", "services.api.app:app",
-                "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
-            ]  # fmt: skip
-            processes.append(subprocess.Popen(command, env=env))
+        for i in range(2):  # one after the other: the first migrates and creates the admin
+            port, log = free_port(), tmp_path / f"api-{i}.log"
+            processes.append(start_service("api", port, env=env, cwd=tmp_path, log=log))
             urls.append(f"http://127.0.0.1:{port}")
-            deadline = time.monotonic() + 120
-            while True:
-                assert processes[-1].poll() is None, "the api process exited"
-                assert time.monotonic() < deadline, "the api process did not start"
-                try:
-                    if httpx.get(f"{urls[-1]}/readyz", timeout=2).status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.2)
+            wait_healthy(urls[-1], processes[-1], log, path="/readyz")
 
         def status(url: str, password: str) -> int:
             form = _token_form(ADMIN_EMAIL, password)
@@ -136,14 +118,7 @@ def test_two_uvicorn_processes_share_the_limit(tmp_path: Path, any_db_url: str) 
         assert [status(one, "nope"), status(two, "nope"), status(one, "nope")] == [401] * 3
         assert [status(two, ADMIN_PASSWORD), status(one, ADMIN_PASSWORD)] == [429, 429]
     finally:
-        for process in processes:
-            process.terminate()
-        for process in processes:
-            try:
-                process.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        stop_processes(processes)
 
 
 def test_concurrent_failures_on_two_instances_are_counted_once_each(

@@ -2,18 +2,15 @@
 
 from __future__ import annotations
 
-import asyncio
 import hashlib
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import uvicorn
 
 from services.core.db.models import Artifact, Recording
 from tests.api.conftest import Api, make_settings, start_api
+from tests.helpers import serve_in_thread
 
 
 @pytest.fixture(scope="module")
@@ -35,19 +32,8 @@ def eeg_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     from services.eeg.settings import EEGSettings
 
     settings = EEGSettings(data_dir=tmp_path_factory.mktemp("eeg"), max_upload_bytes=4 * 2**20)
-    server = uvicorn.Server(
-        uvicorn.Config(create_eeg_app(settings), host="127.0.0.1", port=0, log_level="warning")
-    )
-    thread = threading.Thread(target=lambda: asyncio.run(server.serve()), daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert time.monotonic() < deadline, "EEG service did not start"
-        time.sleep(0.05)
-    port = server.servers[0].sockets[0].getsockname()[1]
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(timeout=10)
+    with serve_in_thread(create_eeg_app(settings)) as url:
+        yield url
 
 
 @pytest.fixture

@@ -12,16 +12,14 @@ from pathlib import Path
 
 import pytest
 import schemathesis
-from argon2 import PasswordHasher
 from hypothesis import HealthCheck, given, settings
 from sqlalchemy import update
 
-from services.api import security
 from services.api.app import create_app
-from services.api.settings import ApiSettings
 from services.client import PlatformClient
 from services.core.db.models import User
-from tests.client.conftest import ADMIN_EMAIL, ADMIN_PASSWORD, serve
+from tests.api.conftest import ADMIN_EMAIL, ADMIN_PASSWORD, make_settings
+from tests.helpers import serve_in_thread
 
 EXAMPLES = 8
 MIN_OPERATIONS_SUCCEEDED = 25
@@ -31,22 +29,10 @@ MIN_OPERATIONS_SUCCEEDED = 25
 
 
 @pytest.mark.slow
-def test_no_5xx_for_generated_requests(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(
-        security, "_hasher", PasswordHasher(time_cost=1, memory_cost=64, parallelism=1)
-    )
-    app = create_app(
-        ApiSettings(
-            data_dir=tmp_path / "data",
-            database_url=f"sqlite:///{tmp_path / 'bgrl.db'}",
-            broker_url=None,
-            admin_email=ADMIN_EMAIL,
-            admin_password=ADMIN_PASSWORD,
-            eeg_url=None,
-            max_upload_bytes=64 * 1024,
-        )
-    )
-    with serve(app) as url:
+def test_no_5xx_for_generated_requests(tmp_path: Path) -> None:
+    # password hashing at minimal cost: tests/api/conftest.py's autouse fixture
+    app = create_app(make_settings(tmp_path / "data", f"sqlite:///{tmp_path / 'bgrl.db'}"))
+    with serve_in_thread(app) as url:
         with PlatformClient(url) as admin:
             admin.login(ADMIN_EMAIL, ADMIN_PASSWORD)
             token = admin.token

@@ -2,25 +2,19 @@
 
 from __future__ import annotations
 
-import socket
-import threading
-import time
 from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
 import pytest
-import uvicorn
-from argon2 import PasswordHasher
 from fastapi import FastAPI
 
-from services.api import security
 from services.api.app import create_app
 from services.api.settings import ApiSettings
 from services.client import PlatformClient
 from services.core.db.models import Artifact, Job
+from tests.helpers import fast_password_hashing, serve_in_thread
 
 ADMIN_EMAIL = "admin@lab.test"
 ADMIN_PASSWORD = "admin-password-123"
@@ -69,8 +63,7 @@ class LiveApi:
 def live_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveApi]:
     """The api on 127.0.0.1 (a free port) with an admin, a staff and a viewer account."""
     patch = pytest.MonkeyPatch()
-    # Argon2 at minimal cost: these tests check the flow, not the hash's strength.
-    patch.setattr(security, "_hasher", PasswordHasher(time_cost=1, memory_cost=64, parallelism=1))
+    fast_password_hashing(patch)
     root = tmp_path_factory.mktemp("live-api")
     settings = ApiSettings(
         data_dir=root / "data",
@@ -82,7 +75,7 @@ def live_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveApi]:
     )
     app = create_app(settings)
     try:
-        with serve(app) as url:
+        with serve_in_thread(app) as url:
             live = LiveApi(url=url, app=app, settings=settings)
             add_accounts(live)
             yield live
@@ -101,27 +94,6 @@ def add_accounts(live: LiveApi) -> None:
                 headers={"Authorization": f"Bearer {admin.token}"},
             )
             assert response.status_code == 201, response.text
-
-
-@contextmanager
-def serve(app: FastAPI) -> Iterator[str]:
-    """Serve ``app`` with uvicorn on 127.0.0.1 (a free port) in a thread; yields its URL."""
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    try:
-        while not server.started:
-            assert thread.is_alive() and time.monotonic() < deadline, "api did not start"
-            time.sleep(0.02)
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(timeout=10)
-        sock.close()
 
 
 @pytest.fixture

@@ -10,19 +10,16 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-import torch
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from services.core.markers import ActionMarker
 from services.eeg import lsl
 from services.eeg.app import create_app
-from services.eeg.classifier import ErrPClassifier
-from services.eeg.eegnet import EEGNet
 from services.eeg.live import LiveIngest
-from services.eeg.preprocessing import PreprocessingParams
 from services.eeg.settings import EEGSettings
 from services.eeg.virtual_subject import STIM_CHANNEL
+from tests.eeg.test_virtual_source import save_untrained_classifier
 
 SFREQ = 512.0
 EEG = ["FCz", "Cz", "Pz"]
@@ -31,20 +28,11 @@ CLASSIFIER = "plumbing"
 MARKER = {"session_id": "s", "step": 0, "episode": 0, "action": 0, "timestamp": 0.0}
 
 
-def _save_untrained_classifier(client: TestClient, ch_names: list[str], classifier_id: str):
-    """An (untrained) classifier stored as the service stores them; enough for plumbing."""
-    torch.manual_seed(0)
-    params = PreprocessingParams()
-    model = EEGNet(len(ch_names), 2, params.n_times_epoch)
-    clf = ErrPClassifier(model, params, ch_names, SFREQ, 1e5, {"test_accuracy": 0.5})
-    clf.save(client.app.state.service.classifiers.folder / classifier_id)
-
-
 @pytest.fixture
 def client(tmp_path):
     settings = EEGSettings(data_dir=tmp_path, epoch_wait_s=0.5)
     with TestClient(create_app(settings)) as c:
-        _save_untrained_classifier(c, EEG, CLASSIFIER)
+        save_untrained_classifier(c, EEG, CLASSIFIER, SFREQ)
         yield c
 
 
@@ -375,7 +363,7 @@ def test_live_lsl_source_classifies_markers(client):
         pytest.skip(f"liblsl cannot run here: {exc}")
     labels = [True, False, True, False, True]
     raw = simulate_recording(labels, quality=1.0, seed=2, sfreq=SFREQ, lead_in_s=2.5)
-    _save_untrained_classifier(client, raw.ch_names[:-1], "full")
+    save_untrained_classifier(client, raw.ch_names[:-1], "full", SFREQ)
     name = f"bgrl-app-{time.monotonic_ns()}"
     settings = client.app.state.service.settings
     settings.lsl_timeout_s = 0.5

@@ -57,12 +57,15 @@ class AsgiConnection:
         self._session.close()
 
 
-def save_untrained_classifier(client: TestClient, ch_names: list[str], classifier_id: str) -> None:
-    """An untrained classifier stored as the service stores them (enough for plumbing)."""
+def save_untrained_classifier(
+    client: TestClient, ch_names: list[str], classifier_id: str, sfreq: float = SFREQ
+) -> None:
+    """An untrained classifier of ``sfreq`` input stored as the service stores them (enough
+    for plumbing)."""
     torch.manual_seed(0)
     params = PreprocessingParams()
     model = EEGNet(len(ch_names), 2, params.n_times_epoch)
-    clf = ErrPClassifier(model, params, ch_names, SFREQ, 1e5, {"test_accuracy": 0.5})
+    clf = ErrPClassifier(model, params, ch_names, sfreq, 1e5, {"test_accuracy": 0.5})
     clf.save(client.app.state.service.classifiers.folder / classifier_id)
 
 

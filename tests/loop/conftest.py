@@ -6,16 +6,12 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 from services.core.db.base import utcnow
@@ -28,19 +24,16 @@ from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
 from services.worker.runtime import Runtime
 from services.worker.settings import WorkerSettings
+from tests.helpers import (
+    INTERNAL_SERVICES,
+    env_without_bgrl,
+    free_port,
+    start_service,
+    stop_processes,
+    wait_healthy,
+)
 
 TOKEN = "loop-test-token-0123456789"
-APPS = {
-    "sim": "services.sim.app:app",
-    "eeg": "services.eeg.app:app",
-    "learner": "services.learner.service.app:app",
-}
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 class LoopPlatform:
@@ -49,10 +42,10 @@ class LoopPlatform:
     def __init__(self, root: Path) -> None:
         self.root = root
         self.data_dir = root / "data"
-        self.ports = {name: free_port() for name in APPS}
+        self.ports = {name: free_port() for name in INTERNAL_SERVICES}
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.env = {
-            **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
+            **env_without_bgrl(),
             "BGRL_DATA_DIR": str(self.data_dir),
             "BGRL_SERVICE_TOKEN": TOKEN,
             "BGRL_LOG_LEVEL": "WARNING",
@@ -74,23 +67,12 @@ class LoopPlatform:
         return f"http://127.0.0.1:{self.ports[name]}"
 
     def start(self, name: str) -> None:
-        log = (self.root / f"{name}.log").open("ab")
-        self.procs[name] = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", APPS[name], "--host", "127.0.0.1",
-             "--port", str(self.ports[name])],
-            env=self.env, stdout=log, stderr=subprocess.STDOUT, cwd=self.root,
-        )  # fmt: skip
+        self.procs[name] = start_service(
+            name, self.ports[name], env=self.env, cwd=self.root, log=self.root / f"{name}.log"
+        )
 
     def wait_healthy(self, name: str, timeout: float = 90.0) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                if httpx.get(self.url(name) + "/health", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        raise AssertionError(f"{name} did not start: {(self.root / f'{name}.log').read_text()}")
+        wait_healthy(self.url(name), self.procs[name], self.root / f"{name}.log", timeout)
 
     def kill(self, name: str) -> None:
         proc = self.procs.pop(name)
@@ -98,13 +80,7 @@ class LoopPlatform:
         proc.wait()
 
     def close(self) -> None:
-        for proc in self.procs.values():
-            proc.send_signal(signal.SIGTERM)
-        for proc in self.procs.values():
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        stop_processes(self.procs.values(), timeout_s=10)
         self.runtime.engine.dispose()
 
     # ------------------------------------------------------------- rows
@@ -149,9 +125,9 @@ def loop(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopPlatform]:
     saved_env = dict(os.environ)  # the platform sets BGRL_* for its in-process runtime
     platform = LoopPlatform(tmp_path_factory.mktemp("loop"))
     try:
-        for name in APPS:
+        for name in INTERNAL_SERVICES:
             platform.start(name)
-        for name in APPS:
+        for name in INTERNAL_SERVICES:
             platform.wait_healthy(name)
         yield platform
     finally:

@@ -12,12 +12,8 @@ from __future__ import annotations
 
 import os
 import re
-import signal
-import socket
 import subprocess
 import sys
-import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -27,6 +23,16 @@ from urllib.parse import urlsplit
 
 import httpx
 import pytest
+
+from tests.helpers import (
+    env_without_bgrl,
+    fast_password_hashing,
+    free_port,
+    serve_in_thread,
+    start_service,
+    stop_processes,
+    wait_healthy,
+)
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -55,22 +61,6 @@ def _skip_reason() -> str | None:
     if not CHROMIUM.exists():
         return "no /usr/bin/chromium: apt-get install -y chromium (.ci/run does)"
     return None
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 @dataclass
@@ -109,45 +99,25 @@ class Server:
         )
 
 
-SERVICE_APPS = {
-    "sim": "services.sim.app:app",
-    "eeg": "services.eeg.app:app",
-    "learner": "services.learner.service.app:app",
-}
-
-
 @contextmanager
 def run_services(
     root: Path, env: dict[str, str], names: tuple[str, ...]
 ) -> Iterator[dict[str, str]]:
     """The named services (sim, eeg, learner) as uvicorn processes on free loopback ports,
     logging to ``root/<name>.log``; their base URLs once all answer ``/health``."""
-    ports = {name: _free_port() for name in names}
+    ports = {name: free_port() for name in names}
     urls = {name: f"http://127.0.0.1:{port}" for name, port in ports.items()}
     procs: dict[str, subprocess.Popen[bytes]] = {}
     try:
         for name in names:
-            procs[name] = subprocess.Popen(
-                [sys.executable, "-m", "uvicorn", SERVICE_APPS[name], "--host", "127.0.0.1",
-                 "--port", str(ports[name])],
-                env=env, cwd=root, stdout=(root / f"{name}.log").open("wb"),
-                stderr=subprocess.STDOUT,
-            )  # fmt: skip
-        deadline = time.monotonic() + 120  # torch and mne imports on a loaded machine
+            procs[name] = start_service(
+                name, ports[name], env=env, cwd=root, log=root / f"{name}.log"
+            )
         for name in names:
-            while True:
-                try:
-                    if httpx.get(urls[name] + "/health", timeout=2).is_success:
-                        break
-                except httpx.HTTPError:
-                    pass
-                if procs[name].poll() is not None or time.monotonic() > deadline:
-                    pytest.fail(f"{name} did not start: {(root / f'{name}.log').read_text()}")
-                time.sleep(0.2)
+            wait_healthy(urls[name], procs[name], root / f"{name}.log")
         yield urls
     finally:
-        for proc in procs.values():
-            _stop(proc)
+        stop_processes(procs.values())
 
 
 def _login(base_url: str, email: str, password: str) -> str:
@@ -162,29 +132,14 @@ def _login(base_url: str, email: str, password: str) -> str:
 def serve_api(settings: Any) -> Iterator[str]:
     """The api (uvicorn in a thread) on a free loopback port; its base URL. Password hashing
     at minimal cost (the tests check pages, not hashes)."""
-    import uvicorn
-    from argon2 import PasswordHasher
-
-    from services.api import security
     from services.api.app import create_app
 
     patch = pytest.MonkeyPatch()
-    patch.setattr(security, "_hasher", PasswordHasher(time_cost=1, memory_cost=64, parallelism=1))
-    port = _free_port()
-    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning")
-    uvicorn_server = uvicorn.Server(config)
-    thread = threading.Thread(target=uvicorn_server.run, name="api", daemon=True)
-    thread.start()
+    fast_password_hashing(patch)
     try:
-        deadline = time.monotonic() + 60
-        while not uvicorn_server.started:
-            if not thread.is_alive() or time.monotonic() > deadline:
-                pytest.fail("the api did not start (see the log above)")
-            time.sleep(0.1)
-        yield f"http://127.0.0.1:{port}"
+        with serve_in_thread(create_app(settings)) as base_url:
+            yield base_url
     finally:
-        uvicorn_server.should_exit = True
-        thread.join(timeout=15)
         patch.undo()
 
 
@@ -208,7 +163,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 
     root = tmp_path_factory.mktemp("web")
     env = {
-        **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
+        **env_without_bgrl(),
         "BGRL_DATA_DIR": str(root / "data"),
         "BGRL_JOB_HEARTBEAT_S": "0.5",
         "BGRL_LOG_LEVEL": "INFO",
@@ -228,7 +183,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
             yield srv
         finally:
             if srv.worker is not None:
-                _stop(srv.worker)
+                stop_processes([srv.worker])
 
 
 @pytest.fixture(scope="module")

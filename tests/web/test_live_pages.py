@@ -15,7 +15,6 @@ classifier from a real (small) calibration session.
 
 from __future__ import annotations
 
-import os
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -33,11 +32,11 @@ from services.core.db.session import make_engine, make_session_factory
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
 from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
+from tests.helpers import env_without_bgrl, stop_processes
 from tests.web.conftest import (
     ADMIN,
     Server,
     _skip_reason,
-    _stop,
     add_accounts,
     open_as,
     run_services,
@@ -63,7 +62,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     # built once here: the sim and the worker's runner would each build it on first use
     Oracle.for_map(load_map(DEFAULT_MAP_PATH), SimSettings(data_dir=data_dir).oracle_cache_dir)
     env = {
-        **{k: v for k, v in os.environ.items() if not k.startswith("BGRL_")},
+        **env_without_bgrl(),
         "BGRL_DATA_DIR": str(data_dir),
         "BGRL_SERVICE_TOKEN": TOKEN,
         "BGRL_LOG_LEVEL": "WARNING",
@@ -93,7 +92,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
                 yield srv
             finally:
                 if srv.worker is not None:
-                    _stop(srv.worker)
+                    stop_processes([srv.worker])
 
 
 class SteppedSession:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
 import sys
 import time
@@ -23,6 +21,7 @@ from services.core.queue import enqueue_job, make_celery
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
 from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
+from tests.helpers import env_without_bgrl, stop_processes
 
 REDIS_URL = "redis://127.0.0.1:6379/11"
 """A Redis database of its own, so other tests on this machine's Redis are not disturbed."""
@@ -100,9 +99,9 @@ class Platform:
     def start_worker(
         self, name: str, env: dict[str, str] | None = None, cwd: Path | None = None
     ) -> subprocess.Popen[bytes]:
-        """A ``bgrl worker`` process with the platform's environment (or exactly ``env``)."""
-        base = {k: v for k, v in os.environ.items() if not k.startswith("BGRL_")}
-        full_env = {**base, **(self.env if env is None else env)}
+        """A ``bgrl worker`` process with the platform's environment (or exactly ``env``),
+        no other ``BGRL_*`` setting of this process."""
+        full_env = {**env_without_bgrl(), **(self.env if env is None else env)}
         log = self.root / f"worker-{name}.log"
         proc = subprocess.Popen(
             [sys.executable, "-m", "services.cli.main", "worker", "--name", name],
@@ -155,15 +154,7 @@ class Platform:
             time.sleep(poll)
 
     def close(self) -> None:
-        for proc in self.workers:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-        for proc in self.workers:
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_processes(self.workers)
         self.engine.dispose()
 
 

@@ -3,7 +3,6 @@ that is given only the broker URL, the database URL and the shared artifact stor
 
 from __future__ import annotations
 
-import os
 import shutil
 from collections.abc import Iterator
 
@@ -63,8 +62,7 @@ def test_a_second_host_needs_only_broker_database_and_artifact_store(
     # Its own data folder (./data, the default) holds only caches; seed the oracle cache as
     # a host that ran jobs before would have it (building it takes seconds).
     shutil.copytree(redis_platform.root / "data" / "sim", remote_home / "data" / "sim")
-    base = {k: v for k, v in os.environ.items() if not k.startswith("BGRL_")}
-    remote = redis_platform.start_worker("remote", env={**base, **remote_env}, cwd=remote_home)
+    remote = redis_platform.start_worker("remote", env=remote_env, cwd=remote_home)
     config = {"task": "SSSG", "method": "rl_sparse", "total_steps": 512, "ppo": TINY_PPO}
     jobs = [redis_platform.submit("guided_ppo", {**config, "seed": seed}) for seed in range(4)]
     done = [redis_platform.wait(job_id, {"succeeded", "failed"}, timeout=150) for job_id in jobs]

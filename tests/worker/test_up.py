@@ -14,13 +14,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.helpers import env_without_bgrl, free_port, wait_healthy
+
 pytestmark = pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs Linux /proc")
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def port_free(port: int) -> bool:
@@ -61,11 +57,10 @@ def alive(pid: int) -> bool:
 def bgrl_up(tmp_path: Path, **env: str) -> subprocess.Popen[bytes]:
     """``bgrl up`` in ``tmp_path`` with only ``env`` as settings; output in out.log/err.log
     (files, not pipes: a full pipe would block the services writing their logs)."""
-    base = {k: v for k, v in os.environ.items() if not k.startswith("BGRL_")}
     return subprocess.Popen(
         [sys.executable, "-m", "services.cli.main", "up"],
         cwd=tmp_path,
-        env={**base, **env},
+        env={**env_without_bgrl(), **env},
         stdout=(tmp_path / "out.log").open("wb"),
         stderr=(tmp_path / "err.log").open("wb"),
     )
@@ -99,17 +94,8 @@ def test_up_serves_restarts_a_dead_worker_and_sigterm_stops_everything(tmp_path:
         BGRL_WORKERS="1",
     )
     try:
-        deadline = time.monotonic() + 120
-        for name, port in ports.items():
-            while True:
-                try:
-                    if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code:
-                        break
-                except httpx.HTTPError:
-                    pass
-                assert proc.poll() is None, (tmp_path / "err.log").read_text()[-3000:]
-                assert time.monotonic() < deadline, f"{name} did not answer"
-                time.sleep(0.5)
+        for port in ports.values():
+            wait_healthy(f"http://127.0.0.1:{port}", proc, tmp_path / "err.log")
         # one door: the internal services answer only calls with the kept service token
         token = (tmp_path / "data" / "service-token").read_text().strip()
         assert oct((tmp_path / "data" / "service-token").stat().st_mode & 0o777) == "0o600"

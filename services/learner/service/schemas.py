@@ -7,9 +7,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
-from services.core.actions import Action
 from services.core.feedback import is_error
-from services.core.schemas import StrictRequest
+from services.core.schemas import ActionValue, Seed, StrictRequest
 from services.learner.hf_methods import RECOMMENDED_METHOD, HFMethodName
 from services.sim.env import OBS_SIZE
 
@@ -21,18 +20,6 @@ Observation = Annotated[
         description=f"The env's {OBS_SIZE} finite floats (10 ray distances, goal distance, "
         "goal angle, heading), unnormalised.",
     ),
-]
-ActionValue = Annotated[
-    int,
-    Field(
-        strict=True,
-        ge=min(Action),
-        le=max(Action),
-        description="0 forward 0.3 m, 1 turn left 30 deg, 2 turn right 30 deg.",
-    ),
-]
-Seed = Annotated[
-    int, Field(strict=True, ge=0, le=2**63 - 1, description="A JSON integer in [0, 2^63).")
 ]
 
 

@@ -1,0 +1,119 @@
+"""The hyperparameters of (guided) PPO and the schedule of pi_HF's guidance (eps_HF)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from services.learner.seeding import evaluation_reset_seeds
+
+HFTreatment = Literal["authors", "truncated_is"]
+
+
+@dataclass
+class PPOConfig:
+    """Hyperparameters of (guided) PPO; defaults follow the authors' public code."""
+
+    env_id: str = "services.sim:BrainNav-SSSG-v0"
+    """Gymnasium id of the task (its TimeLimit applies)."""
+    env_kwargs: dict[str, Any] = field(default_factory=lambda: {"reward_mode": "sparse"})
+    """Keyword arguments of ``gymnasium.make`` (reward_mode, map_path, ...)."""
+    seed: int = 0
+    """Seed of the run: the entropy of the ``SeedSequence`` whose children seed the network
+    init, sampling, minibatches and training resets (``services.learner.seeding``)."""
+    total_steps: int = 40_000
+    """Environment steps of training (the paper's budget)."""
+    n_steps: int = 128
+    """Rollout length per update (one env)."""
+    n_epochs: int = 64
+    """Passes over each rollout (a very high replay ratio, as the authors)."""
+    minibatch_size: int = 64
+    """Minibatch size of the PPO update."""
+    learning_rate: float = 3e-4
+    """Adam learning rate (the initial one with ``anneal_lr``)."""
+    anneal_lr: bool = False
+    """Anneal the learning rate linearly to 0 over the updates of the run (CleanRL's
+    ``anneal_lr``); off by default, as the authors' constant rate."""
+    adam_eps: float = 1e-5
+    """Adam epsilon."""
+    gamma: float = 0.99
+    """Discount factor."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    clip_coef: float = 0.2
+    """PPO ratio clip."""
+    ent_coef: float = 0.02
+    """Entropy bonus coefficient."""
+    vf_coef: float = 0.5
+    """Value loss coefficient."""
+    max_grad_norm: float = 25.0
+    """Global gradient-norm clip."""
+    target_kl: float | None = None
+    """Early stop of an update: the remaining minibatch steps of the ``n_epochs`` are skipped
+    once a minibatch's approx KL to the rollout policy exceeds this (checked before its
+    step, as SB3 does, without SB3's factor 1.5). None (default): all epochs, as the
+    authors."""
+    norm_adv: bool = True
+    """Normalise advantages per minibatch (CleanRL default)."""
+    reward_scale: float = 0.01
+    """Multiplier of every reward before learning; identical for all methods."""
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    """Hidden layers of the (separate) actor and critic MLPs, tanh activations."""
+    eval_every: int = 2000
+    """Evaluate the greedy pi_RL every this many env steps (and at step 0)."""
+    eval_seeds: tuple[int, ...] = evaluation_reset_seeds(1)
+    """Reset seeds of the fixed evaluation starts (see ``evaluation.eval_seeds``)."""
+    hf_eps_init: float = 0.8
+    """eps_HF at the end of the warm-up: probability that an episode follows pi_HF."""
+    hf_t_trans_fraction: float = 0.5
+    """eps_HF reaches 0 at this fraction of ``total_steps``."""
+    hf_warmup_steps: int = 0
+    """Initial steps during which every episode follows pi_HF."""
+    hf_treatment: HFTreatment = "authors"
+    """How PPO uses the steps pi_HF chose: ``authors`` or ``truncated_is`` (see the doc of
+    :mod:`services.learner.ppo`)."""
+    is_clip: float = 1.0
+    """rho-bar, the truncation of the importance weight of the surrogate (truncated_is)."""
+    hf_guide_sampling: bool = False
+    """HF episodes sample from pi_HF's softened distribution instead of its argmax (the
+    paper's greedy pi_HF is the default; a factor studied in docs/reproduction.md)."""
+
+    def __post_init__(self) -> None:
+        self.hidden_sizes = tuple(self.hidden_sizes)
+        self.eval_seeds = tuple(self.eval_seeds)
+        if self.n_steps % self.minibatch_size != 0:
+            raise ValueError(
+                f"n_steps ({self.n_steps}) must be a multiple of minibatch_size "
+                f"({self.minibatch_size})"
+            )
+        if self.total_steps < self.n_steps:
+            raise ValueError("total_steps must be at least n_steps")
+        if self.hf_treatment not in ("authors", "truncated_is"):
+            raise ValueError(
+                f"hf_treatment must be 'authors' or 'truncated_is', not {self.hf_treatment!r}"
+            )
+        if not 0.0 <= self.hf_eps_init <= 1.0:
+            raise ValueError(f"hf_eps_init must be in [0, 1], got {self.hf_eps_init}")
+        if not 0.0 < self.hf_t_trans_fraction <= 1.0:
+            raise ValueError("hf_t_trans_fraction must be in (0, 1]")
+        if self.eval_every < 1 or not self.eval_seeds:
+            raise ValueError("eval_every must be >= 1 and eval_seeds non-empty")
+        if self.target_kl is not None and not self.target_kl > 0.0:
+            raise ValueError(f"target_kl must be > 0 or None, got {self.target_kl}")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> PPOConfig:
+        """Rebuild from ``asdict`` output (e.g. JSON)."""
+        return cls(**data)
+
+
+def hf_epsilon(global_step: int, config: PPOConfig) -> float:
+    """eps_HF at a step: 1 in the warm-up, then linear from eps_init to 0 at t_trans."""
+    if global_step < config.hf_warmup_steps:
+        return 1.0
+    t_trans = config.hf_t_trans_fraction * config.total_steps
+    span = t_trans - config.hf_warmup_steps
+    if span <= 0:
+        return 0.0
+    progress = (global_step - config.hf_warmup_steps) / span
+    return max(0.0, config.hf_eps_init * (1.0 - progress))

@@ -1,0 +1,152 @@
+"""Step 1 of a PPO update: ``n_steps`` in the env with the behaviour policy.
+
+Each episode follows pi_HF with probability ``eps_HF`` (drawn at its start), else pi_RL. The
+rollout stores pi_RL's log-prob of every action taken and the behaviour policy's (``mu``):
+the two are equal on RL steps; a greedy pi_HF step has ``mu = 1``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from services.learner.checkpoint import RunState
+from services.learner.feedback import HFPolicy
+from services.learner.ppo.agent import ActorCritic
+from services.learner.ppo.config import PPOConfig, hf_epsilon
+from services.learner.seeding import TrainingResets
+
+
+@dataclass
+class Rollout:
+    """The storage of one rollout of ``n_steps`` (CleanRL's buffers), reused every update."""
+
+    obs: np.ndarray
+    actions: np.ndarray
+    pi_logp: np.ndarray
+    """log pi_RL(a_t|s_t) of the policy that collected the rollout."""
+    mu_logp: np.ndarray
+    """log mu(a_t|s_t) of the behaviour policy (0 for greedy pi_HF steps, pi_logp for RL)."""
+    is_hf: np.ndarray
+    rewards: np.ndarray
+    """Scaled reward, plus gamma * V(s_T) where a time limit cut the episode."""
+    values: np.ndarray
+    ends: np.ndarray
+
+    @classmethod
+    def empty(cls, n_steps: int, n_obs: int) -> Rollout:
+        """Zeroed buffers."""
+        return cls(
+            obs=np.zeros((n_steps, n_obs), dtype=np.float32),
+            actions=np.zeros(n_steps, dtype=np.int64),
+            pi_logp=np.zeros(n_steps, dtype=np.float32),
+            mu_logp=np.zeros(n_steps, dtype=np.float32),
+            is_hf=np.zeros(n_steps, dtype=bool),
+            rewards=np.zeros(n_steps, dtype=np.float64),
+            values=np.zeros(n_steps, dtype=np.float64),
+            ends=np.zeros(n_steps, dtype=np.float64),
+        )
+
+
+def sample_categorical(probs: np.ndarray, rng: np.random.Generator) -> int:
+    """Inverse-CDF draw from a categorical distribution (float64 probabilities)."""
+    cdf = np.cumsum(probs)
+    return int(min(np.searchsorted(cdf, rng.random() * cdf[-1]), len(cdf) - 1))
+
+
+def begin_episode(
+    env: gym.Env,
+    state: RunState,
+    resets: TrainingResets,
+    rng: np.random.Generator,
+    config: PPOConfig,
+    guided: bool,
+) -> np.ndarray:
+    """Reset ``env`` with the next training reset seed and draw whether the new episode
+    follows pi_HF (with probability eps_HF; never if not ``guided``); its first observation."""
+    state.episode_seed = resets.next()
+    state.episode_actions = []
+    state.episode_return = 0.0
+    obs, _ = env.reset(seed=state.episode_seed)
+    state.episode_is_hf = guided and rng.random() < hf_epsilon(state.global_step, config)
+    return obs
+
+
+def collect_rollout(
+    env: gym.Env,
+    agent: ActorCritic,
+    obs: np.ndarray,
+    rollout: Rollout,
+    state: RunState,
+    *,
+    config: PPOConfig,
+    hf_policy: HFPolicy | None,
+    rng: np.random.Generator,
+    resets: TrainingResets,
+    on_step: Callable[[int, dict[str, Any]], bool],
+    evaluate: Callable[[], bool],
+) -> tuple[np.ndarray, bool, list[float]]:
+    """Fill ``rollout`` with ``config.n_steps`` env steps from ``obs``, advancing ``state``
+    (step and episode counters, the episode in progress). ``on_step`` runs after every step,
+    ``evaluate`` every ``config.eval_every`` steps.
+
+    Returns the observation after the last step, whether every hook asked to go on, and
+    the (scaled) returns of the episodes that ended.
+    """
+    keep_going = True
+    episode_returns: list[float] = []
+    for t in range(config.n_steps):
+        with torch.inference_mode():
+            logits, value = agent(torch.as_tensor(obs))
+            log_probs = torch.log_softmax(logits, dim=-1).numpy()
+        if not state.episode_is_hf:
+            action = sample_categorical(np.exp(log_probs.astype(np.float64)), rng)
+            mu_logp = float(log_probs[action])
+        elif config.hf_guide_sampling:
+            hf_probs = hf_policy.sampling_probs(obs).astype(np.float64)
+            action = sample_categorical(hf_probs, rng)
+            mu_logp = float(np.log(hf_probs[action]))
+        else:
+            action = hf_policy.act(obs)  # greedy pi_HF: mu(a|s) = 1
+            mu_logp = 0.0
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        reward = float(reward) * config.reward_scale
+        if truncated and not terminated:  # time limit: bootstrap the cut-off tail
+            with torch.inference_mode():
+                _, tail_value = agent(torch.as_tensor(next_obs))
+            reward += config.gamma * float(tail_value)
+        rollout.obs[t] = obs
+        rollout.actions[t] = action
+        rollout.pi_logp[t] = log_probs[action]
+        rollout.mu_logp[t] = mu_logp
+        rollout.is_hf[t] = state.episode_is_hf
+        rollout.rewards[t] = reward
+        rollout.values[t] = float(value)
+        rollout.ends[t] = float(terminated or truncated)
+        state.global_step += 1
+        state.episode_actions.append(action)
+        state.episode_return += float(reward)
+        obs = next_obs
+        if terminated or truncated:
+            episode_returns.append(state.episode_return)
+            state.episodes.append(
+                (
+                    state.global_step,
+                    len(state.episode_actions),
+                    bool(info.get("is_success", False)),
+                    bool(info.get("collision", False)),
+                    state.episode_is_hf,
+                )
+            )
+            state.n_episodes += 1
+            state.n_hf_episodes += int(state.episode_is_hf)
+            obs = begin_episode(env, state, resets, rng, config, hf_policy is not None)
+        keep_going &= on_step(state.global_step, info)
+        if state.global_step % config.eval_every == 0:
+            keep_going &= evaluate()
+    return obs, keep_going, episode_returns

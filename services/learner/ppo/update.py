@@ -1,0 +1,156 @@
+"""Step 3 of a PPO update: ``n_epochs`` of minibatch steps on the clipped surrogate.
+
+Optional stabilisers (off by default): ``target_kl`` ends the epoch loop early once a
+minibatch's approx KL to the rollout policy exceeds it; ``anneal_lr`` anneals the learning
+rate linearly to 0 over the run (CleanRL, SB3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from services.learner.optimizer import FlatAdam
+from services.learner.ppo.agent import ActorCritic
+from services.learner.ppo.config import PPOConfig, hf_epsilon
+from services.learner.ppo.rollout import Rollout
+
+
+def ppo_loss(
+    agent: ActorCritic,
+    obs: torch.Tensor,
+    actions: torch.Tensor,
+    old_logp: torch.Tensor,
+    advantages: torch.Tensor,
+    returns: torch.Tensor,
+    weights: torch.Tensor | None,
+    config: PPOConfig,
+    *,
+    with_stats: bool = True,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Clipped PPO loss of one minibatch.
+
+    ``advantages`` are used as given (:func:`update_policy` normalises them per minibatch
+    if ``config.norm_adv``). ``weights`` multiplies each step's surrogate (the truncated
+    importance weight rho for off-policy HF steps; None means 1, on-policy). Returns the loss
+    and CleanRL-named statistics (empty unless ``with_stats``: computing them costs about a
+    tenth of an update step).
+    """
+    logits, value = agent(obs)
+    log_probs = torch.log_softmax(logits, dim=-1)
+    new_logp = log_probs.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+    entropy = -(log_probs.exp() * log_probs).sum(-1).mean()
+    log_ratio = new_logp - old_logp
+    ratio = log_ratio.exp()
+    # max(unclipped, clipped) of CleanRL. The clipped term only wins where the ratio is
+    # outside the clip range, where it has no gradient; where the two are equal, max's
+    # backward gives each half the gradient, which sums to the unclipped one. So the clipped
+    # term can be detached: same values, same gradients, a smaller graph.
+    neg_adv = -advantages
+    unclipped = neg_adv * ratio
+    with torch.no_grad():
+        clipped = neg_adv * torch.clamp(ratio, 1 - config.clip_coef, 1 + config.clip_coef)
+    surrogate = torch.where(unclipped >= clipped, unclipped, clipped)
+    pg_loss = (surrogate if weights is None else weights * surrogate).mean()
+    v_loss = 0.5 * ((value - returns) ** 2).mean()
+    loss = pg_loss - config.ent_coef * entropy + config.vf_coef * v_loss
+    if not with_stats:
+        return loss, {}
+    with torch.no_grad():
+        stats = {
+            "losses/policy_loss": float(pg_loss),
+            "losses/value_loss": float(v_loss),
+            "losses/entropy": float(entropy),
+            "losses/approx_kl": float(((ratio - 1) - log_ratio).mean()),
+            "losses/clipfrac": float(((ratio - 1.0).abs() > config.clip_coef).float().mean()),
+        }
+    return loss, stats
+
+
+def update_policy(
+    agent: ActorCritic,
+    optimizer: FlatAdam,
+    rollout: Rollout,
+    advantages: np.ndarray,
+    returns: np.ndarray,
+    weights: np.ndarray | None,
+    *,
+    config: PPOConfig,
+    rng: np.random.Generator,
+    n_updates_done: int,
+) -> dict[str, float]:
+    """``config.n_epochs`` passes of minibatch steps over ``rollout``; ``weights`` (rho)
+    multiply each step's surrogate, None meaning 1. The learning rate is annealed from
+    ``n_updates_done`` (the updates before this one) if ``config.anneal_lr``.
+
+    Returns the loss statistics averaged over the last epoch begun and
+    ``losses/update_epochs``, the epochs done (fewer where ``target_kl`` stopped them).
+    """
+    # Every epoch's permutation is drawn first (the same draws as one per epoch), then
+    # each minibatch is gathered, and its advantages normalised, by one op per rollout.
+    order = np.concatenate([rng.permutation(config.n_steps) for _ in range(config.n_epochs)])
+    index = torch.from_numpy(order).view(-1, config.minibatch_size)
+    mb_adv = torch.from_numpy(advantages.astype(np.float32))[index]
+    if config.norm_adv and config.minibatch_size > 1:
+        mb_adv = (mb_adv - mb_adv.mean(1, keepdim=True)) / (mb_adv.std(1, keepdim=True) + 1e-8)
+    minibatches = zip(  # the arguments of ppo_loss, one row per minibatch
+        torch.from_numpy(rollout.obs)[index],
+        torch.from_numpy(rollout.actions)[index],
+        torch.from_numpy(rollout.pi_logp)[index],
+        mb_adv,
+        torch.from_numpy(returns.astype(np.float32))[index],
+        torch.from_numpy(weights.astype(np.float32))[index]
+        if weights is not None
+        else [None] * len(index),  # all weights 1: skip the multiplication
+        strict=True,
+    )
+    if config.anneal_lr:  # linear to 0 over the run, from the update count
+        n_updates_total = -(-config.total_steps // config.n_steps)
+        optimizer.lr = config.learning_rate * (1.0 - n_updates_done / n_updates_total)
+    n_minibatches = config.n_steps // config.minibatch_size  # per epoch
+    early_stop = config.target_kl is not None  # needs every minibatch's approx KL
+    stats_sum: dict[str, float] = {}  # loss statistics of the last epoch (begun)
+    n_in_epoch = n_done = 0
+    for i, minibatch in enumerate(minibatches):
+        last_epoch = i >= len(index) - n_minibatches
+        if i % n_minibatches == 0:
+            stats_sum, n_in_epoch = {}, 0
+        loss, stats = ppo_loss(agent, *minibatch, config, with_stats=last_epoch or early_stop)
+        for key, val in stats.items():
+            stats_sum[key] = stats_sum.get(key, 0.0) + val
+        n_in_epoch += 1
+        if early_stop and stats["losses/approx_kl"] > config.target_kl:
+            break  # this minibatch is already too far from the rollout policy
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.clip_grad_norm_(config.max_grad_norm)
+        optimizer.step()
+        n_done += 1
+    metrics = {key: val / max(n_in_epoch, 1) for key, val in stats_sum.items()}
+    metrics["losses/update_epochs"] = n_done / n_minibatches
+    return metrics
+
+
+def update_metrics(
+    config: PPOConfig,
+    global_step: int,
+    rollout: Rollout,
+    returns: np.ndarray,
+    episode_returns: list[float],
+    guided: bool,
+    learning_rate: float,
+) -> dict[str, float]:
+    """CleanRL-named metrics of an update besides the loss statistics (``episode_returns``:
+    of the episodes that ended in ``rollout``)."""
+    var_returns = float(np.var(returns))
+    explained = 1.0 - float(np.var(returns - rollout.values)) / var_returns if var_returns else None
+    return {
+        "global_step": float(global_step),
+        "losses/explained_variance": float("nan") if explained is None else explained,
+        "charts/eps_hf": hf_epsilon(global_step, config) if guided else 0.0,
+        "charts/hf_step_fraction": float(np.mean(rollout.is_hf)) if guided else 0.0,
+        "charts/episodic_return": (
+            float(np.mean(episode_returns)) if episode_returns else float("nan")
+        ),
+        "charts/learning_rate": learning_rate,
+    }
