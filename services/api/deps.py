@@ -149,7 +149,7 @@ async def bearer_token(token: Annotated[str | None, Depends(bearer_scheme)]) -> 
 
 
 def _signed_in_read(engine: Engine, token: str, jwt_key: str, read: Callable[[Connection], T]) -> T:
-    with engine.connect() as db:
+    with engine.connect().execution_options(isolation_level="AUTOCOMMIT") as db:
         sign_in(db, token, jwt_key)
         return read(db)
 
