@@ -24,10 +24,12 @@ from sqlalchemy import (
     cast,
     func,
     select,
-    type_coerce,
 )
 from sqlalchemy.engine import Connection
+from sqlalchemy.ext.compiler import compiles
 from sqlalchemy.orm import Session
+from sqlalchemy.sql.compiler import SQLCompiler
+from sqlalchemy.sql.functions import FunctionElement
 
 from services.api.deps import PageParams
 from services.core.db.base import UtcDateTime
@@ -106,10 +108,29 @@ def _json_stored(value: str) -> str:
     return value
 
 
+class utc_text(FunctionElement[str]):  # noqa: N801 (a SQL function)
+    """A UTC timestamp column as the text ``2026-01-02 03:04:05.123456``: SQLite's stored
+    text itself, PostgreSQL's ``to_char`` of it (cheaper than a datetime to format)."""
+
+    type = Text()
+    inherit_cache = True
+
+
+@compiles(utc_text)
+def _utc_text_stored(element: utc_text, compiler: SQLCompiler, **kw: Any) -> str:
+    return compiler.process(element.clauses, **kw)
+
+
+@compiles(utc_text, "postgresql")
+def _utc_text_postgresql(element: utc_text, compiler: SQLCompiler, **kw: Any) -> str:
+    column = compiler.process(element.clauses, **kw)
+    return f"to_char({column} AT TIME ZONE 'UTC', 'YYYY-MM-DD HH24:MI:SS.US')"
+
+
 def _json_timestamp(value: str | datetime) -> str:
     """A UTC timestamp as pydantic writes it (``2026-01-02T03:04:05.123456Z``, no fraction
-    when it is zero). SQLite gives the stored text (``2026-01-02 03:04:05.123456``, UTC),
-    PostgreSQL a datetime."""
+    when it is zero), from :class:`utc_text`'s text; another text form or a datetime is
+    parsed (a SQLite row written by other means)."""
     if isinstance(value, str):
         if len(value) == 26 and value[10] == " " and value[19] == ".":
             fraction = "" if value.endswith(".000000") else value[19:]
@@ -189,7 +210,7 @@ class JsonPage:
     JSON document the pydantic model gives for those rows (a test holds them equal), at a
     fraction of the CPU. Only the model's columns are selected, as plain rows; JSON columns
     come as their stored text (cast to text in SQL) and are passed through; timestamps are
-    formatted from SQLite's stored text or PostgreSQL's datetime; the rows are not validated
+    formatted from their UTC text (:class:`utc_text`); the rows are not validated
     again (they are what the database's types and constraints allow). The values are
     written a column at a time (``map`` over a column's values), then joined into objects
     with one ``%`` template."""
@@ -205,7 +226,7 @@ class JsonPage:
             if write is _json_stored:
                 columns.append(cast(column, Text).label(name))
             elif write is _json_timestamp:
-                columns.append(type_coerce(column, Text).label(name))  # SQLite: the text
+                columns.append(utc_text(column).label(name))
             else:
                 columns.append(column)
             self._writers.append((write, bool(column.nullable)))
