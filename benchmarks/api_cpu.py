@@ -90,6 +90,45 @@ async def _measure(
     return figures
 
 
+async def _profile(
+    app: FastAPI, path: str, headers: dict[str, str], requests: int, out: Path
+) -> dict[str, float]:
+    """cProfile ``requests`` requests of ``path`` into ``out`` (pstats), with calls to the
+    thread pool run inline so that the profiler sees them; the CPU ms per request."""
+    import cProfile
+    from unittest import mock
+
+    async def inline(func: Any, *args: Any, **kwargs: Any) -> Any:
+        return func(*args, **kwargs)
+
+    patches = [
+        mock.patch(f"{module}.run_in_threadpool", inline)
+        for module in ("fastapi.dependencies.utils", "fastapi.routing", "fastapi.concurrency")
+    ]
+    patches += [
+        mock.patch(f"{name}.run_in_threadpool", inline)
+        for name, module in list(sys.modules.items())
+        if name.startswith("services.api") and hasattr(module, "run_in_threadpool")
+    ]
+    for patch in patches:
+        patch.start()
+    try:
+        for _ in range(20):
+            await asgi_get(app, path, headers)
+        profiler = cProfile.Profile()
+        started = time.process_time()
+        profiler.enable()
+        for _ in range(requests):
+            await asgi_get(app, path, headers)
+        profiler.disable()
+        elapsed = time.process_time() - started
+    finally:
+        for patch in patches:
+            patch.stop()
+    profiler.dump_stats(out)
+    return {path: 1000 * elapsed / requests}
+
+
 def cpu_ms_per_request(
     database_url: str,
     data_dir: Path,
@@ -99,9 +138,11 @@ def cpu_ms_per_request(
     *,
     requests: int = 200,
     repeats: int = 5,
+    profile_to: Path | None = None,
 ) -> dict[str, float]:
-    """CPU ms per request of each path (signed in as the admin) on an already filled
-    database; the median over ``repeats`` runs of ``requests`` requests."""
+    """CPU ms per request of each path (signed in as the admin, with an API token) on an
+    already filled database; the median over ``repeats`` runs of ``requests`` requests.
+    With ``profile_to``, the first path is profiled instead (see :func:`_profile`)."""
     upgrade_database(database_url)
     settings = ApiSettings(
         data_dir=data_dir,
@@ -127,6 +168,19 @@ def cpu_ms_per_request(
             if status != 200:
                 raise RuntimeError(f"sign-in failed: {status} {body[:300]!r}")
             auth = {"authorization": f"Bearer {json.loads(body)['access_token']}"}
+            # the load of ``bgrl bench api`` signs in with an API token: so does this
+            status, body = await asgi_get(
+                app,
+                "/api/v1/tokens",
+                {**auth, "content-type": "application/json"},
+                json.dumps({"name": "api-cpu", "expires_in_days": 1}).encode(),
+                method="POST",
+            )
+            if status != 201:
+                raise RuntimeError(f"API token not created: {status} {body[:300]!r}")
+            auth = {"authorization": f"Bearer {json.loads(body)['token']}"}
+            if profile_to is not None:
+                return await _profile(app, paths[0], auth, requests, profile_to)
             return await _measure(app, {p: auth for p in paths}, requests, repeats)
 
     return asyncio.run(run())
@@ -144,12 +198,23 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.api_cpu")
     parser.add_argument("--jobs-stored", type=int, default=1000)
     parser.add_argument("--requests", type=int, default=200)
+    parser.add_argument(
+        "--profile",
+        type=Path,
+        metavar="DIR",
+        help="cProfile the list route instead: DIR/<database>.pstats (thread-pool calls inline)",
+    )
+    parser.add_argument("--databases", default="sqlite,postgresql", help="comma-separated")
     args = parser.parse_args(argv)
+    if args.profile is not None:
+        args.profile.mkdir(parents=True, exist_ok=True)
     password = "bench-password-123"
     figures: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="bgrl-api-cpu-") as tmp, postgres_schema() as pg_url:
         urls = {"sqlite": f"sqlite:///{Path(tmp) / 'bgrl.db'}", "postgresql": pg_url}
         for name, url in urls.items():
+            if name not in args.databases.split(","):
+                continue
             if url is None:
                 figures[name] = {"skipped": PG_SKIP_REASON}
                 continue
@@ -159,6 +224,7 @@ def main(argv: list[str] | None = None) -> None:
             figures[name] = cpu_ms_per_request(
                 url, data_dir, ADMIN_EMAIL, password, (JOBS_ROUTE, BARE_ROUTE),
                 requests=args.requests,
+                profile_to=None if args.profile is None else args.profile / f"{name}.pstats",
             )  # fmt: skip
     json.dump({"jobs_stored": args.jobs_stored, "cpu_ms_per_request": figures}, sys.stdout)
     print()

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, TypeVar
 
 from celery import Celery
 from fastapi import Depends, Path, Query, WebSocket
+from fastapi.concurrency import run_in_threadpool
 from fastapi.security import OAuth2PasswordBearer
-from sqlalchemy import select
+from sqlalchemy import Engine, bindparam, select, update
+from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.requests import HTTPConnection
 
@@ -23,6 +25,7 @@ from services.core.db.base import utcnow
 from services.core.db.models import ApiToken, User
 from services.core.websockets import CLOSE_UNAUTHORIZED
 
+T = TypeVar("T")
 TOKEN_URL = "/api/v1/auth/token"
 ROLE_RANK = {"viewer": 0, "staff": 1, "admin": 2}
 MAX_PAGE_LIMIT = 500
@@ -70,25 +73,103 @@ async def get_limiter(connection: HTTPConnection) -> LoginLimiter:
     return connection.app.state.limiter
 
 
+NOT_SIGNED_IN = "not signed in: send 'Authorization: Bearer <token>'"
+API_TOKEN_USE_RESOLUTION_S = 60
+"""An API token's ``last_used_at`` is written when older than this (not on every request)."""
+
+
+API_TOKEN_SIGN_IN = (
+    select(
+        ApiToken.id,
+        ApiToken.user_id,
+        ApiToken.revoked_at,
+        ApiToken.expires_at,
+        ApiToken.last_used_at,
+        User.active,
+    )
+    .outerjoin(User, User.id == ApiToken.user_id)
+    .where(ApiToken.token_hash == bindparam("token_hash"))
+)
+"""An API token (by its hash: a unique index) and its user's ``active``, in one query."""
+API_TOKEN_USED = update(ApiToken).where(ApiToken.id == bindparam("token_id"))
+USER_ACTIVE = select(User.active).where(User.id == bindparam("user_id"))
+
+
+def _api_token_user(db: Session | Connection, token: str) -> tuple[int, bool]:
+    """(user id, account active) of a valid API token: one indexed query, checked now, so
+    a revocation takes effect at once; its use is recorded (committed) at most once a
+    minute. 401 for an unknown, revoked or expired token."""
+    row = db.execute(API_TOKEN_SIGN_IN, {"token_hash": hash_api_token(token)}).first()
+    now = utcnow()
+    if row is None or row.revoked_at is not None:
+        raise UnauthorizedError("unknown or revoked API token", field="token")
+    if row.expires_at is not None and row.expires_at <= now:
+        raise UnauthorizedError("API token expired", field="token")
+    last_used = row.last_used_at
+    if last_used is None or (now - last_used).total_seconds() > API_TOKEN_USE_RESOLUTION_S:
+        db.execute(API_TOKEN_USED.values(last_used_at=now), {"token_id": row.id})
+        db.commit()
+    return row.user_id, bool(row.active)
+
+
+def _refuse_inactive(active: bool | None) -> None:
+    if not active:
+        raise UnauthorizedError("account unknown or deactivated", field="token")
+
+
 def authenticate(db: Session, token: str, jwt_key: str) -> User:
     """The active user an access token or API token belongs to; 401 otherwise."""
     if token.startswith(API_TOKEN_PREFIX):
-        row = db.scalar(select(ApiToken).where(ApiToken.token_hash == hash_api_token(token)))
-        now = utcnow()
-        if row is None or row.revoked_at is not None:
-            raise UnauthorizedError("unknown or revoked API token", field="token")
-        if row.expires_at is not None and row.expires_at <= now:
-            raise UnauthorizedError("API token expired", field="token")
-        user_id = row.user_id
-        if row.last_used_at is None or (now - row.last_used_at).total_seconds() > 60:
-            row.last_used_at = now
-            db.commit()
+        user_id, _ = _api_token_user(db, token)
     else:
         user_id = decode_access_token(token, jwt_key)
     user = db.get(User, user_id)
-    if user is None or not user.active:
-        raise UnauthorizedError("account unknown or deactivated", field="token")
+    _refuse_inactive(user is not None and user.active)
+    assert user is not None
     return user
+
+
+def sign_in(db: Connection, token: str, jwt_key: str) -> int:
+    """The id of the active user an access token or API token belongs to (what
+    :func:`authenticate` checks, without loading the user); 401 otherwise."""
+    if token.startswith(API_TOKEN_PREFIX):
+        user_id, active = _api_token_user(db, token)
+    else:
+        user_id = decode_access_token(token, jwt_key)
+        active = db.scalar(USER_ACTIVE, {"user_id": user_id})
+    _refuse_inactive(active)
+    return user_id
+
+
+async def bearer_token(token: Annotated[str | None, Depends(bearer_scheme)]) -> str:
+    """The bearer token sent, not yet checked (see :func:`read_signed_in`); 401 if none."""
+    if not token:
+        raise UnauthorizedError(NOT_SIGNED_IN, field="token")
+    return token
+
+
+def _signed_in_read(engine: Engine, token: str, jwt_key: str, read: Callable[[Connection], T]) -> T:
+    db = engine.connect()
+    if engine.dialect.name != "sqlite":  # no BEGIN and ROLLBACK round trips (SQLite has
+        db = db.execution_options(isolation_level="AUTOCOMMIT")  # none; this costs a PRAGMA)
+    with db:
+        sign_in(db, token, jwt_key)
+        return read(db)
+
+
+async def read_signed_in(
+    connection: HTTPConnection, token: str, read: Callable[[Connection], T]
+) -> T:
+    """``read(db)`` for any signed-in user, the sign-in (:func:`sign_in`) and the read on
+    one database connection in one trip to the thread pool: the cheap path of a hot read
+    route, whose token comes from :func:`bearer_token`. 401 as :func:`get_current_user`.
+    The connection is taken once a slot is free (see :func:`get_db`) and given back; on
+    PostgreSQL it is in autocommit (each query its own snapshot: reads only)."""
+    app = connection.app
+    async with app.state.db_slots:
+        return await run_in_threadpool(
+            _signed_in_read, app.state.engine, token, app.state.jwt_key, read
+        )
 
 
 def websocket_token(websocket: WebSocket, token: str | None) -> str | None:
@@ -120,9 +201,7 @@ def get_current_user(
 ) -> User:
     """The signed-in user (any role): a bearer access token or API token is required."""
     if not token:
-        raise UnauthorizedError(
-            "not signed in: send 'Authorization: Bearer <token>'", field="token"
-        )
+        raise UnauthorizedError(NOT_SIGNED_IN, field="token")
     return authenticate(db, token, connection.app.state.jwt_key)
 
 
@@ -167,5 +246,6 @@ CurrentUser = Annotated[User, Depends(get_current_user)]
 StaffUser = Annotated[User, Depends(require_staff)]
 AdminUser = Annotated[User, Depends(require_admin)]
 PageDep = Annotated[PageParams, Depends(get_page)]
+BearerToken = Annotated[str, Depends(bearer_token)]
 RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID)]
 """An integer id in a path."""

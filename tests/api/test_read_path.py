@@ -1,6 +1,7 @@
 """The api's hot read path and its processes: the job list returns the job resource, every
-request gives its database connection back, several api processes share one generated JWT
-key, and ``bgrl up`` starts the api with ``BGRL_API_WORKERS`` processes that do not migrate."""
+request gives its database connection back, dead pooled PostgreSQL connections are replaced,
+several api processes share one generated JWT key, and ``bgrl up`` starts the api with
+``BGRL_API_WORKERS`` processes that do not migrate."""
 
 from __future__ import annotations
 
@@ -14,10 +15,14 @@ from pathlib import Path
 
 import anyio.to_thread
 import pytest
+from sqlalchemy import Engine, text
+from sqlalchemy.exc import OperationalError
 
 from services.api.security import load_jwt_key
 from services.api.settings import ApiSettings, default_api_workers
 from services.cli.serve import SERVICES, _service_child
+from services.core.db import session as db_session
+from services.core.db.session import make_engine
 from services.core.settings import SettingsError
 from tests.api.conftest import Api, make_settings
 from tests.api.test_jobs import GUIDED, set_job, submit
@@ -115,3 +120,35 @@ def test_up_starts_the_api_with_its_worker_processes(
 
 def test_default_api_workers_follow_the_cores() -> None:
     assert default_api_workers() == max(1, min(4, os.cpu_count() or 1))
+
+
+def _backend_pid(engine: Engine) -> int:
+    with engine.connect() as connection:
+        return int(connection.scalar(text("SELECT pg_backend_pid()")))
+
+
+def test_a_dead_pooled_connection_idle_long_enough_is_replaced(
+    pg_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """PostgreSQL connections are pinged at checkout only after PING_AFTER_IDLE_S unused
+    (no round trip per request under load): a connection the server dropped is then
+    replaced unseen; one used just before is not pinged, so its query fails once and the
+    pool is recycled (the server would have to restart within that second)."""
+    engine = make_engine(pg_url)
+    admin = make_engine(pg_url)
+    try:
+        for idle_s, fails_once in ((0.0, False), (3600.0, True)):
+            monkeypatch.setattr(db_session, "PING_AFTER_IDLE_S", idle_s)
+            pid = _backend_pid(engine)
+            with admin.connect() as connection:
+                connection.execute(text("SELECT pg_terminate_backend(:pid)"), {"pid": pid})
+            if fails_once:
+                with pytest.raises(OperationalError):
+                    _backend_pid(engine)
+            # autocommit, as the api's signed-in reads use it (deps.read_signed_in)
+            with engine.connect().execution_options(isolation_level="AUTOCOMMIT") as conn:
+                assert conn.scalar(text("SELECT pg_backend_pid()")) != pid
+            assert engine.pool.checkedout() == 0  # type: ignore[attr-defined]
+    finally:
+        engine.dispose()
+        admin.dispose()

@@ -3,22 +3,23 @@
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import logging
 from typing import Annotated, Any, Literal
 
 from celery import Celery
-from fastapi import APIRouter, Depends, Query, Response, status
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Depends, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
-from sqlalchemy import select, update
+from sqlalchemy import bindparam, update
 from sqlalchemy.orm import Session
 
 from services.api import audit
-from services.api.crud import get_or_404, paginate
+from services.api.crud import JsonPage, PageQuery, get_or_404
 from services.api.deps import (
+    BearerToken,
     CeleryDep,
     DbDep,
     PageDep,
@@ -26,6 +27,7 @@ from services.api.deps import (
     StaffUser,
     StoreDep,
     get_current_user,
+    read_signed_in,
 )
 from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
 from services.api.plots import curve_png
@@ -53,7 +55,10 @@ from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.queue import enqueue_job
 
 log = logging.getLogger(__name__)
-router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"], dependencies=[Depends(get_current_user)])
+router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"])
+SIGNED_IN = [Depends(get_current_user)]
+"""The sign-in of every jobs route but the list, which signs its user in itself with its
+query (:func:`list_jobs`)."""
 
 
 def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[str, Any]:
@@ -108,7 +113,7 @@ def _enqueue(celery: Celery, job: Job) -> None:
         log.warning("job %s committed but not enqueued (%s: %s)", job.id, type(exc).__name__, exc)
 
 
-@router.post("", status_code=status.HTTP_201_CREATED)
+@router.post("", status_code=status.HTTP_201_CREATED, dependencies=SIGNED_IN)
 def submit(
     body: JobCreate, user: StaffUser, db: DbDep, celery: CeleryDep, settings: SettingsDep
 ) -> JobPublic:
@@ -129,40 +134,57 @@ def submit(
     return JobPublic.model_validate(job)
 
 
-JOB_LIST_COLUMNS = tuple(Job.__table__.c[name] for name in JobPublic.model_fields)
-"""The columns a job list returns (not the curve, up to hundreds of points, nor tracebacks)."""
+JOB_PAGE = JsonPage(JobPublic, Job.__table__)
+"""The job list's JSON, written from the rows (not the curve, up to hundreds of points, nor
+tracebacks: only :class:`JobPublic`'s columns)."""
+JOB_LIST_FILTERS = {
+    "status": Job.status,
+    "kind": Job.kind,
+    "submitter_id": Job.submitter_id,
+    "parent_id": Job.parent_id,
+}
 
 
-@router.get("")
+@functools.cache
+def _job_list_query(filters: tuple[str, ...]) -> PageQuery:
+    """The job list, newest first, filtered on the columns named (values as parameters)."""
+    query = JOB_PAGE.select().order_by(Job.created_at.desc(), Job.id)
+    for name in filters:
+        query = query.where(JOB_LIST_FILTERS[name] == bindparam(name))
+    return PageQuery(query)
+
+
+@router.get("", response_model=Page[JobPublic])
 async def list_jobs(
-    db: DbDep,
+    request: Request,
+    token: BearerToken,
     page: PageDep,
     status_: Annotated[JobStatus | None, Query(alias="status")] = None,
     kind: Annotated[JobKind | Literal["reproduce_run"] | None, Query()] = None,
     submitter_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
     parent_id: Annotated[str | None, Query(max_length=32)] = None,
-) -> Page[JobPublic]:
-    """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs)."""
-    query = select(*JOB_LIST_COLUMNS).order_by(Job.created_at.desc(), Job.id)
-    if status_ is not None:
-        query = query.where(Job.status == status_)
-    if kind is not None:
-        query = query.where(Job.kind == kind)
-    if submitter_id is not None:
-        query = query.where(Job.submitter_id == submitter_id)
-    if parent_id is not None:
-        query = query.where(Job.parent_id == parent_id)
-    # async route, one thread for the queries: the page is validated on the event loop
-    return Page[JobPublic].model_validate(await run_in_threadpool(paginate, db, query, page))
+) -> Response:
+    """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs).
+
+    The hot read of scripts and the dashboard, so it is lean: the sign-in (any role) and
+    the page's query share one connection and one trip to the thread pool, and the JSON is
+    written from the rows (:class:`~services.api.crud.JsonPage`), the same document as
+    ``Page[JobPublic]`` gives.
+    """
+    given = {"status": status_, "kind": kind, "submitter_id": submitter_id, "parent_id": parent_id}
+    params = {name: value for name, value in given.items() if value is not None}
+    query = _job_list_query(tuple(params))
+    body = await read_signed_in(request, token, lambda db: JOB_PAGE.read(db, query, page, params))
+    return Response(body, media_type="application/json")
 
 
-@router.get("/{job_id}")
+@router.get("/{job_id}", dependencies=SIGNED_IN)
 def read(job_id: str, db: DbDep) -> JobPublic:
     """One job: status, progress, attempts, resumed_from_step, error."""
     return JobPublic.model_validate(get_or_404(db, Job, job_id, "job_id"))
 
 
-@router.post("/{job_id}/cancel")
+@router.post("/{job_id}/cancel", dependencies=SIGNED_IN)
 def cancel(job_id: str, user: StaffUser, db: DbDep) -> JobPublic:
     """Cancel a job (staff): a queued one at once, a running one within seconds (its worker
     checks on every heartbeat). A reproduce job's runs are cancelled with it."""
@@ -187,7 +209,7 @@ def cancel(job_id: str, user: StaffUser, db: DbDep) -> JobPublic:
     return JobPublic.model_validate(job)
 
 
-@router.post("/{job_id}/retry")
+@router.post("/{job_id}/retry", dependencies=SIGNED_IN)
 def retry(job_id: str, user: StaffUser, db: DbDep, celery: CeleryDep) -> JobPublic:
     """Run a failed or cancelled job again (staff); it resumes from its last checkpoint."""
     job = get_or_404(db, Job, job_id, "job_id")
@@ -216,6 +238,7 @@ def retry(job_id: str, user: StaffUser, db: DbDep, celery: CeleryDep) -> JobPubl
 
 @router.get(
     "/{job_id}/curve",
+    dependencies=SIGNED_IN,
     responses={200: {"content": {"application/json": {}, "text/csv": {}}}},
 )
 def curve(
@@ -240,7 +263,10 @@ def curve(
 
 
 @router.get(
-    "/{job_id}/plot.png", response_class=Response, responses={200: {"content": {"image/png": {}}}}
+    "/{job_id}/plot.png",
+    dependencies=SIGNED_IN,
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}}},
 )
 def plot(job_id: str, db: DbDep) -> Response:
     """The learning curve as a PNG."""
@@ -251,7 +277,12 @@ def plot(job_id: str, db: DbDep) -> Response:
     return Response(curve_png(job.curve, title), media_type="image/png")
 
 
-@router.get("/{job_id}/model", response_class=FileResponse, responses=CHECKSUM_RESPONSE)
+@router.get(
+    "/{job_id}/model",
+    dependencies=SIGNED_IN,
+    response_class=FileResponse,
+    responses=CHECKSUM_RESPONSE,
+)
 def model(job_id: str, db: DbDep, store: StoreDep) -> FileResponse:
     """The trained policy (TorchScript, with its observation normalisation) and its checksum."""
     job = get_or_404(db, Job, job_id, "job_id")

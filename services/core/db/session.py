@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import Engine, create_engine, event, exc
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.pool import QueuePool, StaticPool
 
 SQLITE_BUSY_TIMEOUT_MS = 10_000
+PING_AFTER_IDLE_S = 1.0
+"""A pooled PostgreSQL connection unused for longer than this is pinged before it is used."""
+_IDLE_SINCE = "bgrl_idle_since"
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
@@ -22,12 +26,40 @@ def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     cursor.close()
 
 
+def _ping_when_idle(engine: Engine) -> None:
+    """Ping a pooled connection at checkout only if it was unused for ``PING_AFTER_IDLE_S``
+    (a dead one is replaced: ``DisconnectionError`` makes the pool open another).
+
+    ``pool_pre_ping`` pings at every checkout: one more round trip per request, which at
+    hundreds of requests a second costs the api CPU. A connection used less than a second
+    ago is not pinged: it can only be dead if the server restarted within that second, and
+    then the query fails once and SQLAlchemy recycles the whole pool.
+    """
+
+    def used(_dbapi_connection: Any, record: Any, *_: Any) -> None:
+        record.info[_IDLE_SINCE] = time.monotonic()
+
+    def checkout(dbapi_connection: Any, record: Any, _proxy: Any) -> None:
+        idle_since = record.info.pop(_IDLE_SINCE, None)
+        if idle_since is not None and time.monotonic() - idle_since < PING_AFTER_IDLE_S:
+            return
+        try:
+            engine.dialect.do_ping(dbapi_connection)
+        except engine.dialect.loaded_dbapi.Error as error:
+            raise exc.DisconnectionError(f"connection unusable: {error}") from error
+
+    event.listen(engine, "connect", used)
+    event.listen(engine, "checkin", used)
+    event.listen(engine, "checkout", checkout)
+
+
 def make_engine(url: str, **kwargs: Any) -> Engine:
     """An engine for ``url``.
 
     SQLite: WAL journal (readers never block the writer), foreign keys enforced, a busy
     timeout so concurrent writers (api and workers) wait instead of failing; the folder of
-    the file is created. PostgreSQL: connections checked before use (``pool_pre_ping``).
+    the file is created. PostgreSQL: a pooled connection idle for a second or more is
+    checked before use (:func:`_ping_when_idle`; ``pool_pre_ping=True`` checks every one).
     """
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite":
@@ -37,8 +69,11 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
         engine = create_engine(url, **kwargs)
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
-    kwargs.setdefault("pool_pre_ping", True)
-    return create_engine(url, **kwargs)
+    ping_every_checkout = kwargs.setdefault("pool_pre_ping", False)
+    engine = create_engine(url, **kwargs)
+    if not ping_every_checkout:
+        _ping_when_idle(engine)
+    return engine
 
 
 def pool_capacity(engine: Engine) -> int:
