@@ -180,10 +180,11 @@ def _run(runtime: Any, job_id: str, handler: Any) -> dict[str, Any]:
 
 
 def run_latencies(runtime: Any, run_id: int) -> dict[str, Any]:
-    """Latency percentiles (ms) of a live run from its rows."""
+    """Latency percentiles (ms) of a live run from its rows (``marker_to_frame_shown``: from
+    the frames the subject display reported, if one was open)."""
     from sqlalchemy import select
 
-    from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion
+    from services.core.db.live import LiveDecision, LiveFrameShown, LiveMarker, LiveModelVersion
     from services.core.live import latency_summary, timeline_latencies
 
     with runtime.sessions() as db:
@@ -213,7 +214,16 @@ def run_latencies(runtime: Any, run_id: int) -> dict[str, Any]:
                 ).where(LiveModelVersion.run_id == run_id)
             )
         }
-    return latency_summary(timeline_latencies(markers, decisions, versions, []))
+        frames = [
+            shown.timestamp() - markers[step][1]
+            for step, shown in db.execute(
+                select(LiveFrameShown.step, LiveFrameShown.shown_at).where(
+                    LiveFrameShown.run_id == run_id
+                )
+            )
+            if step in markers
+        ]
+    return latency_summary(timeline_latencies(markers, decisions, versions, frames))
 
 
 def _plot(out: Path, curve: list[list[float]], hf_spl: float | None, accuracy_trace: list) -> None:
