@@ -31,6 +31,7 @@ import sys
 import tempfile
 import time
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -289,8 +290,10 @@ def run_benchmark(
     period_s: float,
     sweep_seeds: int,
     max_passes: int | None = None,
+    display: bool = True,
 ) -> dict[str, Any]:
-    """Run both parts (see the module docstring); returns and writes the result."""
+    """Run both parts (see the module docstring); returns and writes the result. Not
+    ``display``: the paced session runs without the subject's display page (and the api)."""
     from services.worker.live_session import live_session
 
     out.mkdir(parents=True, exist_ok=True)
@@ -358,6 +361,7 @@ def run_benchmark(
                 actions=paced_actions,
                 period_s=period_s,
                 services=BenchServices(folder, token, urls, children),
+                display=display,
             )
             print(json.dumps(result["paced"]), flush=True)
         result["load_average_1min_end"] = os.getloadavg()[0]
@@ -372,6 +376,10 @@ def run_benchmark(
             child.wait_or_kill(deadline)
         runtime.engine.dispose()
         tmp.cleanup()
+
+
+def _utc_now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 @dataclass
@@ -394,13 +402,18 @@ def paced_session(
     actions: int,
     period_s: float,
     services: BenchServices,
+    display: bool = True,
 ) -> dict[str, Any]:
     """A paced online session of ``actions`` actions with the virtual subject in real time,
-    watched on the subject's display page; its timeline (``latency_ms``), pace and CPU."""
+    watched on the subject's display page (unless not ``display``); its timeline
+    (``latency_ms``), pace, CPU, wall-clock span and load average."""
     from services.worker.live_session import live_session
 
+    started_at, load_start = _utc_now(), os.getloadavg()[0]
     session_id = _lab_session(runtime, "online", subject_id)
-    display, display_result = _open_display(runtime, services, session_id)
+    page, display_result = None, {"reason": "--no-display"}
+    if display:
+        page, display_result = _open_display(runtime, services, session_id)
     options = {"accelerated": False, "virtual_quality": quality, "classifier_id": classifier_id,
                "label_budget": actions, "n_actions": actions, "period_s": period_s}  # fmt: skip
     run_id, job_id = _live_run(runtime, session_id, "online", options)
@@ -408,15 +421,17 @@ def paced_session(
     try:
         online = _run(runtime, job_id, live_session)
         cpu_after = cpu_seconds(services.children)
-        if display is not None:
+        if page is not None:
             display_result["frames_reported"] = _frames_reported(runtime, run_id)
     finally:
-        if display is not None:
-            display_result.update(display.close())
+        if page is not None:
+            display_result.update(page.close())
     latency = run_latencies(runtime, run_id)
-    if display is None:  # no display page: no frame-shown figure, the reason instead
+    if page is None:  # no display page: no frame-shown figure, the reason instead
         latency.pop("marker_to_frame_shown", None)
     return {
+        "utc": [started_at, _utc_now()],
+        "load_average_1min": {"start": load_start, "end": os.getloadavg()[0]},
         "cpu_ms_per_action": _cpu_ms_per(cpu_before, cpu_after, online["actions"]),
         "actions": online["actions"],
         "labels": online["labels"],

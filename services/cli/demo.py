@@ -403,6 +403,13 @@ def bench_loop(
     period_s: Annotated[float, typer.Option(min=0.05, help="Paced seconds per action.")] = 1.5,
     sweep_seeds: Annotated[int, typer.Option(min=1, help="hf-sweep seeds to compare.")] = 3,
     max_passes: Annotated[int | None, typer.Option(min=1, help="Calibration passes.")] = None,
+    display: Annotated[
+        bool,
+        typer.Option(
+            help="Watch the paced session on the subject's display page (api + headless "
+            "Chromium): measures action -> frame shown."
+        ),
+    ] = True,
 ) -> None:
     """Closed loop: accelerated sessions per subject quality, a paced session's timeline."""
     from benchmarks.bench_loop import run_benchmark
@@ -416,6 +423,7 @@ def bench_loop(
         period_s=period_s,
         sweep_seeds=sweep_seeds,
         max_passes=max_passes,
+        display=display,
     )
     typer.echo(f"wrote {out / 'loop.json'} ({len(result['accelerated'])} accelerated sessions)")
 
