@@ -14,7 +14,7 @@
    reports each frame it showed (``live_frames_shown``). Without Chromium or Playwright that
    figure is left out and ``paced.display.reason`` says why; the rest runs the same.
 
-Writes ``OUT/loop.json``.
+Writes ``OUT/loop.json`` and, with a paced session, ``OUT/loop_paced.png`` (its latencies).
 """
 
 from __future__ import annotations
@@ -367,6 +367,8 @@ def run_benchmark(
         result["load_average_1min_end"] = os.getloadavg()[0]
         result["cpu_seconds"] = cpu_seconds(children)
         (out / "loop.json").write_text(json.dumps(result, indent=2))
+        if "paced" in result:
+            plot_paced({"this run": result["paced"]}, out / "loop_paced.png")
         return result
     finally:
         deadline = time.monotonic() + 10
@@ -461,6 +463,48 @@ def _open_display(
     except DisplayError as exc:
         return None, {"page": page, "reason": f"the display page did not open: {exc}"}
     return display, {"page": page, "browser": str(CHROMIUM)}
+
+
+PLOTTED_LATENCIES = {
+    "marker_to_frame_shown": "action -> frame shown",
+    "marker_to_epoch_end": "marker -> epoch end",
+    "epoch_end_to_decision": "epoch end -> decision",
+    "decision_to_update": "decision -> update + next action",
+    "epoch_end_to_next_action": "epoch end -> next action",
+}
+
+
+def plot_paced(runs: dict[str, dict[str, Any]], path: Path) -> None:
+    """Bar chart of paced sessions' per-action latencies (p50 bars, p99 and max marks), one
+    colour per run (``runs``: label -> a ``paced`` result of ``loop.json``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(PLOTTED_LATENCIES)
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    width = 0.8 / max(len(runs), 1)
+    for k, (label, paced) in enumerate(runs.items()):
+        legend: str | None = label
+        for i, name in enumerate(names):
+            figure = paced["latency_ms"].get(name)
+            if not figure or figure["p50_ms"] is None:
+                continue
+            x = i + (k - (len(runs) - 1) / 2) * width
+            ax.bar(x, figure["p50_ms"], width, color=f"C{k}", label=legend)
+            legend = None
+            ax.plot([x, x], [figure["p50_ms"], figure["p99_ms"]], color="black", linewidth=1)
+            ax.plot(x, figure["p99_ms"], "_", color="black", markersize=10)
+            ax.plot(x, figure["max_ms"], "x", color="grey", markersize=5)
+    ax.set_xticks(range(len(names)), [PLOTTED_LATENCIES[n] for n in names], fontsize=8)
+    ax.set_yscale("log")
+    ax.set_ylabel("ms per action (bar p50, dash p99, x max)")
+    ax.set_title("paced session, virtual subject (SYNTHETIC EEG)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def _cpu_ms_per(before: dict[str, float], after: dict[str, float], n: int) -> dict[str, float]:
