@@ -180,10 +180,11 @@ def _run(runtime: Any, job_id: str, handler: Any) -> dict[str, Any]:
 
 
 def run_latencies(runtime: Any, run_id: int) -> dict[str, Any]:
-    """Latency percentiles (ms) of a live run from its rows."""
+    """Latency percentiles (ms) of a live run from its rows (``marker_to_frame_shown``: from
+    the frames the subject display reported, if one was open)."""
     from sqlalchemy import select
 
-    from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion
+    from services.core.db.live import LiveDecision, LiveFrameShown, LiveMarker, LiveModelVersion
     from services.core.live import latency_summary, timeline_latencies
 
     with runtime.sessions() as db:
@@ -213,7 +214,16 @@ def run_latencies(runtime: Any, run_id: int) -> dict[str, Any]:
                 ).where(LiveModelVersion.run_id == run_id)
             )
         }
-    return latency_summary(timeline_latencies(markers, decisions, versions, []))
+        frames = [
+            shown.timestamp() - markers[step][1]
+            for step, shown in db.execute(
+                select(LiveFrameShown.step, LiveFrameShown.shown_at).where(
+                    LiveFrameShown.run_id == run_id
+                )
+            )
+            if step in markers
+        ]
+    return latency_summary(timeline_latencies(markers, decisions, versions, frames))
 
 
 def _plot(out: Path, curve: list[list[float]], hf_spl: float | None, accuracy_trace: list) -> None:
@@ -393,6 +403,13 @@ def bench_loop(
     period_s: Annotated[float, typer.Option(min=0.05, help="Paced seconds per action.")] = 1.5,
     sweep_seeds: Annotated[int, typer.Option(min=1, help="hf-sweep seeds to compare.")] = 3,
     max_passes: Annotated[int | None, typer.Option(min=1, help="Calibration passes.")] = None,
+    display: Annotated[
+        bool,
+        typer.Option(
+            help="Watch the paced session on the subject's display page (api + headless "
+            "Chromium): measures action -> frame shown."
+        ),
+    ] = True,
 ) -> None:
     """Closed loop: accelerated sessions per subject quality, a paced session's timeline."""
     from benchmarks.bench_loop import run_benchmark
@@ -406,6 +423,7 @@ def bench_loop(
         period_s=period_s,
         sweep_seeds=sweep_seeds,
         max_passes=max_passes,
+        display=display,
     )
     typer.echo(f"wrote {out / 'loop.json'} ({len(result['accelerated'])} accelerated sessions)")
 

@@ -3,19 +3,22 @@ accuracy, the online session's HF model (registered as an ``hf_models`` row)."""
 
 from __future__ import annotations
 
+import hashlib
 import logging
-import shutil
-import tempfile
+import os
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from sqlalchemy import select
 
-from services.core.db.live import LiveDecision, LiveMarker
+from services.core.artifacts import CHUNK_BYTES, ArtifactStore, sha256_file
+from services.core.db.base import utcnow
+from services.core.db.live import LiveDecision, LiveMarker, LiveRun
 from services.core.db.models import Artifact, FeedbackLabel, HFModel, Job, Recording
 from services.core.queue import enqueue_job
-from services.eeg.io import file_sha256, read_recording
+from services.eeg.io import read_recording
 from services.eeg.settings import EEGSettings
 
 if TYPE_CHECKING:
@@ -44,40 +47,108 @@ def _decisions(runner: LiveRunner) -> list[LiveDecision]:
     return list(rows)
 
 
-def finish_calibration(runner: LiveRunner) -> dict[str, Any]:
-    """Store the EEG service's live recording of the session (BDF + sha256, a recording
-    row) and start ``eeg_calibration`` on it."""
-    markers = _markers(runner)
-    stored = runner.stored_recording
-    if len(markers) < 2 or stored is None:
-        return {"actions": len(markers), "recording_id": None, "calibration_job_id": None}
-    options = runner.options
-    name = f"session-{runner.session_id}-calibration.bdf"
-    source = EEGSettings(data_dir=runner.runtime.settings.data_dir).eeg_dir / "recordings"
-    with tempfile.TemporaryDirectory(prefix="bgrl-live-") as tmp:
-        path = Path(tmp) / name
-        shutil.copyfile(source / f"{stored['id']}.bdf", path)  # the services share the folder
-        sha = file_sha256(path)
-        if sha != stored["sha256"]:
-            raise RuntimeError(
-                f"live recording {stored['id'][:12]}: the copy's sha256 {sha[:12]} differs"
-            )
-        checked = read_recording(path)
-        artifact_id = runner.context.store_file(path, kind="recording", name=name)
+def calibration_relpath(runner: LiveRunner) -> str:
+    """Where a calibration run's recording goes in the artifact store: fixed by the run, so
+    an attempt that resumes the finish finds the file an interrupted one stored."""
+    return f"recording/live-run-{runner.run_id}/session-{runner.session_id}-calibration.bdf"
+
+
+def stored_calibration_recording(runner: LiveRunner) -> dict[str, Any] | None:
+    """The EEG service's stored recording of this calibration run (``RecordingPublic``) if
+    an earlier attempt had it stored (``DELETE /live/recording`` answered), else None.
+
+    Found through the run's recording row, else (the attempt ended before writing it) by
+    its name among the EEG service's recordings stored since the run was created.
+    """
+    eeg = runner.services["eeg"]
     with runner.runtime.sessions() as db:
-        size = db.scalar(select(Artifact.size_bytes).where(Artifact.id == artifact_id))
+        run = db.get(LiveRun, runner.run_id)
+        assert run is not None
+        created = run.created_at
+        sha = (
+            db.scalar(select(Recording.sha256).where(Recording.id == run.recording_id))
+            if run.recording_id is not None
+            else None
+        )
+    if sha is not None:
+        return dict(eeg.call("GET", f"/recordings/{sha}"))
+    filename = f"{runner.recording_name}.bdf"
+    since = created.astimezone(UTC).replace(microsecond=0)
+    found = [
+        r
+        for r in eeg.call("GET", "/recordings")
+        if r["filename"] == filename and datetime.fromisoformat(r["uploaded_at"]) >= since
+    ]
+    return dict(max(found, key=lambda r: r["uploaded_at"])) if found else None
+
+
+def copy_into_store(store: ArtifactStore, source: Path, relpath: str, sha256: str) -> int:
+    """Copy ``source`` to ``relpath`` in the store unless it is already there with
+    ``sha256``; returns its size. The copy is hashed as it is written under a temporary
+    name fixed by ``relpath`` (so an interrupted copy is overwritten, not left beside),
+    synced, checked against ``sha256`` and renamed into place: the file is complete or
+    absent."""
+    target = store.path(relpath)
+    if target.is_file() and sha256_file(target) == sha256:
+        return target.stat().st_size
+    part = store.root / ".tmp" / (relpath.replace("/", "__") + ".part")
+    part.parent.mkdir(parents=True, exist_ok=True)
+    digest = hashlib.sha256()
+    with source.open("rb") as src, part.open("wb") as dst:
+        while chunk := src.read(CHUNK_BYTES):
+            digest.update(chunk)
+            dst.write(chunk)
+        dst.flush()
+        os.fsync(dst.fileno())
+    if digest.hexdigest() != sha256:
+        part.unlink(missing_ok=True)
+        raise RuntimeError(
+            f"{source.name}: the copy's sha256 {digest.hexdigest()[:12]} is not {sha256[:12]}"
+        )
+    target.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(part, target)
+    return target.stat().st_size
+
+
+def recording_rows(
+    runner: LiveRunner, stored: dict[str, Any], relpath: str, size: int
+) -> tuple[int, str]:
+    """The run's recording and its ``eeg_calibration`` job: (recording id, job id). Written
+    in one transaction with the artifact row and the run's links to both, unless the run
+    already links them (an earlier attempt wrote them)."""
+    with runner.runtime.sessions() as db:
+        run = db.get(LiveRun, runner.run_id)
+        assert run is not None
+        if run.recording_id is not None and run.follow_up_job_id is not None:
+            return run.recording_id, run.follow_up_job_id
+    checked = read_recording(runner.runtime.store.path(relpath))
+    options = runner.options
+    with runner.runtime.sessions() as db:
+        artifact = db.scalar(select(Artifact).where(Artifact.relpath == relpath))
+        if artifact is None:
+            artifact = Artifact(
+                kind="recording",
+                relpath=relpath,
+                sha256=stored["sha256"],
+                size_bytes=size,
+                owner_id=runner.context.submitter_id,
+                job_id=runner.context.job_id,
+            )
+            db.add(artifact)
+            db.flush()
         recording = Recording(
             session_id=runner.session_id,
-            artifact_id=artifact_id,
-            filename=name,
-            sha256=sha,
-            size_bytes=int(size or 0),
+            artifact_id=artifact.id,
+            filename=relpath.rsplit("/", 1)[-1],
+            sha256=stored["sha256"],
+            size_bytes=size,
             synthetic=bool(stored["synthetic"]),
             n_channels=len(checked.ch_names),
             channels=list(checked.ch_names),
             sfreq=float(checked.info["sfreq"]),
             duration_s=float(checked.times[-1]),
             validation_status="valid",
+            validated_at=utcnow(),
             uploaded_by_id=runner.context.submitter_id,
         )
         db.add(recording)
@@ -93,16 +164,49 @@ def finish_calibration(runner: LiveRunner) -> dict[str, Any]:
             max_attempts=runner.context.max_attempts,
         )
         db.add(job)
+        db.flush()
+        run = db.get(LiveRun, runner.run_id)
+        assert run is not None
+        run.recording_id, run.follow_up_job_id = recording.id, job.id
         db.commit()
-        recording_id, job_id = recording.id, job.id
-    runner._set_run(recording_id=recording_id, follow_up_job_id=job_id)
-    enqueue_job(runner.runtime.celery, job_id, "eeg_calibration")
-    n_errors = sum(1 for m in markers if m.oracle_correct is False)
+        return recording.id, job.id
+
+
+def send_if_queued(runner: LiveRunner, job_id: str) -> None:
+    """Send the follow-up job to the workers while it is still queued (again, after a crash
+    between its row and the send: a duplicate message is dropped by the job's claim)."""
+    with runner.runtime.sessions() as db:
+        status = db.scalar(select(Job.status).where(Job.id == job_id))
+    if status == "queued":
+        enqueue_job(runner.runtime.celery, job_id, "eeg_calibration")
+
+
+def finish_calibration(runner: LiveRunner) -> dict[str, Any]:
+    """Store the EEG service's live recording of the session (BDF + sha256, an artifact and
+    a recording row) and start ``eeg_calibration`` on it.
+
+    Idempotent, so a crash at any step is completed by the resumed attempt without a
+    second copy, row or job: the file goes to the run's fixed place in the artifact store
+    (:func:`copy_into_store`), the rows and the run's links to them are one transaction
+    (:func:`recording_rows`), and the job is sent while it is queued (:func:`send_if_queued`).
+    """
+    markers = _markers(runner)
+    stored = runner.stored_recording
+    if len(markers) < 2 or stored is None:
+        return {"actions": len(markers), "recording_id": None, "calibration_job_id": None}
+    relpath = calibration_relpath(runner)
+    source = EEGSettings(data_dir=runner.runtime.settings.data_dir).eeg_dir / "recordings"
+    # the services share the data folder (bgrl up; one volume in a multi-host deployment)
+    size = copy_into_store(
+        runner.runtime.store, source / f"{stored['id']}.bdf", relpath, stored["sha256"]
+    )
+    recording_id, job_id = recording_rows(runner, stored, relpath, size)
+    send_if_queued(runner, job_id)
     return {
         "actions": len(markers),
-        "errors": n_errors,
+        "errors": sum(1 for m in markers if m.oracle_correct is False),
         "recording_id": recording_id,
-        "recording_sha256": sha,
+        "recording_sha256": stored["sha256"],
         "recorded_markers": stored["n_actions"],
         "recording_duration_s": stored["duration_s"],
         "calibration_job_id": job_id,

@@ -16,9 +16,11 @@ action.
 Resume: every attempt starts from the rows. The marker whose decision was not written is
 the label in flight: it is recorded as rejected ("lost") and the loop goes on with the next
 step; a decision whose label was not written is sent again (the learner ignores a marker id
-it has seen). A service that restarts is waited for (backoff) and re-attached: a sim session
-that is gone is opened again (new episode), the HF session is found again (its state is on
-the learner's disk), the EEG source re-connects.
+it has seen). A calibration whose recording the EEG service already stored goes straight to
+the finish, which completes what the last attempt left undone (``live_finish``). A service
+that restarts is waited for (backoff) and re-attached: a sim session that is gone is opened
+again (new episode), the HF session is found again (its state is on the learner's disk),
+the EEG source re-connects.
 """
 
 from __future__ import annotations
@@ -40,7 +42,12 @@ from services.core.live import DEFAULT_ACTIONS, ONLINE_ACTIONS_PER_LABEL, LiveOp
 from services.core.markers import ActionMarker
 from services.core.settings import load_settings
 from services.worker.live_eeg import EegDecoder, install_classifier
-from services.worker.live_finish import finish_calibration, finish_online, finish_test
+from services.worker.live_finish import (
+    finish_calibration,
+    finish_online,
+    finish_test,
+    stored_calibration_recording,
+)
 from services.worker.live_services import LiveSettings, ServiceCallError, clients
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome
 
@@ -430,6 +437,12 @@ class LiveRunner:
 
     def run(self) -> JobOutcome:
         total = self.total_actions()
+        if self.mode == "calibration" and self.done:
+            self.stored_recording = stored_calibration_recording(self)
+        if self.stored_recording is not None:
+            # an earlier attempt ended the session and had its recording stored: finish it
+            # (recording anew under the run's name would store a second, empty recording)
+            return self.finish(self.done < total)
         try:
             self.attach_sim()
             if self.mode == "online":
