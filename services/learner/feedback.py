@@ -99,9 +99,7 @@ class FeedbackConfig:
                 f"(labels must carry information), got {good} + {bad}"
             )
         if self.ensemble_size < 2 or self.thompson_period < 1 or self.revisit_window < 1:
-            raise ValueError(
-                "ensemble_size must be >= 2, thompson_period and revisit_window >= 1"
-            )
+            raise ValueError("ensemble_size must be >= 2, thompson_period and revisit_window >= 1")
         if self.hidden_size < 1 or self.batch_size < 1 or self.replay_updates < 0:
             raise ValueError("hidden_size and batch_size must be >= 1, replay_updates >= 0")
         if not 0.0 <= self.newest_fraction <= 1.0:

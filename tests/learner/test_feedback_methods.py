@@ -124,7 +124,13 @@ def test_active_query_picks_the_most_informative_action_on_a_hand_built_ensemble
 
 @pytest.mark.parametrize(
     "method",
-    ["paper", RECOMMENDED_METHOD, "categorical_thompson", "categorical_info", "categorical_onpolicy"],
+    [
+        "paper",
+        RECOMMENDED_METHOD,
+        "categorical_thompson",
+        "categorical_info",
+        "categorical_onpolicy",
+    ],
 )
 def test_label_budget_is_exact_and_collection_is_deterministic(toy_env_id, method) -> None:
     config = FeedbackConfig(replay_updates=2, method=method, good_accuracy=0.7, bad_accuracy=0.7)
