@@ -1,6 +1,6 @@
 """Per-seed greedy pi_HF SPL of each stage-2 method (docs/stage2.md, "A new method").
 
-Usage: python docs/results/onpolicy_c06/plot.py HF_POLICIES_JSON OUT_PNG
+Usage: python docs/results/onpolicy_c06/plot.py HF_POLICIES_JSON [HF_POLICIES_JSON ...] OUT_PNG
 """
 
 import json
@@ -13,7 +13,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 METHODS = ["paper", "categorical", "categorical_onpolicy"]
-rows = json.load(open(sys.argv[1]))["runs"]
+rows = [row for path in sys.argv[1:-1] for row in json.load(open(path))["runs"]]
 accuracies = sorted({r["accuracy"] for r in rows})
 fig, axes = plt.subplots(len(accuracies), 2, figsize=(10, 3.6 * len(accuracies)), squeeze=False)
 for i, accuracy in enumerate(accuracies):
@@ -37,4 +37,4 @@ for i, accuracy in enumerate(accuracies):
         ax.set_ylim(-0.05, 1.1)
         ax.axhline(0.5, color="grey", lw=0.6, ls=":")
 fig.tight_layout()
-fig.savefig(sys.argv[2], dpi=110)
+fig.savefig(sys.argv[-1], dpi=110)
