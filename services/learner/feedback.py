@@ -29,6 +29,7 @@ Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -81,6 +82,9 @@ class FeedbackConfig:
     """Members of the bootstrapped ensemble of the active-query methods."""
     thompson_period: int = 20
     """Collection actions between two Thompson draws of the member to follow."""
+    revisit_window: int = 24
+    """``greedy`` collection: an observation seen in this many last collection actions is a
+    loop, where the softmax is sampled instead of the argmax (24: two full turns in place)."""
 
     def __post_init__(self) -> None:
         get_method(self.method)  # ValueError naming the known methods
@@ -94,8 +98,8 @@ class FeedbackConfig:
                 f"good_accuracy + bad_accuracy must exceed 1 for method {self.method!r} "
                 f"(labels must carry information), got {good} + {bad}"
             )
-        if self.ensemble_size < 2 or self.thompson_period < 1:
-            raise ValueError("ensemble_size must be >= 2 and thompson_period >= 1")
+        if self.ensemble_size < 2 or self.thompson_period < 1 or self.revisit_window < 1:
+            raise ValueError("ensemble_size must be >= 2, thompson_period and revisit_window >= 1")
         if self.hidden_size < 1 or self.batch_size < 1 or self.replay_updates < 0:
             raise ValueError("hidden_size and batch_size must be >= 1, replay_updates >= 0")
         if not 0.0 <= self.newest_fraction <= 1.0:
@@ -159,6 +163,8 @@ class FeedbackLearner:
         self.ensemble: FhatEnsemble | None = None
         self.n_collection_actions = 0
         self.member = 0
+        self.recent_obs: deque[bytes] = deque(maxlen=self.config.revisit_window)
+        """Observations of the last collection actions (``greedy`` collection's loop test)."""
         if self.method.uses_ensemble:
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(seed + 1)
@@ -202,8 +208,15 @@ class FeedbackLearner:
 
         ``paper``-style methods sample pi_HF (softmax(beta * P(optimal))); ``thompson``
         follows one bootstrapped member greedily, redrawn every ``thompson_period`` actions;
-        ``info`` asks where the label is most informative (:mod:`~services.learner.hf_methods`).
+        ``info`` asks where the label is most informative; ``greedy`` takes pi_HF's argmax
+        unless the observation is among the last ``revisit_window`` ones, where it samples
+        (:mod:`~services.learner.hf_methods`).
         """
+        if self.method.collection == "greedy":
+            key = np.asarray(obs, dtype=np.float32).tobytes()
+            revisit = key in self.recent_obs
+            self.recent_obs.append(key)
+            return self.policy.act(obs, rng if revisit else None)
         if self.ensemble is None:
             return self.policy.act(obs, rng)
         if self.n_collection_actions % self.config.thompson_period == 0:
@@ -273,7 +286,15 @@ class FeedbackLearner:
             "rng": self.rng.bit_generator.state,
             "n_updates": self.n_updates,
             **self._ensemble_state(),
+            **self._recent_state(),
         }
+
+    def _recent_state(self) -> dict[str, Any]:
+        if self.method.collection != "greedy":
+            return {}
+        recent = np.frombuffer(b"".join(self.recent_obs), dtype=np.float32)
+        recent = recent.reshape(len(self.recent_obs), self.buffer.obs.shape[1])
+        return {"recent_obs": torch.from_numpy(recent.copy())}
 
     def _ensemble_state(self) -> dict[str, Any]:
         if self.ensemble is None:
@@ -313,6 +334,9 @@ class FeedbackLearner:
         ]
         self.rng.bit_generator.state = state["rng"]
         self.n_updates = int(state["n_updates"])
+        if self.method.collection == "greedy":
+            self.recent_obs.clear()
+            self.recent_obs.extend(row.tobytes() for row in state["recent_obs"].numpy())
         if self.ensemble is not None:
             ensemble = state["ensemble"]
             self.ensemble.load_state_dict(ensemble["model"])

@@ -23,6 +23,14 @@ paper's own future work (more from fewer labels, active learning); see docs/stag
 * ``categorical_info``: the collection action is the plausible action (mean P(optimal) at
   least half the best) whose label carries the most expected information about which
   ensemble member is right (BALD, Houlsby et al. 2011).
+* ``categorical_onpolicy``: labels where the *greedy* pi_HF goes. The collection action is
+  pi_HF's argmax (the policy that is evaluated and guides RL), as in DAgger (Ross et al.,
+  AISTATS 2011), so labels land on the states along the greedy policy's way to the goal and
+  pile up at the first state where it errs, until the categorical evidence there moves its
+  argmax; where the robot is back on an observation it saw in the last ``revisit_window``
+  collection actions (a loop: the greedy policy of a deterministic env cycles), it samples
+  the paper's softmax(beta * P(optimal)) instead, which breaks the loop. Measured in
+  docs/stage2.md ("A new method"): no better than ``categorical`` at C = 0.6 or 0.7.
 
 Every method keeps Fhat a 13 -> 16 -> 3 MLP and pi_HF = argmax_a Fhat(s, a); only the loss,
 the score transform and the collection rule change.
@@ -52,7 +60,8 @@ class HFMethod:
     likelihood: str
     """``bce`` (the paper), ``forward`` (noise-aware sigmoid) or ``categorical``."""
     collection: str
-    """``softmax`` (the paper's softmax(beta * P(optimal))), ``thompson`` or ``info``."""
+    """``softmax`` (the paper's softmax(beta * P(optimal))), ``thompson``, ``info`` or
+    ``greedy`` (pi_HF's argmax, softmax on a revisited observation)."""
 
     @property
     def uses_noise_model(self) -> bool:
@@ -62,7 +71,7 @@ class HFMethod:
     @property
     def uses_ensemble(self) -> bool:
         """True if collection needs the bootstrapped ensemble."""
-        return self.collection != "softmax"
+        return self.collection in ("thompson", "info")
 
 
 HF_METHODS: dict[str, HFMethod] = {
@@ -74,10 +83,17 @@ HF_METHODS: dict[str, HFMethod] = {
         HFMethod("thompson", "bce", "thompson"),
         HFMethod("categorical_thompson", "categorical", "thompson"),
         HFMethod("categorical_info", "categorical", "info"),
+        HFMethod("categorical_onpolicy", "categorical", "greedy"),
     )
 }
 HFMethodName = Literal[
-    "paper", "noise_aware", "categorical", "thompson", "categorical_thompson", "categorical_info"
+    "paper",
+    "noise_aware",
+    "categorical",
+    "thompson",
+    "categorical_thompson",
+    "categorical_info",
+    "categorical_onpolicy",
 ]
 """The names of :data:`HF_METHODS` (for request schemas)."""
 PAPER_METHOD = "paper"

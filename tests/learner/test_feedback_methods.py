@@ -123,7 +123,14 @@ def test_active_query_picks_the_most_informative_action_on_a_hand_built_ensemble
 
 
 @pytest.mark.parametrize(
-    "method", ["paper", RECOMMENDED_METHOD, "categorical_thompson", "categorical_info"]
+    "method",
+    [
+        "paper",
+        RECOMMENDED_METHOD,
+        "categorical_thompson",
+        "categorical_info",
+        "categorical_onpolicy",
+    ],
 )
 def test_label_budget_is_exact_and_collection_is_deterministic(toy_env_id, method) -> None:
     config = FeedbackConfig(replay_updates=2, method=method, good_accuracy=0.7, bad_accuracy=0.7)
@@ -180,3 +187,44 @@ def test_bad_method_or_noise_model_is_refused_naming_the_field() -> None:
 
 def test_method_names_of_the_request_schema_are_the_registry() -> None:
     assert set(get_args(HFMethodName)) == set(HF_METHODS) and RECOMMENDED_METHOD in HF_METHODS
+
+
+def test_onpolicy_collection_takes_the_argmax_and_samples_only_on_a_revisited_observation() -> None:
+    config = FeedbackConfig(method="categorical_onpolicy", revisit_window=3)
+    learner = FeedbackLearner(_normalizer(), config, seed=0)
+    with torch.no_grad():  # Fhat prefers action 2 everywhere, clearly but not overwhelmingly
+        learner.model.output.weight.zero_()
+        learner.model.output.bias.copy_(torch.tensor([0.0, 0.0, 0.3]))
+    fresh = [np.full(3, v, np.float32) for v in (0.1, 0.2, 0.3, 0.4)]
+    rng = np.random.default_rng(0)
+    before = rng.bit_generator.state
+    assert [learner.collection_action(o, rng) for o in fresh] == [2, 2, 2, 2]
+    assert rng.bit_generator.state == before  # greedy: no draw
+    # 0.4 is among the last 3 observations: a loop, so the softmax is sampled
+    draws = [learner.collection_action(fresh[3], np.random.default_rng(i)) for i in range(200)]
+    assert set(draws) == {0, 1, 2}
+    # 0.1 left the window of the last 3: greedy again
+    assert learner.collection_action(fresh[0], rng) == 2 and rng.bit_generator.state == before
+
+
+def test_onpolicy_learner_resumes_with_its_recent_observations() -> None:
+    config = FeedbackConfig(replay_updates=2, method="categorical_onpolicy", revisit_window=4)
+    rng = np.random.default_rng(3)
+    states = [rng.uniform(-1, 1, 3).astype(np.float32) for _ in range(5)]
+    whole = FeedbackLearner(_normalizer(), config, seed=1)
+    part = FeedbackLearner(_normalizer(), config, seed=1)
+    actions_whole, actions_part = [], []
+    for i in range(40):
+        obs = states[int(rng.integers(5))]  # few states: revisits happen
+        if i == 20:
+            restored = FeedbackLearner(_normalizer(), config, seed=1)
+            restored.load_state_dict(part.state_dict())
+            part = restored
+        actions_whole.append(whole.collection_action(obs, np.random.default_rng(i)))
+        actions_part.append(part.collection_action(obs, np.random.default_rng(i)))
+        label = bool(rng.integers(2))
+        whole.add(obs, actions_whole[-1], label)
+        part.add(obs, actions_part[-1], label)
+    assert actions_whole == actions_part
+    for p, q in zip(whole.model.parameters(), part.model.parameters(), strict=True):
+        assert torch.equal(p, q)
