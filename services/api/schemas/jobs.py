@@ -28,7 +28,13 @@ Task = Literal["sssg", "vssg"]
 Method = Literal["rl_sparse", "rl_rich", "rl_shaped", "hf_sparse"]
 Treatment = Literal["authors", "truncated_is"]
 HFMethodName = Literal[
-    "paper", "noise_aware", "categorical", "thompson", "categorical_thompson", "categorical_info"
+    "paper",
+    "noise_aware",
+    "categorical",
+    "thompson",
+    "categorical_thompson",
+    "categorical_info",
+    "categorical_onpolicy",
 ]
 """Stage-2 methods that learn pi_HF (docs/stage2.md); the learner's ``HF_METHODS``."""
 HF_METHOD_NAMES: tuple[str, ...] = HFMethodName.__args__  # type: ignore[attr-defined]

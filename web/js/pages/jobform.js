@@ -20,6 +20,7 @@ export const HF_METHODS = [
   ["thompson", "thompson"],
   ["categorical_thompson", "categorical_thompson"],
   ["categorical_info", "categorical_info"],
+  ["categorical_onpolicy", "categorical_onpolicy"],
 ];
 
 function intIn(value, min, max, name) {
