@@ -35,6 +35,7 @@ import numpy as np
 
 import services.core
 from services.core.actions import ACTION_PERIOD_S
+from services.eeg.training_config import DECODERS
 
 LSL_LOOPBACK_CFG = Path(services.core.__file__).with_name("lsl_loopback.cfg")
 DEFAULT_QUALITIES = (0.0, 0.2, 0.3, 0.4, 0.6, 1.0)
@@ -73,7 +74,7 @@ def _sweep_subject(
     error_rate: float,
     check_linearity: bool,
     max_passes: int,
-    decoders: tuple[str, ...] = ("eegnet", "lda"),
+    decoders: tuple[str, ...] = DECODERS,
 ) -> list[dict[str, Any]]:
     """Calibrate one virtual subject (``seed``) at every quality level.
 
@@ -141,7 +142,7 @@ def quality_sweep(
     max_passes: int = 150,
     jobs: int = 1,
     partial_path: Path | None = None,
-    decoders: tuple[str, ...] = ("eegnet", "lda"),
+    decoders: tuple[str, ...] = DECODERS,
 ) -> dict[str, Any]:
     """Calibrate ``n_seeds`` virtual subjects at every quality level; summarise test metrics
     of the kept decoder and of each decoder (``decoders``, trained on the same split).

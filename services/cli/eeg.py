@@ -47,12 +47,14 @@ def calibrate_command(
     decoders: Annotated[
         str,
         typer.Option(
-            help="Comma-separated decoders trained on the same split (eegnet, lda); the "
-            "better on validation is kept."
+            help="Comma-separated decoders trained on the same split (eegnet, lda, "
+            "xdawn_rg); the best on validation is kept."
         ),
-    ] = "eegnet,lda",
+    ] = "eegnet,lda,xdawn_rg",
     report: Annotated[bool, typer.Option(help="Write report.png / report.html.")] = True,
-    onnx: Annotated[bool, typer.Option(help="Also export model.onnx.")] = True,
+    onnx: Annotated[
+        bool, typer.Option(help="Also export model.onnx (EEGNet, sLDA; xDAWN + RG has none).")
+    ] = True,
 ) -> None:
     """Train and evaluate the ErrP classifier on RECORDING; writes OUT/metrics.json."""
     import torch
@@ -159,8 +161,11 @@ def quality_sweep_command(
     max_passes: Annotated[int, typer.Option(min=1, help="Training passes cap per run.")] = 150,
     jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
     decoders: Annotated[
-        str, typer.Option(help="Comma-separated decoders trained on each split (eegnet, lda).")
-    ] = "eegnet,lda",
+        str,
+        typer.Option(
+            help="Comma-separated decoders trained on each split (eegnet, lda, xdawn_rg)."
+        ),
+    ] = "eegnet,lda,xdawn_rg",
 ) -> None:
     """Simulate and calibrate virtual subjects per quality level; table of test accuracy."""
     from benchmarks.bench_eeg import DEFAULT_QUALITIES, format_sweep_table, quality_sweep
