@@ -178,15 +178,43 @@ def quality_sweep(
             futures = [pool.submit(_sweep_subject, *task) for task in tasks]
             for future in tqdm(as_completed(futures), total=len(futures), desc="quality sweep"):
                 collect(future.result())
+    return summarize_sweep(
+        runs,
+        levels,
+        n_seeds=n_seeds,
+        n_actions=n_actions,
+        error_rate=error_rate,
+        max_passes=max_passes,
+        decoders=decoders,
+    )
+
+
+def summarize_sweep(
+    runs: list[dict[str, Any]],
+    levels: list[float],
+    *,
+    n_seeds: int,
+    n_actions: int,
+    error_rate: float,
+    max_passes: int,
+    decoders: tuple[str, ...],
+) -> dict[str, Any]:
+    """The sweep's JSON from its runs (also from a stopped sweep's
+    ``quality_sweep.partial.json``): per level, mean and SD over the subjects that ran
+    (``n_seeds`` of each level says how many) of the kept decoder's and every decoder's
+    test metrics, and how often each was kept."""
     summary = []
     for q in levels:
         rows = [r for r in runs if r["quality"] == q]
+        if not rows:
+            continue
         entry: dict[str, Any] = {"quality": q, "extrapolated": q > 1.0, "n_seeds": len(rows)}
         entry.update(_mean_std(rows))
         entry["decoders"] = {
             name: _mean_std([r["decoders"][name] for r in rows]) for name in decoders
         }
         entry["kept"] = {name: sum(r["decoder"] == name for r in rows) for name in decoders}
+        entry["subjects"] = sorted(r["seed"] for r in rows)
         summary.append(entry)
     return {
         "synthetic": True,
@@ -224,8 +252,8 @@ def format_sweep_table(result: dict[str, Any]) -> str:
     names = result.get("decoders", ["eegnet"])
     header = [f"{name} {label}" for name in names for label in ("test acc.", "bal. acc.", "AUC")]
     lines = [
-        "| quality | " + " | ".join(header) + " | kept |",
-        "|---:|" + "---:|" * len(header) + "---|",
+        "| quality | subjects | " + " | ".join(header) + " | kept |",
+        "|---:|---:|" + "---:|" * len(header) + "---|",
     ]
     for e in result["summary"]:
         cells = [
@@ -235,8 +263,123 @@ def format_sweep_table(result: dict[str, Any]) -> str:
         ]
         kept = ", ".join(f"{name} {n}" for name, n in e["kept"].items())
         level = f"{e['quality']:.2f}" + (" (extrapolated)" if e["extrapolated"] else "")
-        lines.append(f"| {level} | " + " | ".join(cells) + f" | {kept} |")
+        lines.append(f"| {level} | {e['n_seeds']} | " + " | ".join(cells) + f" | {kept} |")
     return "\n".join(lines)
+
+
+DECODER_LABELS = {"eegnet": "EEGNet", "lda": "window-mean sLDA", "xdawn_rg": "xDAWN + RG"}
+"""Display names of the decoders in the sweep's plot."""
+
+
+def sweep_csv_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """One row per quality and decoder (and ``kept``: the decoder calibration kept), with
+    mean and SD over subjects of the test metrics and how often the decoder was kept."""
+    rows = []
+    for e in result["summary"]:
+        groups = [(name, e["decoders"][name], e["kept"][name]) for name in result["decoders"]]
+        groups.append(("kept", {k: e[k] for k in e if k.endswith(("_mean", "_std"))}, None))
+        for name, stats, kept in groups:
+            rows.append(
+                {
+                    "quality": e["quality"],
+                    "extrapolated": e["extrapolated"],
+                    "decoder": name,
+                    "n_subjects": e["n_seeds"],
+                    **{
+                        f"{k}_{s}": stats[f"{k}_{s}"]
+                        for k in SWEEP_METRICS
+                        for s in ("mean", "std")
+                    },
+                    "times_kept": kept if kept is not None else "",
+                }
+            )
+    return rows
+
+
+def plot_sweep(result: dict[str, Any]):
+    """Test accuracy and balanced accuracy (mean +- SD over subjects) against quality for
+    every decoder and the kept one, and how often each decoder was kept."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    names = list(result["decoders"])
+    summary = result["summary"]
+    q = np.array([e["quality"] for e in summary])
+    fig = Figure(figsize=(15, 4.8), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 3)
+    fig.suptitle(
+        f"SYNTHETIC virtual subjects: decoders on the same splits ({result['n_seeds']} "
+        f"subjects, {result['n_actions']} actions, {result['error_rate']:.0%} errors; "
+        "mean ± SD over subjects)"
+    )
+    offsets = np.linspace(-0.012, 0.012, len(names) + 1)
+    for ax, metric, title in zip(
+        axes[:2],
+        ("test_accuracy", "balanced_accuracy"),
+        ("Held-out test accuracy", "Held-out balanced accuracy"),
+        strict=True,
+    ):
+        for k, name in enumerate(names):
+            mean = np.array([e["decoders"][name][f"{metric}_mean"] for e in summary])
+            std = np.array([e["decoders"][name][f"{metric}_std"] for e in summary])
+            ax.errorbar(
+                q + offsets[k], mean, std, marker="o", capsize=3, label=DECODER_LABELS[name]
+            )
+        mean = np.array([e[f"{metric}_mean"] for e in summary])
+        std = np.array([e[f"{metric}_std"] for e in summary])
+        ax.errorbar(
+            q + offsets[-1],
+            mean,
+            std,
+            color="k",
+            ls="--",
+            marker="s",
+            capsize=3,
+            label="kept on validation",
+        )
+        chance = 0.5 if metric == "balanced_accuracy" else 1.0 - result["error_rate"]
+        ax.axhline(
+            chance,
+            color="0.6",
+            lw=0.8,
+            ls=":",
+            label="always 'correct'" if metric == "test_accuracy" else "chance",
+        )
+        ax.set(xlabel="virtual subject quality", ylabel=metric.replace("_", " "), title=title)
+        ax.legend(fontsize=8)
+    ax = axes[2]
+    bottom = np.zeros(len(summary))
+    width = 0.6 * float(np.min(np.diff(q))) if len(q) > 1 else 0.1
+    for name in names:
+        counts = np.array([e["kept"][name] for e in summary], dtype=float)
+        ax.bar(q, counts, width, bottom=bottom, label=DECODER_LABELS[name])
+        bottom += counts
+    ax.set(
+        xlabel="virtual subject quality",
+        ylabel="subjects",
+        title="Decoder kept by calibration (best validation accuracy)",
+    )
+    ax.legend(fontsize=8)
+    return fig
+
+
+def write_sweep_outputs(result: dict[str, Any], out: Path) -> list[Path]:
+    """``quality_sweep.json``, ``.csv`` (:func:`sweep_csv_rows`) and ``.png``
+    (:func:`plot_sweep`) in ``out``; returns their paths."""
+    import csv
+    import json
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / f"quality_sweep.{ext}" for ext in ("json", "csv", "png")]
+    paths[0].write_text(json.dumps(result, indent=2))
+    rows = sweep_csv_rows(result)
+    with paths[1].open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    plot_sweep(result).savefig(paths[2], dpi=100)
+    return paths
 
 
 # ----------------------------------------------------------------------------- benchmarks

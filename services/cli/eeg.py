@@ -144,7 +144,7 @@ def _event_labels(pairs: list[str]):
 
 @eeg_app.command("quality-sweep")
 def quality_sweep_command(
-    out: Annotated[Path, typer.Option(help="Folder for quality_sweep.json.")] = Path(
+    out: Annotated[Path, typer.Option(help="Folder for quality_sweep.json, .csv and .png.")] = Path(
         "benchmarks/results"
     ),
     qualities: Annotated[
@@ -167,8 +167,14 @@ def quality_sweep_command(
         ),
     ] = "eegnet,lda,xdawn_rg",
 ) -> None:
-    """Simulate and calibrate virtual subjects per quality level; table of test accuracy."""
-    from benchmarks.bench_eeg import DEFAULT_QUALITIES, format_sweep_table, quality_sweep
+    """Simulate and calibrate virtual subjects per quality level: every decoder on the same
+    splits; writes quality_sweep.json, .csv and .png and prints the table."""
+    from benchmarks.bench_eeg import (
+        DEFAULT_QUALITIES,
+        format_sweep_table,
+        quality_sweep,
+        write_sweep_outputs,
+    )
     from services.eeg.calibration import TrainingConfig
 
     names = tuple(d.strip() for d in decoders.split(",") if d.strip())
@@ -187,10 +193,9 @@ def quality_sweep_command(
         partial_path=out / "quality_sweep.partial.json",
         decoders=names,
     )
-    path = out / "quality_sweep.json"
-    path.write_text(json.dumps(result, indent=2))
+    paths = write_sweep_outputs(result, out)
     typer.echo(format_sweep_table(result))
-    typer.echo(f"wrote {path}")
+    typer.echo("wrote " + ", ".join(str(p) for p in paths))
 
 
 def bench_eeg(
