@@ -267,10 +267,6 @@ def format_sweep_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-DECODER_LABELS = {"eegnet": "EEGNet", "lda": "window-mean sLDA", "xdawn_rg": "xDAWN + RG"}
-"""Display names of the decoders in the sweep's plot."""
-
-
 def sweep_csv_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
     """One row per quality and decoder (and ``kept``: the decoder calibration kept), with
     mean and SD over subjects of the test metrics and how often the decoder was kept."""
@@ -302,15 +298,18 @@ def plot_sweep(result: dict[str, Any]):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from services.eeg.report import DECODER_NAMES
+
     names = list(result["decoders"])
     summary = result["summary"]
     q = np.array([e["quality"] for e in summary])
     fig = Figure(figsize=(15, 4.8), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 3)
+    n_subjects = max(e["n_seeds"] for e in summary)
     fig.suptitle(
-        f"SYNTHETIC virtual subjects: decoders on the same splits ({result['n_seeds']} "
-        f"subjects, {result['n_actions']} actions, {result['error_rate']:.0%} errors; "
+        f"SYNTHETIC virtual subjects: decoders on the same splits ({n_subjects} subjects, "
+        f"{result['n_actions']} actions, {result['error_rate']:.0%} errors; "
         "mean ± SD over subjects)"
     )
     offsets = np.linspace(-0.012, 0.012, len(names) + 1)
@@ -323,9 +322,7 @@ def plot_sweep(result: dict[str, Any]):
         for k, name in enumerate(names):
             mean = np.array([e["decoders"][name][f"{metric}_mean"] for e in summary])
             std = np.array([e["decoders"][name][f"{metric}_std"] for e in summary])
-            ax.errorbar(
-                q + offsets[k], mean, std, marker="o", capsize=3, label=DECODER_LABELS[name]
-            )
+            ax.errorbar(q + offsets[k], mean, std, marker="o", capsize=3, label=DECODER_NAMES[name])
         mean = np.array([e[f"{metric}_mean"] for e in summary])
         std = np.array([e[f"{metric}_std"] for e in summary])
         ax.errorbar(
@@ -353,12 +350,13 @@ def plot_sweep(result: dict[str, Any]):
     width = 0.6 * float(np.min(np.diff(q))) if len(q) > 1 else 0.1
     for name in names:
         counts = np.array([e["kept"][name] for e in summary], dtype=float)
-        ax.bar(q, counts, width, bottom=bottom, label=DECODER_LABELS[name])
+        ax.bar(q, counts, width, bottom=bottom, label=DECODER_NAMES[name])
         bottom += counts
     ax.set(
         xlabel="virtual subject quality",
         ylabel="subjects",
-        title="Decoder kept by calibration (best validation accuracy)",
+        title="Kept by calibration (best validation accuracy)",
+        yticks=range(n_subjects + 1),
     )
     ax.legend(fontsize=8)
     return fig

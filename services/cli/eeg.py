@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from services.eeg.training_config import DECODERS
+
 eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject quality.")
 
 
@@ -50,7 +52,7 @@ def calibrate_command(
             help="Comma-separated decoders trained on the same split (eegnet, lda, "
             "xdawn_rg); the best on validation is kept."
         ),
-    ] = "eegnet,lda,xdawn_rg",
+    ] = ",".join(DECODERS),
     report: Annotated[bool, typer.Option(help="Write report.png / report.html.")] = True,
     onnx: Annotated[
         bool, typer.Option(help="Also export model.onnx (EEGNet, sLDA; xDAWN + RG has none).")
@@ -165,7 +167,7 @@ def quality_sweep_command(
         typer.Option(
             help="Comma-separated decoders trained on each split (eegnet, lda, xdawn_rg)."
         ),
-    ] = "eegnet,lda,xdawn_rg",
+    ] = ",".join(DECODERS),
 ) -> None:
     """Simulate and calibrate virtual subjects per quality level: every decoder on the same
     splits; writes quality_sweep.json, .csv and .png and prints the table."""
