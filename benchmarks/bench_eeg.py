@@ -35,6 +35,7 @@ import numpy as np
 
 import services.core
 from services.core.actions import ACTION_PERIOD_S
+from services.eeg.training_config import DECODERS
 
 LSL_LOOPBACK_CFG = Path(services.core.__file__).with_name("lsl_loopback.cfg")
 DEFAULT_QUALITIES = (0.0, 0.2, 0.3, 0.4, 0.6, 1.0)
@@ -73,7 +74,7 @@ def _sweep_subject(
     error_rate: float,
     check_linearity: bool,
     max_passes: int,
-    decoders: tuple[str, ...] = ("eegnet", "lda"),
+    decoders: tuple[str, ...] = DECODERS,
 ) -> list[dict[str, Any]]:
     """Calibrate one virtual subject (``seed``) at every quality level.
 
@@ -141,7 +142,7 @@ def quality_sweep(
     max_passes: int = 150,
     jobs: int = 1,
     partial_path: Path | None = None,
-    decoders: tuple[str, ...] = ("eegnet", "lda"),
+    decoders: tuple[str, ...] = DECODERS,
 ) -> dict[str, Any]:
     """Calibrate ``n_seeds`` virtual subjects at every quality level; summarise test metrics
     of the kept decoder and of each decoder (``decoders``, trained on the same split).
@@ -177,15 +178,43 @@ def quality_sweep(
             futures = [pool.submit(_sweep_subject, *task) for task in tasks]
             for future in tqdm(as_completed(futures), total=len(futures), desc="quality sweep"):
                 collect(future.result())
+    return summarize_sweep(
+        runs,
+        levels,
+        n_seeds=n_seeds,
+        n_actions=n_actions,
+        error_rate=error_rate,
+        max_passes=max_passes,
+        decoders=decoders,
+    )
+
+
+def summarize_sweep(
+    runs: list[dict[str, Any]],
+    levels: list[float],
+    *,
+    n_seeds: int,
+    n_actions: int,
+    error_rate: float,
+    max_passes: int,
+    decoders: tuple[str, ...],
+) -> dict[str, Any]:
+    """The sweep's JSON from its runs (also from a stopped sweep's
+    ``quality_sweep.partial.json``): per level, mean and SD over the subjects that ran
+    (``n_seeds`` of each level says how many) of the kept decoder's and every decoder's
+    test metrics, and how often each was kept."""
     summary = []
     for q in levels:
         rows = [r for r in runs if r["quality"] == q]
+        if not rows:
+            continue
         entry: dict[str, Any] = {"quality": q, "extrapolated": q > 1.0, "n_seeds": len(rows)}
         entry.update(_mean_std(rows))
         entry["decoders"] = {
             name: _mean_std([r["decoders"][name] for r in rows]) for name in decoders
         }
         entry["kept"] = {name: sum(r["decoder"] == name for r in rows) for name in decoders}
+        entry["subjects"] = sorted(r["seed"] for r in rows)
         summary.append(entry)
     return {
         "synthetic": True,
@@ -223,8 +252,8 @@ def format_sweep_table(result: dict[str, Any]) -> str:
     names = result.get("decoders", ["eegnet"])
     header = [f"{name} {label}" for name in names for label in ("test acc.", "bal. acc.", "AUC")]
     lines = [
-        "| quality | " + " | ".join(header) + " | kept |",
-        "|---:|" + "---:|" * len(header) + "---|",
+        "| quality | subjects | " + " | ".join(header) + " | kept |",
+        "|---:|---:|" + "---:|" * len(header) + "---|",
     ]
     for e in result["summary"]:
         cells = [
@@ -234,8 +263,121 @@ def format_sweep_table(result: dict[str, Any]) -> str:
         ]
         kept = ", ".join(f"{name} {n}" for name, n in e["kept"].items())
         level = f"{e['quality']:.2f}" + (" (extrapolated)" if e["extrapolated"] else "")
-        lines.append(f"| {level} | " + " | ".join(cells) + f" | {kept} |")
+        lines.append(f"| {level} | {e['n_seeds']} | " + " | ".join(cells) + f" | {kept} |")
     return "\n".join(lines)
+
+
+def sweep_csv_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """One row per quality and decoder (and ``kept``: the decoder calibration kept), with
+    mean and SD over subjects of the test metrics and how often the decoder was kept."""
+    rows = []
+    for e in result["summary"]:
+        groups = [(name, e["decoders"][name], e["kept"][name]) for name in result["decoders"]]
+        groups.append(("kept", {k: e[k] for k in e if k.endswith(("_mean", "_std"))}, None))
+        for name, stats, kept in groups:
+            rows.append(
+                {
+                    "quality": e["quality"],
+                    "extrapolated": e["extrapolated"],
+                    "decoder": name,
+                    "n_subjects": e["n_seeds"],
+                    **{
+                        f"{k}_{s}": stats[f"{k}_{s}"]
+                        for k in SWEEP_METRICS
+                        for s in ("mean", "std")
+                    },
+                    "times_kept": kept if kept is not None else "",
+                }
+            )
+    return rows
+
+
+def plot_sweep(result: dict[str, Any]):
+    """Test accuracy and balanced accuracy (mean +- SD over subjects) against quality for
+    every decoder and the kept one, and how often each decoder was kept."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from services.eeg.report import DECODER_NAMES
+
+    names = list(result["decoders"])
+    summary = result["summary"]
+    q = np.array([e["quality"] for e in summary])
+    fig = Figure(figsize=(15, 4.8), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 3)
+    n_subjects = max(e["n_seeds"] for e in summary)
+    fig.suptitle(
+        f"SYNTHETIC virtual subjects: decoders on the same splits ({n_subjects} subjects, "
+        f"{result['n_actions']} actions, {result['error_rate']:.0%} errors; "
+        "mean ± SD over subjects)"
+    )
+    offsets = np.linspace(-0.012, 0.012, len(names) + 1)
+    for ax, metric, title in zip(
+        axes[:2],
+        ("test_accuracy", "balanced_accuracy"),
+        ("Held-out test accuracy", "Held-out balanced accuracy"),
+        strict=True,
+    ):
+        for k, name in enumerate(names):
+            mean = np.array([e["decoders"][name][f"{metric}_mean"] for e in summary])
+            std = np.array([e["decoders"][name][f"{metric}_std"] for e in summary])
+            ax.errorbar(q + offsets[k], mean, std, marker="o", capsize=3, label=DECODER_NAMES[name])
+        mean = np.array([e[f"{metric}_mean"] for e in summary])
+        std = np.array([e[f"{metric}_std"] for e in summary])
+        ax.errorbar(
+            q + offsets[-1],
+            mean,
+            std,
+            color="k",
+            ls="--",
+            marker="s",
+            capsize=3,
+            label="kept on validation",
+        )
+        chance = 0.5 if metric == "balanced_accuracy" else 1.0 - result["error_rate"]
+        ax.axhline(
+            chance,
+            color="0.6",
+            lw=0.8,
+            ls=":",
+            label="always 'correct'" if metric == "test_accuracy" else "chance",
+        )
+        ax.set(xlabel="virtual subject quality", ylabel=metric.replace("_", " "), title=title)
+        ax.legend(fontsize=8)
+    ax = axes[2]
+    bottom = np.zeros(len(summary))
+    width = 0.6 * float(np.min(np.diff(q))) if len(q) > 1 else 0.1
+    for name in names:
+        counts = np.array([e["kept"][name] for e in summary], dtype=float)
+        ax.bar(q, counts, width, bottom=bottom, label=DECODER_NAMES[name])
+        bottom += counts
+    ax.set(
+        xlabel="virtual subject quality",
+        ylabel="subjects",
+        title="Kept by calibration (best validation accuracy)",
+        yticks=range(n_subjects + 1),
+    )
+    ax.legend(fontsize=8)
+    return fig
+
+
+def write_sweep_outputs(result: dict[str, Any], out: Path) -> list[Path]:
+    """``quality_sweep.json``, ``.csv`` (:func:`sweep_csv_rows`) and ``.png``
+    (:func:`plot_sweep`) in ``out``; returns their paths."""
+    import csv
+    import json
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / f"quality_sweep.{ext}" for ext in ("json", "csv", "png")]
+    paths[0].write_text(json.dumps(result, indent=2))
+    rows = sweep_csv_rows(result)
+    with paths[1].open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    plot_sweep(result).savefig(paths[2], dpi=100)
+    return paths
 
 
 # ----------------------------------------------------------------------------- benchmarks

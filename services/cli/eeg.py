@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from services.eeg.training_config import DECODERS
+
 eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject quality.")
 
 
@@ -47,12 +49,14 @@ def calibrate_command(
     decoders: Annotated[
         str,
         typer.Option(
-            help="Comma-separated decoders trained on the same split (eegnet, lda); the "
-            "better on validation is kept."
+            help="Comma-separated decoders trained on the same split (eegnet, lda, "
+            "xdawn_rg); the best on validation is kept."
         ),
-    ] = "eegnet,lda",
+    ] = ",".join(DECODERS),
     report: Annotated[bool, typer.Option(help="Write report.png / report.html.")] = True,
-    onnx: Annotated[bool, typer.Option(help="Also export model.onnx.")] = True,
+    onnx: Annotated[
+        bool, typer.Option(help="Also export model.onnx (EEGNet, sLDA; xDAWN + RG has none).")
+    ] = True,
 ) -> None:
     """Train and evaluate the ErrP classifier on RECORDING; writes OUT/metrics.json."""
     import torch
@@ -142,7 +146,7 @@ def _event_labels(pairs: list[str]):
 
 @eeg_app.command("quality-sweep")
 def quality_sweep_command(
-    out: Annotated[Path, typer.Option(help="Folder for quality_sweep.json.")] = Path(
+    out: Annotated[Path, typer.Option(help="Folder for quality_sweep.json, .csv and .png.")] = Path(
         "benchmarks/results"
     ),
     qualities: Annotated[
@@ -159,11 +163,20 @@ def quality_sweep_command(
     max_passes: Annotated[int, typer.Option(min=1, help="Training passes cap per run.")] = 150,
     jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
     decoders: Annotated[
-        str, typer.Option(help="Comma-separated decoders trained on each split (eegnet, lda).")
-    ] = "eegnet,lda",
+        str,
+        typer.Option(
+            help="Comma-separated decoders trained on each split (eegnet, lda, xdawn_rg)."
+        ),
+    ] = ",".join(DECODERS),
 ) -> None:
-    """Simulate and calibrate virtual subjects per quality level; table of test accuracy."""
-    from benchmarks.bench_eeg import DEFAULT_QUALITIES, format_sweep_table, quality_sweep
+    """Simulate and calibrate virtual subjects per quality level: every decoder on the same
+    splits; writes quality_sweep.json, .csv and .png and prints the table."""
+    from benchmarks.bench_eeg import (
+        DEFAULT_QUALITIES,
+        format_sweep_table,
+        quality_sweep,
+        write_sweep_outputs,
+    )
     from services.eeg.calibration import TrainingConfig
 
     names = tuple(d.strip() for d in decoders.split(",") if d.strip())
@@ -182,10 +195,9 @@ def quality_sweep_command(
         partial_path=out / "quality_sweep.partial.json",
         decoders=names,
     )
-    path = out / "quality_sweep.json"
-    path.write_text(json.dumps(result, indent=2))
+    paths = write_sweep_outputs(result, out)
     typer.echo(format_sweep_table(result))
-    typer.echo(f"wrote {path}")
+    typer.echo("wrote " + ", ".join(str(p) for p in paths))
 
 
 def bench_eeg(

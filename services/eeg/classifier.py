@@ -1,9 +1,11 @@
 """A trained ErrP classifier: a decoder + the preprocessing and channels it was trained on.
 
-The decoder is EEGNet or the classical window-mean shrinkage LDA
-(:class:`~services.eeg.classical.WindowMeanLDA`); calibration keeps the better of the two
-on validation. Both are torch modules mapping scaled epochs to two logits, so both are
-saved, exported and loaded the same way (no pickled objects).
+The decoder is EEGNet, the classical window-mean shrinkage LDA
+(:class:`~services.eeg.classical.WindowMeanLDA`) or xDAWN + Riemannian geometry
+(:class:`~services.eeg.riemannian.XdawnRiemann`); calibration keeps the best of them on
+validation. All are torch modules mapping scaled epochs to two logits, so all are saved,
+exported as TorchScript and loaded the same way (no pickled objects). ONNX has no
+eigendecomposition, so an xDAWN + RG classifier has no ONNX form.
 
 A classifier is only applied to data preprocessed the same way from the same channels at
 the same sampling rate; :meth:`ErrPClassifier.check_compatible` enforces it.
@@ -14,7 +16,8 @@ On disk (``save(dir)``)::
     dir/model.pt           the decoder's state dict
     dir/model.torchscript.pt  TorchScript: epochs in volts (n, n_chans, n_times) -> P(error)
     dir/model.onnx         the same graph as ONNX (``export_onnx``; input "epochs", output
-                           "p_error", dynamic batch), for runtimes without torch
+                           "p_error", dynamic batch), for runtimes without torch (EEGNet
+                           and WindowMeanLDA)
 """
 
 from __future__ import annotations
@@ -34,18 +37,23 @@ from services.core.files import write_bytes_atomic
 from services.eeg.classical import WindowMeanLDA
 from services.eeg.eegnet import EEGNet, count_parameters
 from services.eeg.preprocessing import PreprocessingParams
+from services.eeg.riemannian import XdawnRiemann
 
 CONFIG_FILE = "classifier.json"
 STATE_FILE = "model.pt"
 TORCHSCRIPT_FILE = "model.torchscript.pt"
 ONNX_FILE = "model.onnx"
 FORMAT_VERSION = 1
-ARCHITECTURES: dict[str, type[EEGNet] | type[WindowMeanLDA]] = {
+ARCHITECTURES: dict[str, type[EEGNet] | type[WindowMeanLDA] | type[XdawnRiemann]] = {
     "EEGNet": EEGNet,
     "WindowMeanLDA": WindowMeanLDA,
+    "XdawnRiemann": XdawnRiemann,
 }
 """Decoders a classifier can hold, by the ``architecture`` name in ``classifier.json``."""
-Decoder = EEGNet | WindowMeanLDA
+ONNX_ARCHITECTURES = frozenset({"EEGNet", "WindowMeanLDA"})
+"""Architectures with an ONNX form (XdawnRiemann's matrix logarithm needs an
+eigendecomposition, which ONNX lacks)."""
+Decoder = EEGNet | WindowMeanLDA | XdawnRiemann
 
 # Library notices that say nothing about the classifier, filtered where they arise (only
 # these messages): torch 2.13 deprecates TorchScript, which is still the portable format
@@ -84,7 +92,7 @@ class ErrPClassifier:
 
     Parameters
     ----------
-    model : EEGNet or WindowMeanLDA
+    model : EEGNet, WindowMeanLDA or XdawnRiemann
         Trained decoder with 2 outputs (index 1 = error).
     params : PreprocessingParams
         Preprocessing the training epochs went through.
@@ -131,8 +139,13 @@ class ErrPClassifier:
 
     @property
     def architecture(self) -> str:
-        """``EEGNet`` or ``WindowMeanLDA``."""
+        """``EEGNet``, ``WindowMeanLDA`` or ``XdawnRiemann``."""
         return type(self.model).__name__
+
+    @property
+    def exports_onnx(self) -> bool:
+        """Whether :meth:`export_onnx` can write this decoder (not XdawnRiemann)."""
+        return self.architecture in ONNX_ARCHITECTURES
 
     @property
     def epoch_shape(self) -> tuple[int, int]:
@@ -218,8 +231,14 @@ class ErrPClassifier:
         """Write ``model.onnx`` (epochs in volts -> P(error), any batch size) to ``directory``.
 
         Uses torch's dynamo exporter (needs ``onnx`` and ``onnxscript``; runs offline) and
-        takes a few seconds, so it is separate from :meth:`save`.
+        takes a few seconds, so it is separate from :meth:`save`. ``ValueError`` for a
+        decoder without an ONNX form (:attr:`exports_onnx`).
         """
+        if not self.exports_onnx:
+            raise ValueError(
+                f"a {self.architecture} classifier has no ONNX form (its matrix logarithm "
+                "needs an eigendecomposition, which ONNX lacks); use its TorchScript file"
+            )
         path = Path(directory) / ONNX_FILE
         path.parent.mkdir(parents=True, exist_ok=True)
         example = torch.zeros((2, *self.epoch_shape), dtype=torch.float32)

@@ -22,7 +22,9 @@ if TYPE_CHECKING:
 REPORT_PNG = "report.png"
 REPORT_HTML = "report.html"
 WAVEFORM_CHANNELS = ("FCz", "Cz")
-DECODER_NAMES = {"eegnet": "EEGNet", "lda": "window-mean sLDA"}
+DECODER_NAMES = {"eegnet": "EEGNet", "lda": "window-mean sLDA", "xdawn_rg": "xDAWN + RG"}
+"""Display names of the decoders (services.eeg.training_config.DECODERS)."""
+DECODER_COLORS = {"eegnet": "C2", "lda": "C4", "xdawn_rg": "C1"}
 
 
 def difference_wave(epochs: EpochSet, channel: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -109,10 +111,12 @@ def draw_report(result: CalibrationResult) -> Figure:
     ax.set(xlabel="training pass", ylabel="weighted cross-entropy", title="EEGNet training")
     ax = axes[1, 1]
     if passes.size:
-        ax.plot(passes, history["val_accuracy"], color="C2", label="EEGNet")
+        ax.plot(passes, history["val_accuracy"], color=DECODER_COLORS["eegnet"], label="EEGNet")
     for name, row in metrics.get("decoders", {}).items():
         if name != "eegnet":
-            ax.axhline(row["val_accuracy"], color="C4", ls="--", label=DECODER_NAMES[name])
+            ax.axhline(
+                row["val_accuracy"], color=DECODER_COLORS[name], ls="--", label=DECODER_NAMES[name]
+            )
     ax.legend(fontsize=8)
     ax.set(
         xlabel="training pass",

@@ -91,7 +91,12 @@ def test_calibration_on_virtual_subject_beats_chance() -> None:
 
 @pytest.mark.parametrize(
     ("decoders", "kept", "n_params"),
-    [(("eegnet",), "eegnet", 786), (("lda",), "lda", 145), (("eegnet", "lda"), None, None)],
+    [
+        (("eegnet",), "eegnet", 786),
+        (("lda",), "lda", 145),
+        (("xdawn_rg",), "xdawn_rg", 769),
+        (("eegnet", "lda"), None, None),
+    ],
 )
 def test_save_load_round_trip_and_torchscript(tmp_path, decoders, kept, n_params) -> None:
     epochs = _toy_epochs()

@@ -85,7 +85,8 @@ def test_calibration_keeps_the_better_decoder_on_validation(channels, max_passes
     """An ErrP-like deflection on fronto-central sites against a one-pass EEGNet: the LDA
     wins; a deflection on occipital sites, which the LDA does not look at: EEGNet wins."""
     epochs = _patterned_epochs(channels, n=240, seed=1)
-    result = train_classifier(epochs, seed=1, config=TrainingConfig(max_passes=max_passes))
+    config = TrainingConfig(max_passes=max_passes, decoders=("eegnet", "lda"))
+    result = train_classifier(epochs, seed=1, config=config)
     m = result.metrics
     decoders = m["decoders"]
     assert set(decoders) == set(result.candidates) == {"eegnet", "lda"}

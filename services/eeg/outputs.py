@@ -1,0 +1,67 @@
+"""A calibration's files: the kept classifier, ``history.json``, the report, ``metrics.json``.
+
+They are written to a temporary sibling folder and moved into the output folder at the
+end, ``metrics.json`` last (it marks a finished classifier); on any failure that folder is
+removed and the output folder is left as it was.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from services.eeg.classifier import CONFIG_FILE, ONNX_FILE, STATE_FILE, TORCHSCRIPT_FILE
+
+if TYPE_CHECKING:
+    from services.eeg.calibration import CalibrationResult
+
+METRICS_FILE = "metrics.json"
+HISTORY_FILE = "history.json"
+ARTEFACTS = frozenset(
+    {
+        CONFIG_FILE,
+        STATE_FILE,
+        TORCHSCRIPT_FILE,
+        ONNX_FILE,
+        HISTORY_FILE,
+        "report.png",
+        "report.html",
+    }
+)
+"""Files a calibration writes besides ``metrics.json`` (report names: services.eeg.report)."""
+
+
+def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: bool) -> Path:
+    """Write the artefacts to a temporary sibling of ``out`` and move them in.
+
+    With ``onnx``, ``model.onnx`` is written when the kept decoder has an ONNX form
+    (:attr:`~services.eeg.classifier.ErrPClassifier.exports_onnx`).
+    """
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
+    try:
+        result.classifier.save(staging)
+        if onnx and result.classifier.exports_onnx:
+            result.classifier.export_onnx(staging)
+        (staging / HISTORY_FILE).write_text(json.dumps(result.history))
+        if report:
+            from services.eeg.report import write_report
+
+            write_report(result, staging)
+        (staging / METRICS_FILE).write_text(json.dumps(result.metrics, indent=2))
+        out.mkdir(exist_ok=True)
+        names = sorted(p.name for p in staging.iterdir() if p.name != METRICS_FILE)
+        # metrics.json marks a finished classifier: the old one goes first, and artefacts
+        # of an earlier run that this run did not make (model.onnx, report) go too.
+        (out / METRICS_FILE).unlink(missing_ok=True)
+        for name in ARTEFACTS - set(names):
+            (out / name).unlink(missing_ok=True)
+        for name in [*names, METRICS_FILE]:
+            os.replace(staging / name, out / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out
