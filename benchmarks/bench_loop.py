@@ -35,6 +35,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from benchmarks.browser import CHROMIUM, CHROMIUM_ARGS
 from services.cli.demo import (
     _free_port,
     _lab_session,
@@ -47,17 +48,6 @@ from services.cli.demo import (
     start_services,
 )
 
-CHROMIUM = Path("/usr/bin/chromium")
-"""Debian's Chromium: the only browser the bench uses (it never downloads one)."""
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
-"""Launch flags of the dashboard's browser tests (``tests/web/conftest.py``)."""
 DISPLAY_OPEN_TIMEOUT_S = 180.0
 """Chromium's start and the page's first load (long on a loaded machine)."""
 FRAMES_SETTLE_S = 3.0

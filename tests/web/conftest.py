@@ -24,6 +24,7 @@ from urllib.parse import urlsplit
 import httpx
 import pytest
 
+from benchmarks.browser import CHROMIUM, CHROMIUM_ARGS
 from tests.helpers import (
     env_without_bgrl,
     fast_password_hashing,
@@ -34,15 +35,6 @@ from tests.helpers import (
     wait_healthy,
 )
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 ADMIN = ("admin@lab.test", "admin-password-123")
 STAFF = ("staff@lab.test", "staff-password-123")
 VIEWER = ("viewer@lab.test", "viewer-password-123")
