@@ -147,21 +147,13 @@ def _job(runtime: Any, kind: str, config: dict[str, Any]) -> str:
 
 def _live_run(runtime: Any, session_id: int, mode: str, options: dict[str, Any]) -> tuple[int, str]:
     """What ``POST /api/v1/sessions/{id}/start`` writes: the live run and its job."""
-    from services.core.db.live import LiveRun
-    from services.core.db.models import Job
+    from services.core.db.live import LiveRun, queue_live_job
 
     with runtime.sessions() as db:
         run = LiveRun(session_id=session_id, mode=mode, options=options, status="queued")
         db.add(run)
         db.flush()
-        job = Job(
-            kind="live_session",
-            config={"session_id": session_id, "run_id": run.id, **options},
-            status="queued",
-        )
-        db.add(job)
-        db.flush()
-        run.job_id = job.id
+        job = queue_live_job(db, run)
         db.commit()
         return run.id, job.id
 

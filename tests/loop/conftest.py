@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 
 from services.core.db.base import utcnow
-from services.core.db.live import LiveRun
+from services.core.db.live import LiveRun, queue_live_job
 from services.core.db.migrate import upgrade_database
-from services.core.db.models import Job, LabSession, Subject
+from services.core.db.models import LabSession, Subject
 from services.core.queue import make_celery
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
 from services.sim.oracle import Oracle
@@ -108,14 +108,7 @@ class LoopPlatform:
             run = LiveRun(session_id=session_id, mode=lab.kind, options=options, status="queued")
             db.add(run)
             db.flush()
-            job = Job(
-                kind="live_session",
-                config={"session_id": session_id, "run_id": run.id, **options},
-                status="queued",
-            )
-            db.add(job)
-            db.flush()
-            run.job_id = job.id
+            job = queue_live_job(db, run)
             db.commit()
             return run.id, job.id
 

@@ -31,6 +31,7 @@ from services.core.db.live import (
     LiveMarker,
     LiveModelVersion,
     LiveRun,
+    queue_live_job,
 )
 from services.core.db.models import Classifier, FeedbackLabel, Job, LabSession
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
@@ -140,17 +141,7 @@ def start(
         db.flush()
     else:  # a failed or abandoned run resumes from its rows with the options it began with
         run.status, run.error, run.stop_requested = "queued", None, False
-        options = run.options
-    job = Job(
-        kind="live_session",
-        config={"session_id": session_id, "run_id": run.id, **options},
-        status="queued",
-        submitter_id=user.id,
-        max_attempts=settings.job_max_attempts,
-    )
-    db.add(job)
-    db.flush()
-    run.job_id = job.id
+    job = queue_live_job(db, run, submitter_id=user.id, max_attempts=settings.job_max_attempts)
     lab.status = "running"
     audit.record(db, user, "session.start", "session", session_id, job_id=job.id)
     db.commit()

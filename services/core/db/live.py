@@ -25,10 +25,10 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
 )
-from sqlalchemy.orm import Mapped, mapped_column
+from sqlalchemy.orm import Mapped, Session, mapped_column
 
 from services.core.db.base import Base, UtcDateTime, utcnow
-from services.core.db.models import BigIntId
+from services.core.db.models import BigIntId, Job
 
 LIVE_MODES = ("calibration", "test", "online")
 LIVE_STATUSES = ("queued", "running", "completed", "stopped", "failed")
@@ -69,6 +69,21 @@ class LiveRun(Base):
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow, onupdate=utcnow)
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+
+def queue_live_job(db: Session, run: LiveRun, **job_fields: Any) -> Job:
+    """Add the queued ``live_session`` job that runs ``run`` and point ``run.job_id`` at it.
+
+    The job's config is the lab session, the run and the run's options; ``job_fields`` are
+    further :class:`~services.core.db.models.Job` columns (submitter, attempts). The caller
+    commits.
+    """
+    config = {"session_id": run.session_id, "run_id": run.id, **run.options}
+    job = Job(kind="live_session", config=config, status="queued", **job_fields)
+    db.add(job)
+    db.flush()
+    run.job_id = job.id
+    return job
 
 
 class LiveMarker(Base):
