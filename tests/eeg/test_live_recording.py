@@ -21,7 +21,8 @@ from services.eeg.live_recording import (
 )
 from services.eeg.settings import EEGSettings
 from services.eeg.state import EEGService
-from services.eeg.virtual_source import VirtualEEGSource, VirtualIngestClient
+from services.eeg.virtual_ingest import VirtualIngestClient
+from services.eeg.virtual_source import VirtualEEGSource
 from services.eeg.virtual_subject import eeg_channel_names
 from tests.eeg.test_virtual_source import EEG, AsgiConnection
 
