@@ -373,6 +373,9 @@ class _LogRecording:
             [*names, STIM_CHANNEL], log.sfreq, [*["eeg"] * len(names), "stim"]
         )
         self.info["description"] = log.description
+        # The header's start is the recording's: finalising the same folder again (after a
+        # crash) writes the same bytes, hence the same sha256, on any day.
+        self.info.set_meas_date(datetime.datetime.fromisoformat(log.started_at))
         self.n_times = log.n_samples
         status = np.zeros(self.n_times, dtype=np.float32)
         pulse = max(1, round(TRIGGER_PULSE_S * log.sfreq))

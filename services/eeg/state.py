@@ -136,11 +136,14 @@ class EEGService:
         for folder in sorted(p for p in self.live_recordings.iterdir() if p.is_dir()):
             if folder.name == current:
                 continue
-            if not any(folder.iterdir()):
-                folder.rmdir()
-                removed.append(folder.name)
-            elif self._remove_if_stored(folder) is not None:
-                removed.append(folder.name)
+            try:
+                if not any(folder.iterdir()):
+                    folder.rmdir()
+                    removed.append(folder.name)
+                elif self._remove_if_stored(folder) is not None:
+                    removed.append(folder.name)
+            except OSError as exc:  # the service still starts; the next start tries again
+                logger.warning("live recording folder %s not removed: %s", folder.name, exc)
         return removed
 
     def start_recording(self, name: str) -> LiveRecordingPublic:

@@ -4,6 +4,8 @@ leaves everything up to the last flushed block recoverable, through the service 
 
 from __future__ import annotations
 
+import datetime
+
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -139,6 +141,10 @@ def test_a_crash_leaves_everything_up_to_the_last_flushed_block_recoverable(tmp_
     assert log.synthetic is True
     finalised = write_bdf_from_log(log, tmp_path / "crashed.bdf")
     raw = read_recording(finalised.path, preload=True, ch_names=channels)
+    # The header starts when the recording did, so finalising again gives the same file.
+    assert raw.info["meas_date"] == datetime.datetime.fromisoformat(log.started_at)
+    again = write_bdf_from_log(log, tmp_path / "again.bdf")
+    assert file_sha256(again.path) == file_sha256(finalised.path)
     _assert_same_samples(raw, _expected(markers, 6.0, channels=channels), channels)
     labelled = [m for m in markers if m.correct is not None]
     assert action_events(raw)[:, 0].tolist() == [round(m.timestamp * SFREQ) for m in labelled]
