@@ -6,6 +6,10 @@ A recording in progress is a folder (``<data_dir>/eeg/live_recordings/<name>/``)
     index.jsonl    one JSON object per line: the header, then "run" lines (which samples
                    were flushed, with the timestamps of their first and last sample) and
                    "marker" lines (each action marker received, with its Status code)
+    stored.json    {"sha256": ...} of the finalised BDF, written just before the EEG service
+                   stores it; the folder is removed after (this file last), so a folder
+                   still holding it after a crash is known to be stored if the store has
+                   that sha256
 
 Samples are buffered and appended in blocks of ``block_s`` of stream time; the samples are
 written before the index lines that describe them, so after a crash the index names only
@@ -44,6 +48,7 @@ logger = logging.getLogger(__name__)
 
 SAMPLES_FILE = "samples.f32"
 INDEX_FILE = "index.jsonl"
+STORED_FILE = "stored.json"
 FSYNC_EVERY_S = 5.0
 """Wall-clock period of fsync (a flushed block survives a crash of the service at once, a
 crash of the machine once synced)."""
@@ -368,6 +373,9 @@ class _LogRecording:
             [*names, STIM_CHANNEL], log.sfreq, [*["eeg"] * len(names), "stim"]
         )
         self.info["description"] = log.description
+        # The header's start is the recording's: finalising the same folder again (after a
+        # crash) writes the same bytes, hence the same sha256, on any day.
+        self.info.set_meas_date(datetime.datetime.fromisoformat(log.started_at))
         self.n_times = log.n_samples
         status = np.zeros(self.n_times, dtype=np.float32)
         pulse = max(1, round(TRIGGER_PULSE_S * log.sfreq))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import shutil
@@ -11,10 +12,13 @@ from pathlib import Path
 
 from services.core.artifacts import ArtifactStore
 from services.core.errors import ConflictError, NotFoundError
-from services.eeg.errors import NoLiveSourceError
+from services.core.files import write_json_atomic
+from services.eeg.errors import NoLiveSourceError, RecordingNotFoundError
+from services.eeg.io import file_sha256
 from services.eeg.jobs import JobRunner
 from services.eeg.live_recording import (
     INDEX_FILE,
+    STORED_FILE,
     LiveRecorder,
     RecordingLogError,
     read_log,
@@ -45,6 +49,7 @@ class EEGService:
         self._live: LiveSession | None = None
         self.live_recordings = root / "live_recordings"
         self._recorder: LiveRecorder | None = None
+        self.remove_stored_folders()
 
     @property
     def live(self) -> LiveSession | None:
@@ -90,14 +95,69 @@ class EEGService:
     def _recording_folder(self, name: str) -> Path:
         return self.live_recordings / name
 
+    def _stored_as(self, folder: Path) -> RecordingPublic | None:
+        """The stored recording ``folder`` was finalised to, if the store has it (a crash
+        came between storing it and removing the folder), else None."""
+        try:
+            sha = json.loads((folder / STORED_FILE).read_text())["sha256"]
+            return self.recordings.get(sha)
+        except (OSError, ValueError, KeyError, TypeError, RecordingNotFoundError):
+            return None
+
+    @staticmethod
+    def _remove_folder(folder: Path) -> None:
+        """Remove a stored recording's folder, its :data:`STORED_FILE` last: a crash on
+        the way leaves a folder that still says it was stored, removed at the next chance."""
+        for path in folder.iterdir():
+            if path.is_dir():
+                shutil.rmtree(path)
+            elif path.name != STORED_FILE:
+                path.unlink()
+        (folder / STORED_FILE).unlink(missing_ok=True)
+        folder.rmdir()
+
+    def _remove_if_stored(self, folder: Path) -> RecordingPublic | None:
+        """Remove ``folder`` if its recording is already stored; returns that recording."""
+        meta = self._stored_as(folder)
+        if meta is not None:
+            self._remove_folder(folder)
+            logger.info(
+                "live recording %s was stored as %s: folder removed", folder.name, meta.id[:12]
+            )
+        return meta
+
+    def remove_stored_folders(self) -> list[str]:
+        """Remove the folders of live recordings already stored, left by a crash between
+        storing and removing (and empty ones); returns their names. Called at start-up."""
+        if not self.live_recordings.is_dir():
+            return []
+        current = self._recorder.name if self._recorder is not None else None
+        removed = []
+        for folder in sorted(p for p in self.live_recordings.iterdir() if p.is_dir()):
+            if folder.name == current:
+                continue
+            try:
+                if not any(folder.iterdir()):
+                    folder.rmdir()
+                    removed.append(folder.name)
+                elif self._remove_if_stored(folder) is not None:
+                    removed.append(folder.name)
+            except OSError as exc:  # the service still starts; the next start tries again
+                logger.warning("live recording folder %s not removed: %s", folder.name, exc)
+        return removed
+
     def start_recording(self, name: str) -> LiveRecordingPublic:
-        """Start (or continue, after a crash) recording the live stream and its markers."""
+        """Start (or continue, after a crash) recording the live stream and its markers.
+
+        A recording of that name that was already stored is not continued: a new one starts.
+        """
         with self._live_lock:
             if self._recorder is not None:
                 raise ConflictError(
                     f"already recording {self._recorder.name!r}: DELETE /live/recording first",
                     field="name",
                 )
+            self._remove_if_stored(self._recording_folder(name))
             session = self._live
             if session is None or session.closed:
                 raise NoLiveSourceError(
@@ -139,14 +199,15 @@ class EEGService:
         return self._recorder
 
     def unfinished_recordings(self) -> list[str]:
-        """Names of recording folders not finalised (interrupted), except the current one."""
+        """Names of recording folders not finalised (interrupted), except the current one and
+        those already stored."""
         if not self.live_recordings.is_dir():
             return []
         current = self._recorder.name if self._recorder is not None else None
         return sorted(
             p.name
             for p in self.live_recordings.iterdir()
-            if (p / INDEX_FILE).is_file() and p.name != current
+            if (p / INDEX_FILE).is_file() and p.name != current and self._stored_as(p) is None
         )
 
     def stop_recording(self, name: str | None = None) -> RecordingPublic:
@@ -154,7 +215,10 @@ class EEGService:
 
         With ``name`` and no recording in progress, finalise that interrupted recording
         (everything up to its last flushed block). The folder is removed once the BDF is
-        stored; if storing fails it stays, so nothing is lost.
+        stored; if storing fails it stays, so nothing is lost. Idempotent: the BDF's sha256
+        is noted in the folder (:data:`STORED_FILE`) before it is stored, so a folder left
+        by a crash after storing is recognised and removed, and its stored recording is the
+        answer (as it is at the next start-up).
         """
         with self._live_lock:
             recorder = self._recorder
@@ -172,6 +236,9 @@ class EEGService:
         if name is None:
             raise ConflictError("no live recording in progress", field="name")
         folder = self._recording_folder(name)
+        stored = self._remove_if_stored(folder) if recorder is None else None
+        if stored is not None:
+            return stored
         if not (folder / INDEX_FILE).is_file():
             raise NotFoundError(f"no live recording {name!r}", field="name")
         try:
@@ -185,10 +252,12 @@ class EEGService:
         if finalised.markers_outside:
             notes.append(f"{finalised.markers_outside} marker(s) fell outside the recorded data")
         eeg = [ch for ch in log.ch_names if ch != STIM_CHANNEL]
+        sha = file_sha256(finalised.path)
+        write_json_atomic(folder / STORED_FILE, {"sha256": sha})
         meta = self.recordings.add_bdf(
-            finalised.path, filename=f"{name}.bdf", ch_names=eeg, notes=notes
+            finalised.path, filename=f"{name}.bdf", ch_names=eeg, notes=notes, sha256=sha
         )
-        shutil.rmtree(folder, ignore_errors=True)
+        self._remove_folder(folder)
         logger.info("live recording %s stored as %s", name, meta.id[:12])
         return meta
 

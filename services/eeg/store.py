@@ -154,14 +154,21 @@ class RecordingStore:
         return meta, True
 
     def add_bdf(
-        self, path: Path, *, filename: str, ch_names: list[str], notes: list[str]
+        self,
+        path: Path,
+        *,
+        filename: str,
+        ch_names: list[str],
+        notes: list[str],
+        sha256: str | None = None,
     ) -> RecordingPublic:
-        """Validate a BDF the service wrote (a live recording) and keep it under its sha256.
+        """Validate a BDF the service wrote (a live recording) and keep it under its sha256
+        (``sha256`` if the caller has hashed the file, else hashed here).
 
         ``ch_names`` are the EEG channels it must hold. The file is moved into the store; a
         file that is not a usable recording is a 422 naming the reason and stays where it is.
         """
-        sha = file_sha256(path)
+        sha = sha256 or file_sha256(path)
         existing = self.folder / f"{sha}.json"
         if existing.is_file():
             path.unlink()

@@ -30,7 +30,8 @@ from services.core.db.models import Artifact, Classifier, Job
 from services.core.markers import ActionMarker
 from services.eeg.settings import EEGSettings
 from services.eeg.store import ClassifierStore
-from services.eeg.virtual_source import VirtualEEGSource, VirtualIngestClient
+from services.eeg.virtual_ingest import VirtualIngestClient
+from services.eeg.virtual_source import VirtualEEGSource
 from services.worker.live_services import ServiceCallError, ServiceClient
 from services.worker.runtime import JobConfigError, Runtime
 

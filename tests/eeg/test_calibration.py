@@ -24,15 +24,7 @@ from services.eeg.virtual_subject import eeg_channel_names, simulate_recording
 CH_NAMES = eeg_channel_names()
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """One intra-op thread, as the CLI and the services run training (the test process's
-    setting, restored after): OpenMP threads spin, so two threads on a loaded 2-core
-    machine train several times slower than one."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _toy_epochs(n: int = 120, seed: int = 0) -> EpochSet:

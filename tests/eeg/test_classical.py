@@ -11,30 +11,12 @@ from services.eeg.app import create_app
 from services.eeg.calibration import TrainingConfig, calibrate, stratified_split, train_classifier
 from services.eeg.classical import ERRP_CHANNELS, WindowMeanLDA, fit_window_lda, window_index
 from services.eeg.classifier import ErrPClassifier
-from services.eeg.preprocessing import EpochSet, PreprocessingParams, epochs_from_raw
+from services.eeg.preprocessing import epochs_from_raw
 from services.eeg.settings import EEGSettings
-from services.eeg.virtual_subject import eeg_channel_names, simulate_recording
+from services.eeg.virtual_subject import simulate_recording
+from tests.eeg.patterned import CH_NAMES, patterned_epochs
 
-CH_NAMES = eeg_channel_names()
-
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def _patterned_epochs(channels: list[str], n: int = 200, seed: int = 0) -> EpochSet:
-    """Test data (not EEG): white noise plus a fixed deflection on ``channels`` at 200-400
-    ms in error epochs."""
-    rng = np.random.default_rng(seed)
-    y = (rng.random(n) < 0.4).astype(np.int64)
-    X = rng.normal(scale=10e-6, size=(n, 64, 103)).astype(np.float32)
-    rows = [CH_NAMES.index(c) for c in channels]
-    X[np.ix_(y == 1, rows, range(26, 51))] += 4e-6
-    return EpochSet(X, y, CH_NAMES, PreprocessingParams(), 2048.0, synthetic=True)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_windows_are_50_ms() -> None:
@@ -53,7 +35,7 @@ def test_windows_are_50_ms() -> None:
 def test_module_matches_scikit_learn_lda() -> None:
     from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
 
-    epochs = _patterned_epochs(["FCz", "Cz"], n=120)
+    epochs = patterned_epochs(["FCz", "Cz"], n=120)
     X = epochs.X * 1e5
     fit = fit_window_lda(X, epochs.y, CH_NAMES, 128.0, seed=0)
     assert fit.channels == list(ERRP_CHANNELS) and len(fit.cv_accuracy) == 5
@@ -84,7 +66,7 @@ def test_lda_beats_chance_on_a_short_simulated_recording() -> None:
 def test_calibration_keeps_the_better_decoder_on_validation(channels, max_passes, expected):
     """An ErrP-like deflection on fronto-central sites against a one-pass EEGNet: the LDA
     wins; a deflection on occipital sites, which the LDA does not look at: EEGNet wins."""
-    epochs = _patterned_epochs(channels, n=240, seed=1)
+    epochs = patterned_epochs(channels, n=240, seed=1)
     config = TrainingConfig(max_passes=max_passes, decoders=("eegnet", "lda"))
     result = train_classifier(epochs, seed=1, config=config)
     m = result.metrics
@@ -102,7 +84,7 @@ def test_calibration_keeps_the_better_decoder_on_validation(channels, max_passes
 
 
 def test_the_service_classifies_with_a_classical_decoder(tmp_path) -> None:
-    epochs = _patterned_epochs(["FCz", "Cz"], n=100)
+    epochs = patterned_epochs(["FCz", "Cz"], n=100)
     settings = EEGSettings(data_dir=tmp_path)
     with TestClient(create_app(settings)) as client:
         store = client.app.state.service.classifiers
@@ -131,7 +113,7 @@ def test_the_service_classifies_with_a_classical_decoder(tmp_path) -> None:
 
 
 def test_an_unknown_architecture_is_refused(tmp_path) -> None:
-    epochs = _patterned_epochs(["FCz"], n=60)
+    epochs = patterned_epochs(["FCz"], n=60)
     calibrate(epochs, out_dir=tmp_path, config=TrainingConfig(decoders=("lda",)), report=False)
     config = tmp_path / "classifier.json"
     config.write_text(config.read_text().replace('"WindowMeanLDA"', '"Magic"'))

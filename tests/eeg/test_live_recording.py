@@ -4,22 +4,27 @@ leaves everything up to the last flushed block recoverable, through the service 
 
 from __future__ import annotations
 
+import datetime
+
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from services.core.markers import ActionMarker
 from services.eeg.app import create_app
-from services.eeg.io import action_events, read_recording
+from services.eeg.io import action_events, file_sha256, read_recording
 from services.eeg.live_recording import (
     INDEX_FILE,
     SAMPLES_FILE,
+    STORED_FILE,
     LiveRecorder,
     read_log,
     write_bdf_from_log,
 )
 from services.eeg.settings import EEGSettings
-from services.eeg.virtual_source import VirtualEEGSource, VirtualIngestClient
+from services.eeg.state import EEGService
+from services.eeg.virtual_ingest import VirtualIngestClient
+from services.eeg.virtual_source import VirtualEEGSource
 from services.eeg.virtual_subject import eeg_channel_names
 from tests.eeg.test_virtual_source import EEG, AsgiConnection
 
@@ -136,6 +141,10 @@ def test_a_crash_leaves_everything_up_to_the_last_flushed_block_recoverable(tmp_
     assert log.synthetic is True
     finalised = write_bdf_from_log(log, tmp_path / "crashed.bdf")
     raw = read_recording(finalised.path, preload=True, ch_names=channels)
+    # The header starts when the recording did, so finalising again gives the same file.
+    assert raw.info["meas_date"] == datetime.datetime.fromisoformat(log.started_at)
+    again = write_bdf_from_log(log, tmp_path / "again.bdf")
+    assert file_sha256(again.path) == file_sha256(finalised.path)
     _assert_same_samples(raw, _expected(markers, 6.0, channels=channels), channels)
     labelled = [m for m in markers if m.correct is not None]
     assert action_events(raw)[:, 0].tolist() == [round(m.timestamp * SFREQ) for m in labelled]
@@ -189,3 +198,89 @@ def test_recording_names_are_checked(client):
     assert response.status_code == 422
     assert response.json()["detail"][0]["field"] == "name"
     assert client.delete("/live/recording?name=a%2Fb").status_code == 422
+
+
+def _record(client, name: str, seconds: float = 6.0) -> None:
+    """Record ``seconds`` of the virtual subject with three labelled markers under ``name``."""
+    markers = _markers()[:3]
+    source = VirtualEEGSource(quality=0.5, seed=9, sfreq=SFREQ, channels=EEG)
+    with client.websocket_connect("/live/ingest") as ws:
+        ingest = VirtualIngestClient(source, AsgiConnection(ws))
+        response = client.post("/live/recording", json={"name": name})
+        assert response.status_code == 201, response.text
+        assert response.json()["resumed"] is False
+        for marker in markers:
+            ingest.push_epoch(marker)
+            client.post("/live/markers", json=marker.model_dump(mode="json"))
+        ingest.push_until(seconds)
+
+
+class _Killed(Exception):  # noqa: N818 (what it stands for)
+    """Stands for the EEG service's process being killed at that point."""
+
+
+@pytest.mark.parametrize("removed_before_kill", [(), (INDEX_FILE, SAMPLES_FILE)])
+def test_a_crash_between_storing_and_removing_the_folder_leaves_no_folder(
+    tmp_path, monkeypatch, removed_before_kill
+):
+    """Killed after the BDF is stored, before (or while) its folder is removed: the stored
+    recording is intact; asking again answers it, a restart removes the folder, and the
+    name starts a new recording instead of continuing the stored one."""
+
+    def killed(folder) -> None:
+        for file in removed_before_kill:
+            (folder / file).unlink()
+        raise _Killed
+
+    settings = EEGSettings(data_dir=tmp_path)
+    folders = tmp_path / "eeg" / "live_recordings"
+    with TestClient(create_app(settings)) as client:
+        _record(client, "cal-9")
+        with monkeypatch.context() as patch:
+            patch.setattr(EEGService, "_remove_folder", staticmethod(killed))
+            with pytest.raises(_Killed):
+                client.delete("/live/recording")
+        assert (folders / "cal-9" / STORED_FILE).is_file()  # the stale folder
+        (stored,) = client.get("/recordings").json()
+        assert client.get("/live").json()["unfinished_recordings"] == []
+    assert [p.name for p in folders.iterdir()] == ["cal-9"]
+
+    # Restart: the folder is removed; the recording stays whole and readable.
+    with TestClient(create_app(settings)) as client:
+        assert not folders.exists() or list(folders.iterdir()) == []
+        assert client.get("/recordings").json() == [stored]
+        path = client.app.state.service.recordings.file(stored["id"])
+        assert file_sha256(path) == stored["sha256"] == stored["id"]
+        raw = read_recording(path, ch_names=EEG)
+        assert len(action_events(raw)) == stored["n_actions"] == 3
+        assert stored["duration_s"] == 6.0
+        assert client.delete("/live/recording?name=cal-9").status_code == 404
+
+
+def test_storing_again_after_the_crash_answers_the_stored_recording(tmp_path, monkeypatch):
+    def killed(folder) -> None:
+        raise _Killed
+
+    with TestClient(create_app(EEGSettings(data_dir=tmp_path))) as client:
+        _record(client, "cal-3")
+        with monkeypatch.context() as patch:
+            patch.setattr(EEGService, "_remove_folder", staticmethod(killed))
+            with pytest.raises(_Killed):
+                client.delete("/live/recording")
+        (stored,) = client.get("/recordings").json()
+        again = client.delete("/live/recording?name=cal-3")  # a resumed finish asks again
+        assert again.status_code == 200, again.text
+        assert again.json() == stored
+        assert not (tmp_path / "eeg" / "live_recordings" / "cal-3").exists()
+        assert client.get("/recordings").json() == [stored]
+
+        # A stored name is not continued: recording under it again starts anew.
+        with monkeypatch.context() as patch:
+            patch.setattr(EEGService, "_remove_folder", staticmethod(killed))
+            _record(client, "cal-4")
+            with pytest.raises(_Killed):
+                client.delete("/live/recording")
+        _record(client, "cal-4", seconds=7.0)  # asserts resumed is False
+        meta = client.delete("/live/recording").json()
+        assert meta["duration_s"] == 7.0
+        assert len(client.get("/recordings").json()) == 3

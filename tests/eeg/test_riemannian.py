@@ -14,35 +14,17 @@ import torch
 
 from services.eeg.calibration import DECODERS, TrainingConfig, calibrate, train_classifier
 from services.eeg.classifier import ONNX_FILE, TORCHSCRIPT_FILE, ErrPClassifier
-from services.eeg.preprocessing import EpochSet, PreprocessingParams, epochs_from_raw
+from services.eeg.preprocessing import epochs_from_raw
 from services.eeg.riemannian import XdawnRiemann, fit_xdawn_riemann, xdawn_riemann_pipeline
 from services.eeg.split import stratified_split
-from services.eeg.virtual_subject import eeg_channel_names, simulate_recording
+from services.eeg.virtual_subject import simulate_recording
+from tests.eeg.patterned import CH_NAMES, patterned_epochs
 
-CH_NAMES = eeg_channel_names()
-
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def _patterned_epochs(channels: list[str], n: int = 200, seed: int = 0) -> EpochSet:
-    """Test data (not EEG): white noise plus a fixed deflection on ``channels`` at 200-400
-    ms in error epochs."""
-    rng = np.random.default_rng(seed)
-    y = (rng.random(n) < 0.4).astype(np.int64)
-    X = rng.normal(scale=10e-6, size=(n, 64, 103)).astype(np.float32)
-    rows = [CH_NAMES.index(c) for c in channels]
-    X[np.ix_(y == 1, rows, range(26, 51))] += 4e-6
-    return EpochSet(X, y, CH_NAMES, PreprocessingParams(), 2048.0, synthetic=True)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_module_matches_pyriemann_and_scikit_learn_on_held_out_epochs() -> None:
-    epochs = _patterned_epochs(["FCz", "Cz"], n=200, seed=3)
+    epochs = patterned_epochs(["FCz", "Cz"], n=200, seed=3)
     X = epochs.X * 1e5  # any fixed scale (calibration uses 1 / training SD)
     train, held_out = slice(0, 150), slice(150, None)
     fit = fit_xdawn_riemann(X[train], epochs.y[train], seed=0)
@@ -66,7 +48,7 @@ def test_module_matches_pyriemann_and_scikit_learn_on_held_out_epochs() -> None:
 def test_torchscript_file_decodes_without_the_project_pyriemann_or_scikit_learn(
     tmp_path,
 ) -> None:
-    epochs = _patterned_epochs(["FCz", "Cz"], n=120)
+    epochs = patterned_epochs(["FCz", "Cz"], n=120)
     config = TrainingConfig(decoders=("xdawn_rg",))
     result = calibrate(epochs, seed=0, out_dir=tmp_path / "clf", config=config, report=False)
     assert result.classifier.architecture == "XdawnRiemann"
@@ -95,7 +77,7 @@ def test_torchscript_file_decodes_without_the_project_pyriemann_or_scikit_learn(
 
 
 def test_calibration_report_and_metrics_name_all_three_decoders(tmp_path) -> None:
-    epochs = _patterned_epochs(["FCz", "Cz"], n=150, seed=2)
+    epochs = patterned_epochs(["FCz", "Cz"], n=150, seed=2)
     result = calibrate(epochs, seed=2, out_dir=tmp_path, config=TrainingConfig(max_passes=3))
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert tuple(metrics["decoders"]) == DECODERS == ("eegnet", "lda", "xdawn_rg")
@@ -113,7 +95,7 @@ def test_calibration_report_and_metrics_name_all_three_decoders(tmp_path) -> Non
 def test_xdawn_is_kept_where_it_wins_on_validation_and_has_no_onnx(tmp_path) -> None:
     """A deflection on occipital sites (outside the sLDA's channels) against a one-pass
     EEGNet: xDAWN, which filters all channels, is kept; it is written without model.onnx."""
-    epochs = _patterned_epochs(["O1", "O2", "Oz", "POz"], n=240, seed=1)
+    epochs = patterned_epochs(["O1", "O2", "Oz", "POz"], n=240, seed=1)
     result = calibrate(
         epochs, seed=1, out_dir=tmp_path, config=TrainingConfig(max_passes=1), onnx=True
     )

@@ -16,7 +16,8 @@ from services.eeg.classifier import ErrPClassifier
 from services.eeg.eegnet import EEGNet
 from services.eeg.preprocessing import PreprocessingParams
 from services.eeg.settings import EEGSettings
-from services.eeg.virtual_source import IngestError, VirtualEEGSource, VirtualIngestClient
+from services.eeg.virtual_ingest import IngestError, VirtualIngestClient
+from services.eeg.virtual_source import VirtualEEGSource
 from services.eeg.virtual_subject import SYNTHETIC_TAG, SyntheticRecording
 
 SFREQ = 256.0

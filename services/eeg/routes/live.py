@@ -151,8 +151,8 @@ def disconnect_live(service: ServiceDep) -> LiveStatus:
 def start_recording(body: LiveRecordingStart, service: ServiceDep) -> LiveRecordingPublic:
     """Record the live stream and every marker to disk as they arrive (flushed each second).
 
-    The name of a recording interrupted by a crash continues it. 409 while another
-    recording runs or when there is no live source.
+    The name of a recording interrupted by a crash continues it (one already stored starts
+    anew). 409 while another recording runs or when there is no live source.
     """
     return service.start_recording(body.name)
 
@@ -166,7 +166,9 @@ def stop_recording(
 ) -> RecordingPublic:
     """Stop the live recording and store it as a BDF (Status: 1 correct, 2 error).
 
-    With ``name`` and no recording in progress, finalise that interrupted recording.
+    With ``name`` and no recording in progress, finalise that interrupted recording; if it
+    was already stored (the service stopped before removing its folder), answer the stored
+    recording.
     """
     return service.stop_recording(name)
 
