@@ -85,7 +85,7 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
         url = settings.resolved_database_url
         if settings.migrate_on_start:
             await run_in_threadpool(upgrade_database, url)
-        engine = make_engine(url)
+        engine = make_engine(url, connections=settings.database_connections)
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
         app.state.db_slots = asyncio.Semaphore(pool_capacity(engine))
