@@ -6,6 +6,11 @@ alternating blocks, ``rate`` requests/s each, open loop: every request leaves at
 scheduled time whatever the earlier ones are doing, and its latency runs from that
 scheduled time to the end of the response, so a server (or this client) falling behind
 shows up in the figures. Prints a JSON summary per route.
+
+With ``--watch-pids`` (the api's processes) it also samples, at the start and end of every
+block, the CPU time those processes used (``/proc``), its own, and the whole machine's, so
+each route gets its CPU per request under the load: what the api spent, what the
+generator spent, and how busy the cores were (the database server and everyone else).
 """
 
 from __future__ import annotations
@@ -14,9 +19,11 @@ import argparse
 import asyncio
 import json
 import math
+import os
 import statistics
 import sys
 import time
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -49,6 +56,67 @@ IDLE_RECONNECT_S = 4.0
 REQUEST_TIMEOUT_S = 30.0
 """A request not answered this long after its scheduled time counts as an error (one that
 found no free connection by then is not sent at all), so an overloaded run still ends."""
+
+
+CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+
+
+def process_cpu_s(pids: list[int]) -> float:
+    """CPU seconds (user + system) the processes ``pids`` have used so far (Linux
+    ``/proc``; a process that has exited counts 0)."""
+    ticks = 0
+    for pid in pids:
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        ticks += int(fields[11]) + int(fields[12])  # utime, stime
+    return ticks / CLOCK_TICKS_PER_S
+
+
+def machine_busy_s() -> float:
+    """CPU seconds every core of the machine has been busy so far (``/proc/stat``: all but
+    idle and iowait)."""
+    values = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    return (sum(values) - values[3] - values[4]) / CLOCK_TICKS_PER_S
+
+
+class CpuSampler:
+    """CPU time of the watched processes, of this process and of the machine, summed per
+    route over the blocks (sampled at each block's start and end)."""
+
+    def __init__(self, pids: list[int]) -> None:
+        self.pids = pids
+        self.totals: dict[str, dict[str, float]] = {}
+        self._start: tuple[float, float, float, float] | None = None
+
+    @staticmethod
+    def _now(pids: list[int]) -> tuple[float, float, float, float]:
+        return time.perf_counter(), process_cpu_s(pids), time.process_time(), machine_busy_s()
+
+    def start(self) -> None:
+        self._start = self._now(self.pids)
+
+    def stop(self, route: str) -> None:
+        assert self._start is not None
+        end = self._now(self.pids)
+        total = self.totals.setdefault(
+            route, {"wall_s": 0.0, "api_cpu_s": 0.0, "generator_cpu_s": 0.0, "machine_busy_s": 0.0}
+        )
+        for key, before, after in zip(total, self._start, end, strict=True):
+            total[key] += after - before
+        self._start = None
+
+    def summary(self, route: str, requests: int) -> dict[str, float]:
+        """The route's CPU ms per request (api, generator) and the busy cores meanwhile."""
+        total = self.totals[route]
+        return {
+            "api_cpu_ms_per_request": 1000 * total["api_cpu_s"] / requests,
+            "generator_cpu_ms_per_request": 1000 * total["generator_cpu_s"] / requests,
+            "api_cores": total["api_cpu_s"] / total["wall_s"],
+            "machine_busy_cores": total["machine_busy_s"] / total["wall_s"],
+        }
 
 
 class Connection:
@@ -100,11 +168,18 @@ class Connection:
 
 
 async def _drive(
-    url: str, token: str, rate: float, duration_s: float, blocks: int, connections: int
+    url: str,
+    token: str,
+    rate: float,
+    duration_s: float,
+    blocks: int,
+    connections: int,
+    watch_pids: list[int] | None = None,
 ) -> dict[str, Any]:
     """Alternate blocks of ``JOBS_ROUTE`` and ``BARE_ROUTE`` at ``rate`` requests/s each,
     ``duration_s`` per route in total; open loop, latency from the scheduled send time.
-    Requests wait for a free connection of the pool (that wait is part of the latency)."""
+    Requests wait for a free connection of the pool (that wait is part of the latency).
+    With ``watch_pids``, each route's CPU per request too (:class:`CpuSampler`)."""
     parsed = urlsplit(url)
     host, port = parsed.hostname or "127.0.0.1", parsed.port or 80
     requests = {
@@ -156,16 +231,25 @@ async def _drive(
     for counts in errors.values():
         counts.clear()
     tasks: list[asyncio.Task[None]] = []
+    cpu = CpuSampler(watch_pids or [])
     started = time.perf_counter()
     for block in range(2 * blocks):
         route = JOBS_ROUTE if block % 2 == 0 else BARE_ROUTE
         block_start = started + block * block_s
+        block_tasks = []
+        cpu.start()
         for i in range(per_block):
             scheduled = block_start + i / rate
             delay = scheduled - time.perf_counter()
             if delay > 0:
                 await asyncio.sleep(delay)
-            tasks.append(asyncio.create_task(one(route, scheduled)))
+            block_tasks.append(asyncio.create_task(one(route, scheduled)))
+        # the block ends when its last request is answered or the next block begins
+        next_block = block_start + block_s - time.perf_counter()
+        if next_block > 0:
+            await asyncio.wait(block_tasks, timeout=next_block)
+        cpu.stop(route)
+        tasks.extend(block_tasks)
     await asyncio.gather(*tasks)
     elapsed = time.perf_counter() - started
     while not pool.empty():
@@ -176,6 +260,7 @@ async def _drive(
             **latency_summary(values),
             "errors": sum(errors[route].values()),
             "error_kinds": errors[route],
+            **({"cpu": cpu.summary(route, len(values))} if watch_pids else {}),
         }
     late = sorted(late_ms)
     return {
@@ -194,10 +279,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--duration", type=float, default=30.0, help="seconds per route")
     parser.add_argument("--blocks", type=int, default=6, help="alternating blocks per route")
     parser.add_argument("--connections", type=int, default=32, help="keep-alive connections")
+    parser.add_argument(
+        "--watch-pids", default="", help="comma-separated api process ids: CPU per request"
+    )
     args = parser.parse_args(argv)
     token = sys.stdin.readline().strip()
+    pids = [int(pid) for pid in args.watch_pids.split(",") if pid]
     result = asyncio.run(
-        _drive(args.url, token, args.rate, args.duration, args.blocks, args.connections)
+        _drive(args.url, token, args.rate, args.duration, args.blocks, args.connections, pids)
     )
     json.dump(result, sys.stdout)
 

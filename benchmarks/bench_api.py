@@ -292,12 +292,20 @@ def store_jobs(database_url: str, count: int) -> None:
 
 
 def run_load(
-    url: str, token: str, *, rate: float, duration_s: float, blocks: int
+    url: str,
+    token: str,
+    *,
+    rate: float,
+    duration_s: float,
+    blocks: int,
+    watch_pids: list[int] | None = None,
 ) -> dict[str, Any]:
-    """Run the load generator in a second process; its JSON summary."""
+    """Run the load generator in a second process; its JSON summary (with each route's CPU
+    per request of the processes ``watch_pids``)."""
     cmd = [
         sys.executable, "-m", "benchmarks.api_load", "--url", url,
         "--rate", str(rate), "--duration", str(duration_s), "--blocks", str(blocks),
+        "--watch-pids", ",".join(str(pid) for pid in watch_pids or []),
     ]  # fmt: skip
     done = subprocess.run(
         cmd,
@@ -319,7 +327,15 @@ def _load_level(
     plat.start_api()
     try:
         rss_idle = plat.api_rss_mb()
-        load = run_load(plat.url, token, rate=rate, duration_s=duration_s, blocks=blocks)
+        assert plat.api is not None
+        load = run_load(
+            plat.url,
+            token,
+            rate=rate,
+            duration_s=duration_s,
+            blocks=blocks,
+            watch_pids=_process_tree(plat.api.pid),
+        )
         rss_after = plat.api_rss_mb()
     finally:
         plat.stop()

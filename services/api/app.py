@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse
 
 from services.api.accounts import ensure_first_admin
 from services.api.errors import TooManyRequestsError, UnauthorizedError
+from services.api.hot import add_hot_reads
 from services.api.ratelimit import LoginLimiter
 from services.api.routes import (
     artifacts,
@@ -85,7 +86,7 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
         url = settings.resolved_database_url
         if settings.migrate_on_start:
             await run_in_threadpool(upgrade_database, url)
-        engine = make_engine(url)
+        engine = make_engine(url, connections=settings.database_connections)
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
         app.state.db_slots = asyncio.Semaphore(pool_capacity(engine))
@@ -111,6 +112,8 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
         lifespan=lifespan,
         routers=[*ROUTERS[: ROUTERS.index(recordings.router)], uploads, *after_uploads],
     )
+    # the job list, the hot read of scripts and the dashboard, skips FastAPI's routing
+    add_hot_reads(app, {"/api/v1/jobs": jobs.hot_list_jobs})
     app.state.settings = settings
     app.state.limiter = LoginLimiter(settings.login_max_failures, settings.login_window_s)
 

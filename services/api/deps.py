@@ -28,7 +28,9 @@ from services.core.websockets import CLOSE_UNAUTHORIZED
 T = TypeVar("T")
 TOKEN_URL = "/api/v1/auth/token"
 ROLE_RANK = {"viewer": 0, "staff": 1, "admin": 2}
+DEFAULT_PAGE_LIMIT = 50
 MAX_PAGE_LIMIT = 500
+MAX_PAGE_OFFSET = 10**9
 
 bearer_scheme = OAuth2PasswordBearer(tokenUrl=TOKEN_URL, auto_error=False)
 
@@ -230,8 +232,10 @@ class PageParams:
 
 
 async def get_page(
-    limit: Annotated[int, Query(ge=1, le=MAX_PAGE_LIMIT, description="Items per page.")] = 50,
-    offset: Annotated[int, Query(ge=0, le=10**9, description="Items to skip.")] = 0,
+    limit: Annotated[
+        int, Query(ge=1, le=MAX_PAGE_LIMIT, description="Items per page.")
+    ] = DEFAULT_PAGE_LIMIT,
+    offset: Annotated[int, Query(ge=0, le=MAX_PAGE_OFFSET, description="Items to skip.")] = 0,
 ) -> PageParams:
     """Pagination parameters (at most ``MAX_PAGE_LIMIT`` items per page)."""
     return PageParams(limit=limit, offset=offset)

@@ -65,6 +65,13 @@ class ApiSettings(PlatformSettings):
     login_window_s: float = Field(
         300.0, gt=0, description="...within this many seconds; more are refused with 429."
     )
+    database_connections: int = Field(
+        15,
+        ge=1,
+        le=200,
+        description="Database connections each api process keeps (opened when first "
+        "needed); requests beyond them wait for one.",
+    )
     eeg_url: str | None = Field(
         "http://127.0.0.1:8002",
         description="Base URL of the EEG service that validates uploaded recordings (empty: "

@@ -11,7 +11,7 @@ from datetime import UTC, datetime, timedelta, timezone
 from typing import Any
 
 import pytest
-from sqlalchemy import insert, select
+from sqlalchemy import insert, select, text
 
 from services.api.schemas.common import Page
 from services.api.schemas.jobs import JobPublic
@@ -204,3 +204,18 @@ def test_job_list_signs_in_like_every_route(api_any_db: Api) -> None:
 @pytest.mark.parametrize("role", ["viewer", "staff", "admin"])
 def test_every_role_reads_the_job_list(api: Api, role: str) -> None:
     assert api.client.get("/api/v1/jobs", headers=api.as_(role)).status_code == 200
+
+
+def test_job_list_reads_timestamps_stored_in_another_text_form(api: Api) -> None:
+    """A SQLite row written by other means (a timestamp without its fraction) is not in
+    the form the database formats: the page parses it, and still equals pydantic's."""
+    rows = _rows(api)[:3]
+    with api.client.app.state.engine.begin() as connection:
+        connection.execute(insert(Job), rows)
+        connection.execute(
+            text("UPDATE jobs SET created_at = '2026-03-01 12:00:00', started_at = :odd"),
+            {"odd": "2026-03-01 12:00:01"},
+        )
+    response = api.client.get("/api/v1/jobs", headers=api.as_("viewer"))
+    assert response.json() == _reference(api, {}, 50, 0)
+    assert response.json()["items"][0]["created_at"] == "2026-03-01T12:00:00Z"

@@ -6,6 +6,8 @@ import csv
 import functools
 import io
 import logging
+import typing
+from collections.abc import Callable, Iterable
 from typing import Annotated, Any, Literal
 
 from celery import Celery
@@ -19,17 +21,23 @@ from sqlalchemy.orm import Session
 from services.api import audit
 from services.api.crud import JsonPage, PageQuery, get_or_404
 from services.api.deps import (
+    DEFAULT_PAGE_LIMIT,
+    MAX_PAGE_LIMIT,
+    MAX_PAGE_OFFSET,
     BearerToken,
     CeleryDep,
     DbDep,
     PageDep,
+    PageParams,
     SettingsDep,
     StaffUser,
     StoreDep,
+    bearer_scheme,
     get_current_user,
     read_signed_in,
 )
 from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
+from services.api.errors import UnauthorizedError
 from services.api.plots import curve_png
 from services.api.schemas.common import MAX_ROW_ID, Page
 from services.api.schemas.jobs import (
@@ -137,6 +145,8 @@ def submit(
 JOB_PAGE = JsonPage(JobPublic, Job.__table__)
 """The job list's JSON, written from the rows (not the curve, up to hundreds of points, nor
 tracebacks: only :class:`JobPublic`'s columns)."""
+MAX_PARENT_ID_CHARS = 32
+"""The longest ``parent_id`` the list takes (a job id is 32 hex digits)."""
 JOB_LIST_FILTERS = {
     "status": Job.status,
     "kind": Job.kind,
@@ -162,7 +172,7 @@ async def list_jobs(
     status_: Annotated[JobStatus | None, Query(alias="status")] = None,
     kind: Annotated[JobKind | Literal["reproduce_run"] | None, Query()] = None,
     submitter_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
-    parent_id: Annotated[str | None, Query(max_length=32)] = None,
+    parent_id: Annotated[str | None, Query(max_length=MAX_PARENT_ID_CHARS)] = None,
 ) -> Response:
     """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs).
 
@@ -173,9 +183,66 @@ async def list_jobs(
     """
     given = {"status": status_, "kind": kind, "submitter_id": submitter_id, "parent_id": parent_id}
     params = {name: value for name, value in given.items() if value is not None}
+    return await _job_list(request, token, page, params)
+
+
+async def _job_list(
+    request: Request, token: str, page: PageParams, params: dict[str, Any]
+) -> Response:
     query = _job_list_query(tuple(params))
     body = await read_signed_in(request, token, lambda db: JOB_PAGE.read(db, query, page, params))
     return Response(body, media_type="application/json")
+
+
+def _decimal(low: int, high: int) -> Callable[[str], int | None]:
+    """A parser of the plain decimals from ``low`` to ``high`` (no sign, space or leading
+    zero: what pydantic reads as the same int); None for any other text."""
+
+    def parse(text: str) -> int | None:
+        if not (text.isascii() and text.isdigit()) or (text[0] == "0" and text != "0"):
+            return None
+        value = int(text)
+        return value if low <= value <= high else None
+
+    return parse
+
+
+def _one_of(values: Iterable[str]) -> Callable[[str], str | None]:
+    allowed = frozenset(values)
+    return lambda text: text if text in allowed else None
+
+
+HOT_LIST_PARAMETERS: dict[str, Callable[[str], Any]] = {
+    "limit": _decimal(1, MAX_PAGE_LIMIT),
+    "offset": _decimal(0, MAX_PAGE_OFFSET),
+    "status": _one_of(typing.get_args(JobStatus)),
+    "kind": _one_of([*typing.get_args(JobKind), "reproduce_run"]),
+    "submitter_id": _decimal(1, MAX_ROW_ID),
+    "parent_id": lambda text: text if 0 < len(text) <= MAX_PARENT_ID_CHARS else None,
+}
+"""The list's query parameters as :func:`hot_list_jobs` reads them: each parser gives the
+value :func:`list_jobs` would get, or None where it leaves the request to the route."""
+
+
+async def hot_list_jobs(request: Request) -> Response | None:
+    """:func:`list_jobs` before FastAPI's routing (:mod:`services.api.hot`), for a request
+    with a bearer token and only known, plainly valid query parameters, each given once;
+    None for any other request, and for a token the sign-in refuses (the route then
+    answers it: its 401 or 422)."""
+    token = await bearer_scheme(request)
+    if not token:
+        return None
+    params: dict[str, Any] = {}
+    for name, text in request.query_params.multi_items():
+        parse = HOT_LIST_PARAMETERS.get(name)
+        if parse is None or name in params or (value := parse(text)) is None:
+            return None
+        params[name] = value
+    page = PageParams(limit=params.pop("limit", DEFAULT_PAGE_LIMIT), offset=params.pop("offset", 0))
+    try:
+        return await _job_list(request, token, page, params)
+    except UnauthorizedError:
+        return None
 
 
 @router.get("/{job_id}", dependencies=SIGNED_IN)

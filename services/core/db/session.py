@@ -53,15 +53,23 @@ def _ping_when_idle(engine: Engine) -> None:
     event.listen(engine, "checkout", checkout)
 
 
-def make_engine(url: str, **kwargs: Any) -> Engine:
+def make_engine(url: str, *, connections: int | None = None, **kwargs: Any) -> Engine:
     """An engine for ``url``.
 
     SQLite: WAL journal (readers never block the writer), foreign keys enforced, a busy
     timeout so concurrent writers (api and workers) wait instead of failing; the folder of
     the file is created. PostgreSQL: a pooled connection idle for a second or more is
     checked before use (:func:`_ping_when_idle`; ``pool_pre_ping=True`` checks every one).
+
+    ``connections``: a pool of at most this many connections, each opened when first
+    needed and then kept (no overflow). SQLAlchemy's default keeps 5 and opens up to 10
+    more for a burst, closing each as soon as it is given back: under a steady load above
+    5 at a time, a new connection (for PostgreSQL, a server process) for many requests.
     """
     parsed = make_url(url)
+    if connections is not None and parsed.database != ":memory:":
+        kwargs.setdefault("pool_size", connections)
+        kwargs.setdefault("max_overflow", 0)
     if parsed.get_backend_name() == "sqlite":
         if parsed.database and parsed.database != ":memory:":
             Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
