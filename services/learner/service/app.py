@@ -49,6 +49,7 @@ def create_app(
         store.load_all()
         app.state.store = store
         yield
+        store.close()
 
     app = create_service_app(
         name="learner",
