@@ -57,9 +57,11 @@ class SessionJournal:
         self.entries = 0
 
     def close(self) -> None:
-        """Sync and close the file."""
-        self.sync()
-        os.close(self._fd)
+        """Sync and close the file (closed even if the sync fails)."""
+        try:
+            self.sync()
+        finally:
+            os.close(self._fd)
 
 
 def read_journal(path: Path) -> list[dict[str, Any]]:

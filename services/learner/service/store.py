@@ -20,6 +20,7 @@ stopped.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
@@ -273,7 +274,8 @@ class SessionStore:
             self._journals[session.id].append({"seq": session.ops, **entry})
         except BaseException:
             logger.exception("journal of HF session %s cannot be written", session.id)
-            self._journals.pop(session.id).close()
+            with contextlib.suppress(OSError):  # what was written is read back below
+                self._journals.pop(session.id).close()
             restored = self._load(self.root / session.id)
             session.load_state_dict(restored.state_dict())
             raise

@@ -122,3 +122,17 @@ def test_checkpoints_bound_the_journal(make_client, tmp_path):
         # the budget is full: the final state is in the checkpoint, the journal empty
         assert torch.load(folder / STATE_FILE)["ops"] == ops
         assert read_journal(folder / JOURNAL_FILE) == []
+
+
+def test_a_checkpoint_from_before_the_journal_loads_counting_no_operations(make_client):
+    with make_client() as client:
+        sid = create(client, seed=2, label_budget=10)["id"]
+        for i in range(4):
+            assert label(client, sid, i).status_code == 200
+        session = client.app.state.store.get(sid)
+        state = session.state_dict()
+    old = {**{k: v for k, v in state.items() if k != "ops"}, "format": 1}
+    restored = HFSession(session.spec)
+    restored.load_state_dict(old)
+    assert restored.ops == 0 and restored.labels.records == session.labels.records
+    assert torch.equal(restored.learner.model.hidden.weight, session.learner.model.hidden.weight)
