@@ -157,6 +157,7 @@ class FeedbackLearner:
         self.buffer = FeedbackReplayBuffer(normalizer.n_obs)
         self.rng = np.random.default_rng(seed)
         self.validation: list[FeedbackRecord] = []
+        self._validation_cache: tuple[int, Any] | None = None
         self.n_updates = 0
         self.method = get_method(self.config.method)
         self.policy = HFPolicy(self.model, self.config.beta, self.config.method)
@@ -316,6 +317,7 @@ class FeedbackLearner:
         self.optimizer.load_state_dict(state["optimizer"])
         self.buffer.load_state_dict(state["buffer"])
         held_out = state["validation"]
+        self._validation_cache = None
         self.validation = [
             FeedbackRecord(
                 obs=obs,
@@ -356,19 +358,35 @@ class FeedbackLearner:
         """
         if not self.validation:
             return None, None
-        obs = torch.tensor([r.obs for r in self.validation], dtype=torch.float32)
-        actions = torch.tensor([r.action for r in self.validation])
+        obs, actions, noisy, mask, truth = self._validation_arrays()
         with torch.no_grad():
             p_optimal = optimality(self.model(obs), self.method.likelihood)
         predicted = (p_optimal.gather(-1, actions.unsqueeze(-1)).squeeze(-1) > 0.5).numpy()
-        noisy = np.array([r.label for r in self.validation])
         acc_noisy = float(np.mean(predicted == noisy))
-        known = [r for r in self.validation if r.optimal is not None]
-        if not known:
+        if not mask.any():
             return acc_noisy, None
-        mask = np.array([r.optimal is not None for r in self.validation])
-        truth = np.array([bool(r.optimal) for r in known])
         return acc_noisy, float(np.mean(predicted[mask] == truth))
+
+    def _validation_arrays(
+        self,
+    ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray, np.ndarray]:
+        """The held-out labels as (obs, actions, labels, truth known, truth), rebuilt only
+        when a label was held out since the last call (an online session asks after every
+        label)."""
+        if self._validation_cache is None or self._validation_cache[0] != len(self.validation):
+            held_out = self.validation
+            known = [r for r in held_out if r.optimal is not None]
+            self._validation_cache = (
+                len(held_out),
+                (
+                    torch.tensor([r.obs for r in held_out], dtype=torch.float32),
+                    torch.tensor([r.action for r in held_out]),
+                    np.array([r.label for r in held_out]),
+                    np.array([r.optimal is not None for r in held_out]),
+                    np.array([bool(r.optimal) for r in known]),
+                ),
+            )
+        return self._validation_cache[1]
 
 
 class HFPolicy:

@@ -6,8 +6,9 @@ from the platform's ``BGRL_ARTIFACT_DIR``. Endpoints are documented in
 ``docs/learner-service.md`` and at ``/docs``.
 
 Layout (the pattern of every service): ``settings``, ``schemas``, ``errors``, ``session``
-(one session's learning), ``store`` (the sessions and their checkpoints), ``export``
-(TorchScript), ``deps``, ``routes/`` (one module per resource) and this factory.
+(one session's learning), ``store`` (the sessions and their checkpoints), ``journal`` (every
+change since a checkpoint), ``export`` (TorchScript), ``deps``, ``routes/`` (one module per
+resource) and this factory.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ def create_app(
         store.load_all()
         app.state.store = store
         yield
+        store.close()
 
     app = create_service_app(
         name="learner",

@@ -32,7 +32,7 @@ class LabelTable:
 
     Besides the records, the labels are kept as preallocated numpy columns, so
     :meth:`state_dict` costs a copy of a few arrays rather than pickling every record (the
-    session is checkpointed after each label).
+    session is checkpointed every ``checkpoint_every`` journal entries).
     """
 
     def __init__(self, capacity: int, n_obs: int) -> None:

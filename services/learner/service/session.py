@@ -41,8 +41,8 @@ from services.learner.service.labels import LabelRecord, LabelTable
 from services.sim.env import N_RAYS, RAY_LENGTH_M
 from services.sim.maps import NavMap, load_map
 
-STATE_FORMAT = 1
-"""Version of :meth:`HFSession.state_dict`'s layout."""
+STATE_FORMAT = 2
+"""Version of :meth:`HFSession.state_dict`'s layout (1: before :attr:`HFSession.ops`)."""
 
 
 def observation_space(nav_map: NavMap) -> spaces.Box:
@@ -103,6 +103,9 @@ class HFSession:
         self.policy = self.learner.policy
         self.rng = sampling_rng(spec.learner_seed)
         self.labels = LabelTable(spec.label_budget, normalizer.n_obs)
+        self.ops = 0
+        """Operations that changed the state: new labels and sampled actions (the journal's
+        sequence numbers, :mod:`services.learner.service.journal`)."""
         self.lock = threading.Lock()
 
     @property
@@ -124,6 +127,7 @@ class HFSession:
         obs = np.asarray(observation, dtype=np.float32)
         if greedy:
             return self.policy.act(obs)
+        self.ops += 1
         return self.learner.collection_action(obs, self.rng)
 
     def add_label(
@@ -173,6 +177,7 @@ class HFSession:
             model_version=self.model_version,
         )
         self.labels.append(record)
+        self.ops += 1
         return LabelOutcome(record, duplicate=False)
 
     def metrics(self) -> dict[str, Any]:
@@ -198,15 +203,18 @@ class HFSession:
         """Everything the next label and action depend on (``torch.load(weights_only=True)``)."""
         return {
             "format": STATE_FORMAT,
+            "ops": self.ops,
             "learner": self.learner.state_dict(),
             "sampling_rng": self.rng.bit_generator.state,
             "labels": self.labels.state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict`'s state."""
-        if state.get("format") != STATE_FORMAT:
+        """Restore :meth:`state_dict`'s state (format 1, written before the journal, counts
+        no operations)."""
+        if state.get("format") not in (1, STATE_FORMAT):
             raise ValueError(f"unknown session state format {state.get('format')!r}")
+        self.ops = int(state.get("ops", 0))
         self.learner.load_state_dict(state["learner"])
         self.rng.bit_generator.state = state["sampling_rng"]
         self.labels.load_state_dict(state["labels"])

@@ -35,6 +35,14 @@ class LearnerSettings(BaseServiceSettings):
         description="Largest label_budget a session may ask for (the feedback buffer holds "
         "at most 100000 labels).",
     )
+    checkpoint_every: int = Field(
+        100,
+        ge=1,
+        le=200_000,
+        description="Journal entries (labels and sampled actions: a label with its next "
+        "action is two) between two full checkpoints of a session (``state.pt``); a restart "
+        "replays at most this many.",
+    )
     extra_map_dirs: list[Path] = Field(
         default_factory=list,
         description="Folders of user map files sessions may name, besides the shipped maps "

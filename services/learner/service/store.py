@@ -1,18 +1,26 @@
-"""What the learner service keeps: its HF sessions, checkpointed after every label.
+"""What the learner service keeps: its HF sessions, a journal of every change and checkpoints.
 
 Everything lives below ``<data_dir>/learner/sessions``::
 
     <id>/session.json   what the session was created with (task, map, seed, budget, Fhat)
     <id>/state.pt       Fhat's weights, Adam's state, the replay buffer, the validation
-                        labels, both generators and every label with its marker id
+                        labels, both generators and every label with its marker id, as of
+                        the operation count it records
+    <id>/journal.jsonl  every new label and sampled action since that checkpoint
 
-Both files are written under a temporary name and renamed (``state.pt`` after every label),
-so a crash leaves the state after the last answered label, never half a file. On start the
-store reloads every session from these files.
+A label or sampled action is appended to the journal before it is answered (handed to the
+kernel: a crash of the service cannot lose it) and synced to disk right after the answer;
+``state.pt`` is rewritten (temporary name, fsync, rename) every
+:attr:`~services.learner.service.settings.LearnerSettings.checkpoint_every` journal entries,
+when the budget is full and after a restart, after which the journal is emptied. On start the
+store reloads every session from ``state.pt`` and replays the journal entries it lacks
+(:mod:`services.learner.service.journal`), so a session continues bit for bit where it
+stopped.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
@@ -33,6 +41,7 @@ from services.learner.service.errors import (
     SessionLimitError,
 )
 from services.learner.service.export import torchscript_bytes
+from services.learner.service.journal import JOURNAL_FILE, SessionJournal, read_journal
 from services.learner.service.session import HFSession, LabelOutcome, SessionSpec
 from services.learner.service.settings import LearnerSettings
 from services.sim.registry import resolve_map
@@ -51,6 +60,9 @@ class SessionStore:
         self.root = settings.sessions_dir
         self.artifacts = artifacts
         self._sessions: dict[str, HFSession] = {}
+        self._journals: dict[str, SessionJournal] = {}
+        self._checkpointed_ops: dict[str, int] = {}
+        """Each session's operation count in its ``state.pt``."""
         self._lock = threading.Lock()
         self.last_checkpoint_s = 0.0
         """Seconds the last checkpoint write took (serialise + atomic write)."""
@@ -70,11 +82,34 @@ class SessionStore:
         logger.info("%d HF session(s) reloaded from %s", len(self._sessions), self.root)
 
     def _load(self, folder: Path) -> HFSession:
+        """The session of ``folder``: its checkpoint, then the journal entries it lacks.
+
+        A replayed journal is folded into a new checkpoint and emptied (which also drops an
+        entry cut by a crash while it was written).
+        """
         spec = SessionSpec.from_json(json.loads((folder / SPEC_FILE).read_text()))
         session = HFSession(spec)
         state_path = folder / STATE_FILE
         if state_path.exists():  # absent only if the service died right after creation
             session.load_state_dict(torch.load(state_path, weights_only=True))
+        self._checkpointed_ops[spec.id] = session.ops
+        journal_path = folder / JOURNAL_FILE
+        replayed = 0
+        for entry in read_journal(journal_path):
+            if entry["seq"] <= session.ops:
+                continue  # in the checkpoint already (written before the journal was emptied)
+            if entry["seq"] != session.ops + 1:
+                raise ValueError(
+                    f"journal entry {entry['seq']} does not follow operation {session.ops}"
+                )
+            _replay(session, entry)
+            replayed += 1
+        journal = SessionJournal(journal_path)
+        self._journals[spec.id] = journal
+        if replayed or journal_path.stat().st_size:
+            self.checkpoint(session)
+            journal.clear()
+            logger.info("HF session %s: %d journal entries replayed", spec.id, replayed)
         return session
 
     # ------------------------------------------------------------------ sessions
@@ -125,6 +160,7 @@ class SessionStore:
             folder.mkdir(parents=True)
             write_json_atomic(folder / SPEC_FILE, spec.to_json())
             self.checkpoint(session)
+            self._journals[spec.id] = SessionJournal(folder / JOURNAL_FILE)
             self._sessions[spec.id] = session
         logger.info("HF session %s created (%s, map %s, seed %d)", spec.id, task, map_name, seed)
         return session
@@ -150,33 +186,99 @@ class SessionStore:
         buffer = io.BytesIO()
         torch.save(session.state_dict(), buffer)
         write_bytes_atomic(self.root / session.id / STATE_FILE, buffer.getvalue())
+        self._checkpointed_ops[session.id] = session.ops
         self.last_checkpoint_s = time.perf_counter() - started
 
-    def add_label(self, session: HFSession, **label: Any) -> LabelOutcome:
-        """Add a label and checkpoint; if the checkpoint fails, the label is undone."""
+    def add_label(
+        self, session: HFSession, next_observation: list[float] | None = None, **label: Any
+    ) -> tuple[LabelOutcome, int | None]:
+        """Add a label and journal it; with ``next_observation`` also sample pi_HF's next
+        action from the updated Fhat (unless the budget is full).
+
+        Returns the outcome and the action. Nothing is synced here: call :meth:`persist`
+        after answering. If the journal cannot be written, the session is reloaded from its
+        files (the label is undone) and the error raised.
+        """
         with session.lock:
             outcome = session.add_label(**label)
-            if outcome.duplicate:
-                return outcome
-            try:
-                self.checkpoint(session)
-            except BaseException:
-                logger.exception("checkpoint of HF session %s failed", session.id)
-                session.load_state_dict(
-                    torch.load(self.root / session.id / STATE_FILE, weights_only=True)
+            if not outcome.duplicate:
+                record = outcome.record
+                self._journal(
+                    session,
+                    {
+                        "op": "label",
+                        "marker_id": record.marker_id,
+                        "observation": label["observation"],
+                        "action": record.action,
+                        "correct": record.correct,
+                        "p_error": record.p_error,
+                        "oracle_correct": record.oracle_correct,
+                    },
                 )
-                raise
-            return outcome
+            next_action = None
+            if next_observation is not None and not session.done:
+                next_action = self._sample(session, next_observation)
+            return outcome, next_action
 
     def act(self, session: HFSession, observation: list[float], greedy: bool) -> tuple[int, int]:
         """pi_HF's action and the model version it came from.
 
-        A sampled action advances the sampling generator, which is checkpointed with the next
-        label (an action whose label never arrives leaves no trace once the service restarts,
-        as an action that was never asked for).
+        A sampled action advances the sampling generator and is journaled (a greedy one
+        changes nothing).
         """
         with session.lock:
-            return session.act(observation, greedy), session.model_version
+            if greedy:
+                return session.act(observation, greedy=True), session.model_version
+            return self._sample(session, observation), session.model_version
+
+    def persist(self, session: HFSession) -> None:
+        """Make the session's journal durable, and checkpoint it once ``checkpoint_every``
+        entries have been journaled and when its budget is full (then the journal is
+        emptied).
+
+        Run after the answer: the journal entries are already safe from a crash of the
+        service, this protects them from a crash of the machine and bounds the replay. A
+        failed checkpoint is logged and tried again at the next call (the journal keeps
+        everything meanwhile).
+        """
+        with session.lock:
+            journal = self._journals.get(session.id)
+            if journal is None:  # the store was closed (shutdown)
+                return
+            journal.sync()
+            due = session.ops - self._checkpointed_ops[session.id]
+            if due == 0 or (due < self.settings.checkpoint_every and not session.done):
+                return
+            try:
+                self.checkpoint(session)
+            except Exception:
+                logger.exception("checkpoint of HF session %s failed", session.id)
+                return
+            journal.clear()
+
+    def close(self) -> None:
+        """Sync and close every journal (at shutdown)."""
+        with self._lock:
+            for journal in self._journals.values():
+                journal.close()
+            self._journals.clear()
+
+    def _sample(self, session: HFSession, observation: list[float]) -> int:
+        action = session.act(observation, greedy=False)
+        self._journal(session, {"op": "act", "observation": observation})
+        return action
+
+    def _journal(self, session: HFSession, entry: dict[str, Any]) -> None:
+        """Append ``entry`` as operation ``session.ops``; on failure, reload and raise."""
+        try:
+            self._journals[session.id].append({"seq": session.ops, **entry})
+        except BaseException:
+            logger.exception("journal of HF session %s cannot be written", session.id)
+            with contextlib.suppress(OSError):  # what was written is read back below
+                self._journals.pop(session.id).close()
+            restored = self._load(self.root / session.id)
+            session.load_state_dict(restored.state_dict())
+            raise
 
     def export(self, session: HFSession) -> tuple[StoredFile, int, dict[str, Any]]:
         """Store the TorchScript greedy pi_HF in the artifact store (kind ``model``)."""
@@ -196,3 +298,20 @@ class SessionStore:
         )
         logger.info("HF session %s exported as %s", session.id, stored.relpath)
         return stored, version, metrics
+
+
+def _replay(session: HFSession, entry: dict[str, Any]) -> None:
+    """Apply one journal entry to ``session`` again."""
+    if entry["op"] == "label":
+        session.add_label(
+            marker_id=entry["marker_id"],
+            observation=entry["observation"],
+            action=entry["action"],
+            correct=entry["correct"],
+            p_error=entry["p_error"],
+            oracle_correct=entry["oracle_correct"],
+        )
+    elif entry["op"] == "act":
+        session.act(entry["observation"], greedy=False)
+    else:
+        raise ValueError(f"unknown journal operation {entry['op']!r}")

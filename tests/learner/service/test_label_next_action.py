@@ -10,9 +10,8 @@ from tests.learner.service.test_app import create, label, observation
 N_LABELS = 12
 
 
-def _state(client, session_id: str, tmp_path) -> dict:
-    path = tmp_path / "learner" / "sessions" / session_id / "state.pt"
-    return torch.load(path, weights_only=True)
+def _state(client, session_id: str) -> dict:
+    return client.app.state.store.get(session_id).state_dict()
 
 
 def test_next_action_in_the_label_answer_equals_a_separate_act(make_client, tmp_path):
@@ -35,8 +34,8 @@ def test_next_action_in_the_label_answer_equals_a_separate_act(make_client, tmp_
                 assert merged.json()["next_action"] == act.json()["action"]
             else:  # the budget is full: no action is drawn
                 assert merged.json()["done"] and merged.json()["next_action"] is None
-        state_a = _state(two_calls, a, tmp_path / "a")
-        state_b = _state(one_call, b, tmp_path / "b")
+        state_a = _state(two_calls, a)
+        state_b = _state(one_call, b)
     assert state_a["sampling_rng"] == state_b["sampling_rng"]
     for name, tensor in state_a["learner"]["model"].items():
         assert torch.equal(tensor, state_b["learner"]["model"][name]), name

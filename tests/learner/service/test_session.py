@@ -1,4 +1,4 @@
-"""HFSession and the store below HTTP: state round trips and a failed checkpoint."""
+"""HFSession and the store below HTTP: state round trips and a failed journal write."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import services.sim  # noqa: F401  (registers the env ids)
 from services.core.artifacts import ArtifactStore
 from services.learner.feedback import FeedbackConfig
 from services.learner.networks import ObsNormalizer
-from services.learner.service import store as store_module
+from services.learner.service.journal import SessionJournal
 from services.learner.service.session import HFSession, SessionSpec, observation_space
 from services.learner.service.settings import LearnerSettings
 from services.learner.service.store import SessionStore
@@ -75,7 +75,7 @@ def test_state_dict_round_trip_continues_identically():
     assert restored.metrics() == reference.metrics()
 
 
-def test_failed_checkpoint_undoes_the_label(tmp_path, monkeypatch):
+def test_failed_journal_write_undoes_the_label(tmp_path, monkeypatch):
     settings = LearnerSettings(data_dir=tmp_path)
     store = SessionStore(settings, ArtifactStore(tmp_path / "artifacts"))
     store.load_all()
@@ -94,10 +94,10 @@ def test_failed_checkpoint_undoes_the_label(tmp_path, monkeypatch):
         reference.add_label(f"m{i}", obs, i % 3, True)
     before = _weights(session)
 
-    def disk_full(path, data):
+    def disk_full(journal, entry):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(store_module, "write_bytes_atomic", disk_full)
+    monkeypatch.setattr(SessionJournal, "append", disk_full)
     with pytest.raises(OSError):
         store.add_label(session, marker_id="m5", observation=obs, action=1, correct=False)
     assert len(session.labels) == 5 and session.labels.get("m5") is None

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, BackgroundTasks
 
 from services.learner.service.deps import SessionDep, StoreDep
 from services.learner.service.schemas import LabelCreate, LabelPublic
@@ -11,16 +11,21 @@ router = APIRouter(prefix="/hf-sessions/{session_id}", tags=["labels"])
 
 
 @router.post("/labels")
-def add_label(body: LabelCreate, session: SessionDep, store: StoreDep) -> LabelPublic:
-    """Store a label, update Fhat (1 + K_HF steps unless held out) and checkpoint.
+def add_label(
+    body: LabelCreate, session: SessionDep, store: StoreDep, after: BackgroundTasks
+) -> LabelPublic:
+    """Store a label, update Fhat (1 + K_HF steps unless held out) and journal it.
 
     Idempotent by ``marker_id``: the same label sent again answers ``duplicate: true`` and
     changes nothing; a different label under a used marker id is a 409, and so is a new
     label once the budget is reached. With ``next_observation`` the answer also carries
     pi_HF's next action (sampled as ``POST /act`` samples it) unless the budget is full.
+    The label is in the session's journal before the answer and synced to disk right after
+    it (:meth:`SessionStore.persist <services.learner.service.store.SessionStore.persist>`).
     """
-    outcome = store.add_label(
+    outcome, next_action = store.add_label(
         session,
+        next_observation=body.next_observation,
         marker_id=body.marker_id,
         observation=body.observation,
         action=body.action,
@@ -28,9 +33,7 @@ def add_label(body: LabelCreate, session: SessionDep, store: StoreDep) -> LabelP
         p_error=body.p_error,
         oracle_correct=body.oracle_correct,
     )
-    next_action = None
-    if body.next_observation is not None and not session.done:
-        next_action, _ = store.act(session, body.next_observation, greedy=False)
+    after.add_task(store.persist, session)
     with session.lock:
         return LabelPublic(
             labels=len(session.labels),

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, BackgroundTasks
 
 from services.learner.service.deps import SessionDep, StoreDep
 from services.learner.service.schemas import ActPublic, ActRequest, ExportPublic, ExportRequest
@@ -11,9 +11,14 @@ router = APIRouter(prefix="/hf-sessions/{session_id}", tags=["policy"])
 
 
 @router.post("/act")
-def act(body: ActRequest, session: SessionDep, store: StoreDep) -> ActPublic:
-    """pi_HF's action: sampled while collecting labels (default) or greedy."""
+def act(
+    body: ActRequest, session: SessionDep, store: StoreDep, after: BackgroundTasks
+) -> ActPublic:
+    """pi_HF's action: sampled while collecting labels (default; journaled, as a label is)
+    or greedy (changes nothing)."""
     action, version = store.act(session, body.observation, body.greedy)
+    if not body.greedy:
+        after.add_task(store.persist, session)
     return ActPublic(action=action, model_version=version, greedy=body.greedy)
 
 
