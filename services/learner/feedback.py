@@ -52,6 +52,7 @@ from services.learner.hf_methods import (
     mean_label_loss,
     optimality,
 )
+from services.learner.kernel_prior import KernelEvidence
 from services.learner.networks import ObsNormalizer, layer_init
 
 
@@ -86,6 +87,9 @@ class FeedbackConfig:
     revisit_window: int = 24
     """``greedy`` collection: an observation seen in this many last collection actions is a
     loop, where the softmax is sampled instead of the argmax (24: two full turns in place)."""
+    kernel_bandwidth: float = 0.1
+    """``kernel`` prior: bandwidth h of the Gaussian kernel on the normalised observations
+    (per dimension, on [-1, 1]; :mod:`services.learner.kernel_prior`)."""
 
     def __post_init__(self) -> None:
         get_method(self.method)  # ValueError naming the known methods
@@ -99,6 +103,8 @@ class FeedbackConfig:
                 f"good_accuracy + bad_accuracy must exceed 1 for method {self.method!r} "
                 f"(labels must carry information), got {good} + {bad}"
             )
+        if self.kernel_bandwidth <= 0:
+            raise ValueError(f"kernel_bandwidth must be > 0, got {self.kernel_bandwidth}")
         if self.ensemble_size < 2 or self.thompson_period < 1 or self.revisit_window < 1:
             raise ValueError("ensemble_size must be >= 2, thompson_period and revisit_window >= 1")
         if self.hidden_size < 1 or self.batch_size < 1 or self.replay_updates < 0:
@@ -162,6 +168,11 @@ class FeedbackLearner:
         self.method = get_method(self.config.method)
         self.policy = HFPolicy(self.model, self.config.beta, self.config.method)
         self.ensemble: FhatEnsemble | None = None
+        self.kernel: KernelEvidence | None = None
+        if self.method.prior == "kernel":
+            self.kernel = KernelEvidence(
+                normalizer.n_obs, self.config.kernel_bandwidth, self.config.noise_model
+            )
         if self.method.uses_ensemble:
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(seed + 1)
@@ -194,7 +205,12 @@ class FeedbackLearner:
     ) -> float:
         good, bad = self.config.noise_model
         likelihood = self.method.likelihood
-        loss = mean_label_loss(self.model(obs), actions, labels, likelihood, good, bad)
+        if self.kernel is not None:
+            rows = np.array([self.buffer.size]) if indices is None else indices
+            log_q = torch.log_softmax(self.model(obs), dim=-1)
+            loss = -(self.kernel.posterior(rows) * log_q).sum(dim=-1).mean()
+        else:
+            loss = mean_label_loss(self.model(obs), actions, labels, likelihood, good, bad)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -235,6 +251,8 @@ class FeedbackLearner:
             self.bootstrap[self.buffer.size] = 2.0 * self.ensemble_rng.integers(
                 0, 2, self.config.ensemble_size
             )
+        if self.kernel is not None:
+            self.kernel.add(self.model.normalizer(torch.from_numpy(obs)).numpy(), action, label)
         self._step(
             None,
             torch.from_numpy(obs[None]),
@@ -272,6 +290,7 @@ class FeedbackLearner:
             "rng": self.rng.bit_generator.state,
             "n_updates": self.n_updates,
             **self._ensemble_state(),
+            **({} if self.kernel is None else {"kernel": self.kernel.state_dict()}),
         }
 
     def _ensemble_state(self) -> dict[str, Any]:
@@ -312,6 +331,8 @@ class FeedbackLearner:
         ]
         self.rng.bit_generator.state = state["rng"]
         self.n_updates = int(state["n_updates"])
+        if self.kernel is not None:
+            self.kernel.load_state_dict(state["kernel"])
         if self.ensemble is None:
             self.collection.load_state_dict(state)
         else:
