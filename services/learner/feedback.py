@@ -15,9 +15,11 @@ Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
 * :class:`FeedbackLearner` applies Algorithm 1's update per label: one SGD step on the new
   label, then ``replay_updates`` (K_HF) minibatch steps from the buffer. Every label is held
   out for validation with probability ``validation_fraction`` (0.2) and never trained on.
-* :class:`HFPolicy` samples from ``softmax(beta * sigmoid(Fhat(s)))`` (beta = 8) while
-  labels are collected, so the labelled actions stay diverse, and acts greedily
-  (``argmax_a Fhat(s, a)``, the paper's pi_HF) when it guides RL.
+* :class:`~services.learner.collection.HFPolicy` samples from
+  ``softmax(beta * sigmoid(Fhat(s)))`` (beta = 8) while labels are collected, so the labelled
+  actions stay diverse, and acts greedily (``argmax_a Fhat(s, a)``, the paper's pi_HF) when it
+  guides RL; :class:`~services.learner.collection.CollectionRule` is each method's rule for
+  the labelled action (both importable from here too).
 * ``FeedbackConfig.method`` names the stage-2 method (:mod:`services.learner.hf_methods`):
   the paper's BCE (``paper``, the default), a noise-aware or categorical likelihood, active
   queries from a bootstrapped ensemble.
@@ -29,7 +31,6 @@ Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
 from __future__ import annotations
 
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -40,6 +41,7 @@ import torch
 from torch import nn
 
 from services.core.actions import N_ACTIONS
+from services.learner.collection import CollectionRule, HFPolicy
 from services.learner.feedback_buffer import FeedbackRecord, FeedbackReplayBuffer
 from services.learner.feedback_sources import FeedbackSource
 from services.learner.hf_methods import (
@@ -48,9 +50,9 @@ from services.learner.hf_methods import (
     get_method,
     label_nll,
     mean_label_loss,
-    most_informative_action,
     optimality,
 )
+from services.learner.kernel_prior import KernelEvidence
 from services.learner.networks import ObsNormalizer, layer_init
 
 
@@ -85,6 +87,9 @@ class FeedbackConfig:
     revisit_window: int = 24
     """``greedy`` collection: an observation seen in this many last collection actions is a
     loop, where the softmax is sampled instead of the argmax (24: two full turns in place)."""
+    kernel_bandwidth: float = 0.1
+    """``kernel`` prior: bandwidth h of the Gaussian kernel on the normalised observations
+    (per dimension, on [-1, 1]; :mod:`services.learner.kernel_prior`)."""
 
     def __post_init__(self) -> None:
         get_method(self.method)  # ValueError naming the known methods
@@ -98,6 +103,8 @@ class FeedbackConfig:
                 f"good_accuracy + bad_accuracy must exceed 1 for method {self.method!r} "
                 f"(labels must carry information), got {good} + {bad}"
             )
+        if self.kernel_bandwidth <= 0:
+            raise ValueError(f"kernel_bandwidth must be > 0, got {self.kernel_bandwidth}")
         if self.ensemble_size < 2 or self.thompson_period < 1 or self.revisit_window < 1:
             raise ValueError("ensemble_size must be >= 2, thompson_period and revisit_window >= 1")
         if self.hidden_size < 1 or self.batch_size < 1 or self.replay_updates < 0:
@@ -162,10 +169,11 @@ class FeedbackLearner:
         self.method = get_method(self.config.method)
         self.policy = HFPolicy(self.model, self.config.beta, self.config.method)
         self.ensemble: FhatEnsemble | None = None
-        self.n_collection_actions = 0
-        self.member = 0
-        self.recent_obs: deque[bytes] = deque(maxlen=self.config.revisit_window)
-        """Observations of the last collection actions (``greedy`` collection's loop test)."""
+        self.kernel: KernelEvidence | None = None
+        if self.method.prior == "kernel":
+            self.kernel = KernelEvidence(
+                normalizer.n_obs, self.config.kernel_bandwidth, self.config.noise_model
+            )
         if self.method.uses_ensemble:
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(seed + 1)
@@ -179,6 +187,15 @@ class FeedbackLearner:
             # validation split and replay batches match the paper's for the same labels
             self.ensemble_rng = np.random.default_rng([seed, 2])
             self.bootstrap = np.zeros((len(self.buffer.labels), self.config.ensemble_size))
+        self.collection = CollectionRule(
+            self.method,
+            self.policy,
+            self.ensemble,
+            self.config.noise_model,
+            self.config.thompson_period,
+            self.config.revisit_window,
+        )
+        """The method's rule for the labelled action (:mod:`services.learner.collection`)."""
 
     def _step(
         self,
@@ -189,7 +206,12 @@ class FeedbackLearner:
     ) -> float:
         good, bad = self.config.noise_model
         likelihood = self.method.likelihood
-        loss = mean_label_loss(self.model(obs), actions, labels, likelihood, good, bad)
+        if self.kernel is not None:
+            rows = np.array([self.buffer.size]) if indices is None else indices
+            log_q = torch.log_softmax(self.model(obs), dim=-1)
+            loss = -(self.kernel.posterior(rows) * log_q).sum(dim=-1).mean()
+        else:
+            loss = mean_label_loss(self.model(obs), actions, labels, likelihood, good, bad)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -205,30 +227,10 @@ class FeedbackLearner:
         return float(loss.detach())
 
     def collection_action(self, obs: np.ndarray, rng: np.random.Generator) -> int:
-        """The action to execute (and so to label) while labels are collected.
-
-        ``paper``-style methods sample pi_HF (softmax(beta * P(optimal))); ``thompson``
-        follows one bootstrapped member greedily, redrawn every ``thompson_period`` actions;
-        ``info`` asks where the label is most informative; ``greedy`` takes pi_HF's argmax
-        unless the observation is among the last ``revisit_window`` ones, where it samples
-        (:mod:`~services.learner.hf_methods`).
-        """
-        if self.method.collection == "greedy":
-            key = np.asarray(obs, dtype=np.float32).tobytes()
-            revisit = key in self.recent_obs
-            self.recent_obs.append(key)
-            return self.policy.act(obs, rng if revisit else None)
-        if self.ensemble is None:
-            return self.policy.act(obs, rng)
-        if self.n_collection_actions % self.config.thompson_period == 0:
-            self.member = int(rng.integers(self.ensemble.size))
-        self.n_collection_actions += 1
-        with torch.no_grad():
-            logits = self.ensemble(torch.as_tensor(np.asarray(obs, np.float32))[None])[:, 0]
-            p_optimal = optimality(logits, self.method.likelihood).numpy()
-        if self.method.collection == "thompson":
-            return int(np.argmax(p_optimal[self.member]))
-        return most_informative_action(p_optimal, *self.config.noise_model)
+        """The action to execute (and so to label) while labels are collected: the method's
+        :class:`~services.learner.collection.CollectionRule` (``paper``-style methods sample
+        pi_HF, softmax(beta * P(optimal)))."""
+        return self.collection.action(obs, rng)
 
     def add(
         self, obs: np.ndarray, action: int, label: bool, optimal: bool | None = None
@@ -250,6 +252,8 @@ class FeedbackLearner:
             self.bootstrap[self.buffer.size] = 2.0 * self.ensemble_rng.integers(
                 0, 2, self.config.ensemble_size
             )
+        if self.kernel is not None:
+            self.kernel.add(self.model.normalizer(torch.from_numpy(obs)).numpy(), action, label)
         self._step(
             None,
             torch.from_numpy(obs[None]),
@@ -287,27 +291,20 @@ class FeedbackLearner:
             "rng": self.rng.bit_generator.state,
             "n_updates": self.n_updates,
             **self._ensemble_state(),
-            **self._recent_state(),
+            **({} if self.kernel is None else {"kernel": self.kernel.state_dict()}),
         }
 
-    def _recent_state(self) -> dict[str, Any]:
-        if self.method.collection != "greedy":
-            return {}
-        recent = np.frombuffer(b"".join(self.recent_obs), dtype=np.float32)
-        recent = recent.reshape(len(self.recent_obs), self.buffer.obs.shape[1])
-        return {"recent_obs": torch.from_numpy(recent.copy())}
-
     def _ensemble_state(self) -> dict[str, Any]:
+        """The ensemble's state with the collection rule's beside it (top level without one)."""
         if self.ensemble is None:
-            return {}
+            return self.collection.state_dict()
         return {
             "ensemble": {
                 "model": self.ensemble.state_dict(),
                 "optimizer": self.ensemble_optimizer.state_dict(),
                 "bootstrap": torch.from_numpy(self.bootstrap[: self.buffer.size].copy()),
                 "rng": self.ensemble_rng.bit_generator.state,
-                "n_collection_actions": self.n_collection_actions,
-                "member": self.member,
+                **self.collection.state_dict(),
             }
         }
 
@@ -336,17 +333,17 @@ class FeedbackLearner:
         ]
         self.rng.bit_generator.state = state["rng"]
         self.n_updates = int(state["n_updates"])
-        if self.method.collection == "greedy":
-            self.recent_obs.clear()
-            self.recent_obs.extend(row.tobytes() for row in state["recent_obs"].numpy())
-        if self.ensemble is not None:
+        if self.kernel is not None:
+            self.kernel.load_state_dict(state["kernel"])
+        if self.ensemble is None:
+            self.collection.load_state_dict(state)
+        else:
             ensemble = state["ensemble"]
             self.ensemble.load_state_dict(ensemble["model"])
             self.ensemble_optimizer.load_state_dict(ensemble["optimizer"])
             self.bootstrap[: self.buffer.size] = ensemble["bootstrap"].numpy()
             self.ensemble_rng.bit_generator.state = ensemble["rng"]
-            self.n_collection_actions = int(ensemble["n_collection_actions"])
-            self.member = int(ensemble["member"])
+            self.collection.load_state_dict(ensemble)
 
     def validation_accuracy(self) -> tuple[float | None, float | None]:
         """Accuracy of ``P(a optimal) > 0.5`` on held-out labels: (noisy, true).
@@ -387,45 +384,6 @@ class FeedbackLearner:
                 ),
             )
         return self._validation_cache[1]
-
-
-class HFPolicy:
-    """pi_HF built on Fhat: softened sampling during label collection, argmax for guidance.
-
-    Parameters
-    ----------
-    model : FeedbackModel
-        The feedback model Fhat.
-    beta : float
-        Inverse temperature of ``softmax(beta * sigmoid(Fhat(s)))`` used when sampling.
-    method : str
-        The stage-2 method Fhat was trained with: its P(optimal) is a sigmoid per action,
-        or a softmax over actions for the categorical methods (the argmax is the same).
-    """
-
-    def __init__(self, model: FeedbackModel, beta: float = 8.0, method: str = "paper") -> None:
-        self.model = model
-        self.beta = beta
-        self.likelihood = get_method(method).likelihood
-
-    def scores(self, obs: np.ndarray) -> np.ndarray:
-        """P(action optimal) for every action (``sigmoid(Fhat(s, a))`` for the paper)."""
-        with torch.no_grad():
-            logits = self.model(torch.as_tensor(np.asarray(obs, dtype=np.float32)))
-        return optimality(logits, self.likelihood).numpy()
-
-    def sampling_probs(self, obs: np.ndarray) -> np.ndarray:
-        """``softmax(beta * sigmoid(Fhat(s)))``, the label-collection policy."""
-        z = self.beta * self.scores(obs)
-        z = np.exp(z - z.max(axis=-1, keepdims=True))
-        return z / z.sum(axis=-1, keepdims=True)
-
-    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> int:
-        """Greedy action when ``rng`` is None (guiding RL), else a softened sample."""
-        if rng is None:
-            return int(np.argmax(self.scores(obs)))
-        probs = self.sampling_probs(obs)
-        return int(min(np.searchsorted(np.cumsum(probs), rng.random()), len(probs) - 1))
 
 
 @dataclass

@@ -31,6 +31,11 @@ paper's own future work (more from fewer labels, active learning); see docs/stag
   collection actions (a loop: the greedy policy of a deterministic env cycles), it samples
   the paper's softmax(beta * P(optimal)) instead, which breaks the loop. Measured in
   docs/stage2.md ("A new method"): no better than ``categorical`` at C = 0.6 or 0.7.
+* ``categorical_kernel``: a smoothness prior that costs no labels. Each training label is
+  evidence, weighted by a Gaussian kernel of the (normalised) observations, about the optimal
+  action of every nearby state; Fhat is fitted (cross-entropy) to the posterior
+  ``softmax(sum_j w(s, s_j) log P(f_j | a_j, k))`` at the labelled states instead of to each
+  label alone (:mod:`services.learner.kernel_prior`). Collection as ``categorical``.
 
 Every method keeps Fhat a 13 -> 16 -> 3 MLP and pi_HF = argmax_a Fhat(s, a); only the loss,
 the score transform and the collection rule change.
@@ -62,6 +67,9 @@ class HFMethod:
     collection: str
     """``softmax`` (the paper's softmax(beta * P(optimal))), ``thompson``, ``info`` or
     ``greedy`` (pi_HF's argmax, softmax on a revisited observation)."""
+    prior: str = "none"
+    """``none``: Fhat fits each label at its own state; ``kernel``: Fhat fits the
+    kernel-weighted posterior of nearby labels (:mod:`services.learner.kernel_prior`)."""
 
     @property
     def uses_noise_model(self) -> bool:
@@ -84,6 +92,7 @@ HF_METHODS: dict[str, HFMethod] = {
         HFMethod("categorical_thompson", "categorical", "thompson"),
         HFMethod("categorical_info", "categorical", "info"),
         HFMethod("categorical_onpolicy", "categorical", "greedy"),
+        HFMethod("categorical_kernel", "categorical", "softmax", prior="kernel"),
     )
 }
 HFMethodName = Literal[
@@ -94,6 +103,7 @@ HFMethodName = Literal[
     "categorical_thompson",
     "categorical_info",
     "categorical_onpolicy",
+    "categorical_kernel",
 ]
 """The names of :data:`HF_METHODS` (for request schemas)."""
 PAPER_METHOD = "paper"

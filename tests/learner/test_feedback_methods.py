@@ -130,6 +130,7 @@ def test_active_query_picks_the_most_informative_action_on_a_hand_built_ensemble
         "categorical_thompson",
         "categorical_info",
         "categorical_onpolicy",
+        "categorical_kernel",
     ],
 )
 def test_label_budget_is_exact_and_collection_is_deterministic(toy_env_id, method) -> None:

@@ -35,6 +35,7 @@ HFMethodName = Literal[
     "categorical_thompson",
     "categorical_info",
     "categorical_onpolicy",
+    "categorical_kernel",
 ]
 """Stage-2 methods that learn pi_HF (docs/stage2.md); the learner's ``HF_METHODS``."""
 HF_METHOD_NAMES: tuple[str, ...] = HFMethodName.__args__  # type: ignore[attr-defined]

@@ -31,6 +31,7 @@ PAPER_FHAT = {
     "ensemble_size": 5,
     "thompson_period": 20,
     "revisit_window": 24,
+    "kernel_bandwidth": 0.1,
 }
 PLATFORM_FHAT = {**PAPER_FHAT, "method": RECOMMENDED_METHOD}
 """What a session gets by default: the paper's settings with the recommended stage-2 method."""

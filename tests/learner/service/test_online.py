@@ -26,7 +26,7 @@ def _env() -> gym.Env:
     return gym.make(config.env_id, **config.env_kwargs)
 
 
-def _online(make_client, data_dir, restart_after: set[int]) -> str:
+def _online(make_client, data_dir, restart_after: set[int], method: str) -> str:
     """Drive the env with the service's pi_HF and the noisy oracle, restarting the app
     after the given label counts; returns the session id."""
     seeds = RunSeeds(SEED)
@@ -39,7 +39,12 @@ def _online(make_client, data_dir, restart_after: set[int]) -> str:
                 if session_id is None:
                     created = client.post(
                         "/hf-sessions",
-                        json={"seed": SEED, "label_budget": N_LABELS, "fhat": NOISE_MODEL},
+                        json={
+                            "seed": SEED,
+                            "label_budget": N_LABELS,
+                            "fhat": NOISE_MODEL,
+                            "method": method,
+                        },
                     )
                     session_id = created.json()["id"]
                 while n_labels < N_LABELS:
@@ -72,11 +77,12 @@ def _online(make_client, data_dir, restart_after: set[int]) -> str:
 
 
 @pytest.mark.slow
-def test_online_session_equals_offline_collection_across_restarts(make_client, tmp_path):
+@pytest.mark.parametrize("method", [RECOMMENDED_METHOD, "categorical_kernel"])
+def test_online_session_equals_offline_collection_across_restarts(make_client, tmp_path, method):
     with closing(_env()) as env:
-        offline = learn_hf_policy(env, ACCURACY, SEED, N_LABELS, method=RECOMMENDED_METHOD)
+        offline = learn_hf_policy(env, ACCURACY, SEED, N_LABELS, method=method)
 
-    session_id = _online(make_client, tmp_path, restart_after={1, 17, 30})
+    session_id = _online(make_client, tmp_path, restart_after={1, 17, 30}, method=method)
     with make_client(data_dir=tmp_path) as client:
         public = client.get(f"/hf-sessions/{session_id}").json()
         session = client.app.state.store.get(session_id)

@@ -21,6 +21,7 @@ export const HF_METHODS = [
   ["categorical_thompson", "categorical_thompson"],
   ["categorical_info", "categorical_info"],
   ["categorical_onpolicy", "categorical_onpolicy"],
+  ["categorical_kernel", "categorical_kernel"],
 ];
 
 function intIn(value, min, max, name) {
