@@ -20,6 +20,7 @@ All data here is SYNTHETIC (virtual subject, :mod:`services.eeg.virtual_subject`
 
 from __future__ import annotations
 
+import functools
 import os
 import subprocess
 import sys
@@ -67,6 +68,20 @@ def _percentiles(values_s: list[float]) -> dict[str, float]:
 SWEEP_METRICS = ("test_accuracy", "balanced_accuracy", "roc_auc")
 
 
+@functools.lru_cache(maxsize=1)
+def _subject_epochs(seed: int, n_actions: int, error_rate: float) -> tuple[Any, Any, np.ndarray]:
+    """The epochs of virtual subject ``seed`` simulated at quality 0 and 1, and its labels.
+    Kept for the last subject: a serial sweep runs its two tasks (halves of the levels) one
+    after the other, and the second reuses the first's simulations (read only)."""
+    from services.eeg.preprocessing import epochs_from_raw
+    from services.eeg.virtual_subject import simulate_recording
+
+    labels = random_labels(n_actions, error_rate, seed)
+    e0 = epochs_from_raw(simulate_recording(labels, quality=0.0, seed=seed))
+    e1 = epochs_from_raw(simulate_recording(labels, quality=1.0, seed=seed))
+    return e0, e1, labels
+
+
 def _sweep_subject(
     seed: int,
     levels: list[float],
@@ -95,9 +110,7 @@ def _sweep_subject(
     from services.eeg.virtual_subject import simulate_recording
 
     torch.set_num_threads(1)
-    labels = random_labels(n_actions, error_rate, seed)
-    e0 = epochs_from_raw(simulate_recording(labels, quality=0.0, seed=seed))
-    e1 = epochs_from_raw(simulate_recording(labels, quality=1.0, seed=seed))
+    e0, e1, labels = _subject_epochs(seed, n_actions, error_rate)
     delta = e1.X - e0.X
     linearity = None
     if check_linearity:
@@ -173,6 +186,7 @@ def quality_sweep(
     if jobs == 1:
         for task in tqdm(tasks, desc="quality sweep", unit="task"):
             collect(_sweep_subject(*task))
+        _subject_epochs.cache_clear()
     else:
         with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
             futures = [pool.submit(_sweep_subject, *task) for task in tasks]

@@ -21,7 +21,9 @@ from tests.loop.test_chain import calibrate
 
 pytestmark = pytest.mark.slow
 
-ACTIONS = 30
+ACTIONS = 12
+"""Enough for frames, decisions and labels on every path; each action is PERIOD_S of real
+time plus a learner update, so more only make the test slower."""
 PERIOD_S = 0.5
 
 

@@ -92,7 +92,9 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
                 yield srv
             finally:
                 if srv.worker is not None:
-                    stop_processes([srv.worker])
+                    # killed 2 s after SIGTERM: a warm shutdown would first finish the last
+                    # test's BIDS export (cancelled, but only seen after the export, 10+ s)
+                    stop_processes([srv.worker], timeout_s=2)
 
 
 class SteppedSession:
