@@ -19,6 +19,7 @@ import re
 import shutil
 import tempfile
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -215,9 +216,17 @@ def _write_participant_flag(root: Path, subject: str, synthetic: bool) -> None:
     sidecar.write_text(json.dumps(described, indent=2) + "\n")
 
 
-def export_subject(runtime: Runtime, subject_id: int, out_dir: Path) -> dict[str, Any]:
+def export_subject(
+    runtime: Runtime,
+    subject_id: int,
+    out_dir: Path,
+    before_session: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
     """Write the BIDS dataset of subject ``subject_id`` into ``out_dir`` (created; must be
-    empty or absent). Sessions without EEG are listed as skipped, with the reason."""
+    empty or absent). Sessions without EEG are listed as skipped, with the reason.
+
+    ``before_session(done, total)`` is called before each session is exported (a job
+    reports its progress and stops there if cancelled)."""
     with runtime.sessions() as db:
         subject = db.get(Subject, subject_id)
         if subject is None:
@@ -230,7 +239,10 @@ def export_subject(runtime: Runtime, subject_id: int, out_dir: Path) -> dict[str
     exported: list[ExportedSession] = []
     skipped: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="bgrl-bids-") as scratch:
-        for session_id in subject_session_ids(runtime, subject_id):
+        session_ids = subject_session_ids(runtime, subject_id)
+        for done, session_id in enumerate(session_ids):
+            if before_session is not None:
+                before_session(done, len(session_ids))
             try:
                 exported.append(_export_session(runtime, out_dir, label, session_id, Path(scratch)))
             except JobConfigError as exc:
@@ -283,7 +295,12 @@ def bids_export(context: JobContext) -> JobOutcome:
         raise JobConfigError("subject_id must be an integer >= 1")
     with tempfile.TemporaryDirectory(prefix="bgrl-bids-job-") as tmp:
         root = Path(tmp) / "bids"
-        summary = export_subject(context.runtime, subject_id, root)
+
+        def before_session(done: int, total: int) -> None:
+            context.check_stop()
+            context.update(progress=0.9 * done / total)
+
+        summary = export_subject(context.runtime, subject_id, root, before_session)
         context.check_stop()
         archive = zip_folder(root, Path(tmp) / f"bids-sub-{summary['bids_subject']}.zip")
         artifact_id = context.store_file(archive, kind="bids", name=archive.name)

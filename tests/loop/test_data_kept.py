@@ -136,7 +136,11 @@ def test_bids_export_reads_back_with_the_sessions_events_and_labels(
             d.step: d
             for d in db.scalars(select(LiveDecision).where(LiveDecision.run_id == online["run_id"]))
         }
-    summary = export_subject(loop.runtime, int(subject_id), tmp_path / "bids")
+    progress: list[tuple[int, int]] = []
+    summary = export_subject(
+        loop.runtime, int(subject_id), tmp_path / "bids", lambda *at: progress.append(at)
+    )
+    assert progress == [(0, 1)]  # called before the subject's one session
     assert summary["bids_subject"] == "S002" and summary["synthetic"] is True
     assert [s["session_id"] for s in summary["sessions"]] == [online["session_id"]]
 

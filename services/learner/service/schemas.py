@@ -58,6 +58,13 @@ class FhatSettings(StrictRequest):
         description="Label-noise model: the classifier's accuracy on "
         "erroneous actions; 0.6 assumed when omitted.",
     )
+    kernel_bandwidth: float | None = Field(
+        None,
+        gt=0,
+        le=10,
+        description="categorical_kernel only: width of the kernel that shares a label's "
+        "evidence with nearby states, on the normalised observation (0.1).",
+    )
 
     def overrides(self) -> dict[str, Any]:
         """The fields given."""

@@ -154,6 +154,7 @@ def test_non_finite_observation_is_422_naming_the_field(client, bad):
         ("create", {"method": "other"}, "method"),
         ("create", {"fhat": {"lr": 0}}, "fhat.lr"),
         ("create", {"fhat": {"beta": 8, "gamma": 1}}, "fhat.gamma"),
+        ("create", {"fhat": {"kernel_bandwidth": 0}}, "fhat.kernel_bandwidth"),
         ("label", {"action": 3}, "action"),
         ("label", {"action": 1.0}, "action"),
         ("label", {"feedback": "maybe"}, "feedback"),
@@ -273,3 +274,9 @@ def test_settings_from_environment(monkeypatch, tmp_path):
         load_settings(LearnerSettings)
     monkeypatch.delenv("BGRL_LEARNER_PORT")
     assert load_settings(LearnerSettings).port == 8003
+
+
+def test_kernel_bandwidth_is_a_session_setting(client):
+    created = create(client, method="categorical_kernel", fhat={"kernel_bandwidth": 0.2})
+    assert created["method"] == "categorical_kernel"
+    assert created["fhat"]["kernel_bandwidth"] == 0.2
