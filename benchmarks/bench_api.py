@@ -51,6 +51,7 @@ from sqlalchemy import create_engine, insert, text
 
 from benchmarks.api_cpu import cpu_ms_per_request
 from benchmarks.api_load import BARE_ROUTE, JOBS_ROUTE, latency_summary, percentile
+from services.api.settings import default_api_workers
 from services.client import Job, PlatformClient
 from services.core.db.migrate import upgrade_database
 from services.core.db.models import Job as JobRow
@@ -365,12 +366,15 @@ def bench_reads(
     light_rate: float,
     duration_s: float,
     blocks: int,
-    api_workers: int,
+    api_workers: int | None,
     progress: Progress,
 ) -> dict[str, Any]:
     """``jobs_stored`` jobs on ``database_url``; the load at ``rate``, then at ``light_rate``
     (what the server carries on this machine, for reference), each on a fresh api of
-    ``api_workers`` processes; then the CPU per request in process."""
+    ``api_workers`` processes (default: as many as `bgrl up` runs on that database); then
+    the CPU per request in process."""
+    if api_workers is None:
+        api_workers = default_api_workers({"database_url": database_url})
     plat = Platform(root, database_url, api_workers=api_workers)
     try:
         plat.start_api()
@@ -548,7 +552,7 @@ def bench_all_reads(
     light_rate: float,
     duration_s: float,
     blocks: int,
-    api_workers: int,
+    api_workers: int | None,
     progress: Progress,
 ) -> dict[str, Any]:
     """:func:`bench_reads` on SQLite, and on PostgreSQL when it is reachable."""
@@ -583,7 +587,7 @@ def run(
     job_steps: int = 2000,
     job_timeout_s: float = 1800.0,
     jobs: bool = True,
-    api_workers: int = 2,
+    api_workers: int | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Every api benchmark; the figures as a JSON-ready dict."""

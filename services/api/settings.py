@@ -7,7 +7,9 @@ BGRL_ADMIN_PASSWORD=... uvicorn services.api.app:app --port 8000``.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field, SecretStr
 
@@ -16,8 +18,13 @@ from services.core.platform import PlatformSettings
 MAX_DEFAULT_API_WORKERS = 4
 
 
-def default_api_workers() -> int:
-    """One api process per CPU core, at most ``MAX_DEFAULT_API_WORKERS``."""
+def default_api_workers(settings: Mapping[str, Any]) -> int:
+    """One api process per CPU core, at most ``MAX_DEFAULT_API_WORKERS``, on PostgreSQL;
+    one on SQLite (the embedded default, one host), where the processes would share one
+    file's locks and each holds its own ~150 MiB (docs/benchmarks.md, api)."""
+    url = settings.get("database_url")
+    if not url or str(url).startswith("sqlite"):
+        return 1
     return max(1, min(MAX_DEFAULT_API_WORKERS, os.cpu_count() or 1))
 
 
@@ -30,7 +37,7 @@ class ApiSettings(PlatformSettings):
         ge=1,
         le=64,
         description="Api processes `bgrl up` starts behind the one port (uvicorn --workers); "
-        "default: one per CPU core, at most 4.",
+        "default: one on SQLite, one per CPU core (at most 4) on PostgreSQL.",
     )
     max_upload_bytes: int = Field(
         1024 * 1024 * 1024,

@@ -310,8 +310,14 @@ def bench_api(
     job_steps: Annotated[int, typer.Option(min=128, help="total_steps of each job.")] = 2000,
     jobs: Annotated[bool, typer.Option(help="Also measure job throughput (slow).")] = True,
     api_workers: Annotated[
-        int, typer.Option(min=1, max=64, help="Api processes under the read load.")
-    ] = 2,
+        int | None,
+        typer.Option(
+            min=1,
+            max=64,
+            help="Api processes under the read load (default: as `bgrl up` runs them on "
+            "each database: 1 on SQLite, one per core up to 4 on PostgreSQL).",
+        ),
+    ] = None,
 ) -> None:
     """Api reads under load (SQLite, PostgreSQL) vs a bare route, each load level on a
     fresh api; CPU per request in process; api RSS; job throughput with 1 and 2 workers
@@ -347,7 +353,8 @@ def bench_api(
         f"bgrl bench api --out {out} --rate {rate:g} --light-rate {light_rate:g} "
         f"--duration {duration:g} --blocks {blocks} "
         f"--jobs-stored {jobs_stored} --batch {batch} --probes {probes} "
-        f"--job-method {job_method} --job-steps {job_steps} --api-workers {api_workers}"
+        f"--job-method {job_method} --job-steps {job_steps}"
+        f"{'' if api_workers is None else f' --api-workers {api_workers}'}"
         f"{'' if jobs else ' --no-jobs'}"
     )
     out.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ from starlette.middleware.body_limit import MAX_BODY_SIZE_SCOPE_KEY, RequestBody
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.core.errors import ServiceError
+from services.core.gc_pauses import frozen_after_startup
 from services.core.logging import request_id
 from services.core.websockets import CLOSE_UNAUTHORIZED
 
@@ -203,12 +204,16 @@ def create_service_app(
     health: Callable[[Request], dict[str, Any]] | None = None,
     service_token: str | None = None,
 ) -> FastAPI:
-    """A FastAPI app with the platform's limits, error bodies, request ids and health route.
+    """A FastAPI app with the platform's limits, error bodies, request ids and health route;
+    once ``lifespan`` has started, the objects start-up built are frozen out of the garbage
+    collector's full collections (:mod:`services.core.gc_pauses`).
 
     ``health`` (optional) adds service-specific fields to ``GET /health``; with
     ``service_token`` every other route requires it in the ``X-Service-Token`` header.
     """
-    app = FastAPI(title=title, summary=summary, version=version, lifespan=lifespan)
+    app = FastAPI(
+        title=title, summary=summary, version=version, lifespan=frozen_after_startup(lifespan)
+    )
 
     @app.exception_handler(ServiceError)
     async def service_error(request: Request, exc: ServiceError) -> JSONResponse:

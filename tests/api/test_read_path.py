@@ -118,8 +118,15 @@ def test_up_starts_the_api_with_its_worker_processes(
         api_spec.load_settings()
 
 
-def test_default_api_workers_follow_the_cores() -> None:
-    assert default_api_workers() == max(1, min(4, os.cpu_count() or 1))
+def test_default_api_workers_follow_the_cores_on_postgresql_and_are_one_on_sqlite() -> None:
+    postgresql = {"database_url": "postgresql+psycopg://bgrl@db/bgrl"}
+    assert default_api_workers(postgresql) == max(1, min(4, os.cpu_count() or 1))
+    assert default_api_workers({"database_url": None}) == 1  # the embedded SQLite file
+    assert default_api_workers({"database_url": "sqlite:////tmp/x.db"}) == 1
+    assert ApiSettings(database_url=postgresql["database_url"]).api_workers == (
+        default_api_workers(postgresql)
+    )
+    assert ApiSettings(database_url=None).api_workers == 1
 
 
 def _backend_pid(engine: Engine) -> int:
