@@ -14,7 +14,9 @@ executes it, and sends the decoded feedback back (:meth:`HFSession.add_label`). 
   :func:`~services.learner.feedback.sampling_rng`, one draw per sampled action.
 
 :meth:`HFSession.state_dict` holds everything the next label depends on, so a session
-restored from it continues bit for bit.
+restored from it continues bit for bit. :meth:`HFSession.fork` copies the learner so that a
+label's update can be computed before its feedback is known
+(:mod:`services.learner.service.prepared`).
 """
 
 from __future__ import annotations
