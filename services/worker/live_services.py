@@ -101,6 +101,15 @@ class ServiceClient:
             time.sleep(backoff)
             backoff = min(backoff * 2, MAX_BACKOFF_S)
 
+    def call_once(self, method: str, path: str, *, json: Any = None) -> Any:
+        """One attempt of :meth:`call`: no retry, any failure raises (``httpx.HTTPError`` or
+        :class:`ServiceCallError`). For calls that only save time later, such as preparing
+        a label."""
+        response = self._client.request(method, path, json=json)
+        if response.status_code >= 400:
+            raise ServiceCallError(self.name, response.status_code, response.text[:200])
+        return None if response.status_code == 204 else response.json()
+
     def close(self) -> None:
         self._client.close()
 

@@ -106,6 +106,8 @@ class LiveRunner:
         self.stored_recording: dict[str, Any] | None = None
         """The EEG service's stored live recording of a calibration (``RecordingPublic``)."""
         self.last_progress = 0.0
+        self.prepared_labels = 0
+        """Labels of this attempt whose Fhat update the learner had prepared."""
 
     # ----------------------------------------------------------------- helpers
     def _set_run(self, **values: Any) -> None:
@@ -317,6 +319,7 @@ class LiveRunner:
                 return False
             raise
         updated = local_clock()
+        self.prepared_labels += bool(answer.get("prepared"))
         next_ready = None
         if answer.get("next_action") is not None:
             self.next_action = (int(answer["next_action"]), int(answer["model_version"]))
@@ -349,6 +352,27 @@ class LiveRunner:
             db.commit()
         return not answer.get("done", False)
 
+    def prepare_label(
+        self, step: int, observation: list[float], action: int, oracle_correct: bool | None
+    ) -> None:
+        """Have the learner compute this step's label for both feedback values while its
+        epoch is recorded (``POST /labels/prepare``), so that the label's answer, and pi_HF's
+        next action in it, need no Fhat update. Best effort: one attempt, and a failure is
+        logged only (the label then takes the ordinary path)."""
+        body = {
+            "marker_id": f"run{self.run_id}:{step}",
+            "observation": observation,
+            "action": action,
+            "oracle_correct": oracle_correct,
+            "next_observation": self.observation,
+        }
+        try:
+            self.services["learner"].call_once(
+                "POST", f"/hf-sessions/{self.hf_session_id}/labels/prepare", json=body
+            )
+        except Exception as exc:  # an optimisation must not stop the session
+            logger.warning("run %d step %d: label not prepared (%s)", self.run_id, step, exc)
+
     def total_actions(self) -> int:
         if self.options.n_actions is not None:
             return self.options.n_actions
@@ -362,8 +386,9 @@ class LiveRunner:
         On the path from the epoch's end to the next action there is one call to the EEG
         service (the decision), one commit (its row, before the label is sent, so a crash
         cannot lose a label the learner has) and one call to the learner (the label's
-        answer carries the next action); the sim's episode reset happens while the epoch is
-        still being recorded.
+        answer carries the next action); the sim's episode reset and, online, the label's
+        Fhat update for both feedback values (:meth:`prepare_label`) happen while the epoch
+        is still being recorded.
         """
         action, version = self.choose_action(step)
         obs_before = list(self.observation)
@@ -404,6 +429,8 @@ class LiveRunner:
             self.observation = list(reset["observation"])
         self.episode_over = False
         more = True
+        if self.mode == "online" and self.decoder is not None:
+            self.prepare_label(step, obs_before, action, marker.correct)
         if self.decoder is not None:
             decision, epoch_end, decided = self.decoder.decide(
                 marker.model_copy(update={"timestamp": eeg_ts})
@@ -497,6 +524,7 @@ class LiveRunner:
             result = finish_test(self)
         else:
             result = finish_online(self)
+            result["prepared_labels"] = self.prepared_labels
         result["stopped_on_command"] = stopped
         status = "stopped" if stopped else "completed"
         self._set_run(status=status, result=result, finished_at=utcnow())

@@ -6,12 +6,14 @@ from __future__ import annotations
 import threading
 import time
 
+import httpx
 import pytest
 from sqlalchemy import func, select, update
 
 from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion, LiveRun
 from services.core.db.models import Classifier, FeedbackLabel, HFModel, Job, Recording
 from services.worker.calibration import eeg_calibration
+from services.worker.live_services import ServiceClient
 from services.worker.live_session import live_session
 from services.worker.runtime import run_job
 from services.worker.training import guided_ppo
@@ -75,6 +77,7 @@ def test_online_session_labels_to_its_budget_and_registers_the_hf_model(
         run = db.get(LiveRun, run_id)
         assert run is not None and run.status == "completed", run.error
         assert run.result is not None and run.result["labels"] == 40
+        assert run.result["prepared_labels"] == 40  # each label's update was prepared
         model = db.get(HFModel, run.hf_model_id)
         assert model is not None and model.n_labels == 40 and model.session_id == session_id
         markers = run.result["actions"]
@@ -100,6 +103,25 @@ def test_online_session_labels_to_its_budget_and_registers_the_hf_model(
         assert guided.result["method"] == "hf_sparse"
         assert guided.result["accuracy"] == round(model.feedback_accuracy, 4)
         assert guided.result["hf_policy_spl"] == model.metrics["hf_policy_spl"]
+
+
+def test_a_prepare_that_fails_does_not_stop_the_session(
+    loop: LoopPlatform, classifier_id: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def refused(self, method: str, path: str, **kwargs: object) -> None:
+        raise httpx.ConnectError(f"{method} {path}: refused for the test")
+
+    monkeypatch.setattr(ServiceClient, "call_once", refused)
+    session_id = loop.lab_session("online")
+    options = {"accelerated": True, "classifier_id": classifier_id, "label_budget": 8,
+               "virtual_quality": 1.0}  # fmt: skip
+    run_id, job_id = loop.live_job(session_id, options)
+    assert run_job(loop.runtime, job_id, live_session) == "succeeded"
+    with loop.runtime.sessions() as db:
+        run = db.get(LiveRun, run_id)
+        assert run is not None and run.status == "completed" and run.result is not None
+        assert (run.result["labels"], run.result["prepared_labels"]) == (8, 0)
+    assert count(loop, FeedbackLabel, session_id=session_id) == 8
 
 
 def test_test_session_reports_the_live_accuracy_against_the_oracle(

@@ -188,6 +188,34 @@ class LabelPublic(BaseModel):
         description="pi_HF's sampled action in next_observation (as POST /act answers), "
         "when it was given and the budget is not full.",
     )
+    prepared: bool = Field(
+        False,
+        description="The label had been prepared (POST /labels/prepare): its update was "
+        "computed in advance and swapped in.",
+    )
+
+
+class LabelPrepare(StrictRequest):
+    """A label whose feedback is not known yet: its update is computed for both values."""
+
+    marker_id: str = Field(min_length=1, max_length=200, description="As in the label.")
+    observation: Observation = Field(description="The state the action was taken in.")
+    action: ActionValue
+    oracle_correct: bool | None = Field(
+        None, strict=True, description="The oracle's truth, when known (simulation)."
+    )
+    next_observation: Observation | None = Field(
+        None, description="The label's next_observation (pi_HF's next action is sampled there)."
+    )
+
+
+class LabelPreparePublic(BaseModel):
+    """Whether a label was prepared."""
+
+    prepared: bool = Field(
+        description="False for a marker labelled before or a full budget (the label then "
+        "takes the ordinary path)."
+    )
 
 
 class ExportRequest(StrictRequest):

@@ -14,11 +14,14 @@ executes it, and sends the decoded feedback back (:meth:`HFSession.add_label`). 
   :func:`~services.learner.feedback.sampling_rng`, one draw per sampled action.
 
 :meth:`HFSession.state_dict` holds everything the next label depends on, so a session
-restored from it continues bit for bit.
+restored from it continues bit for bit. :meth:`HFSession.fork` copies the learner so that a
+label's update can be computed before its feedback is known
+(:mod:`services.learner.service.prepared`).
 """
 
 from __future__ import annotations
 
+import copy
 import math
 import threading
 from dataclasses import asdict, dataclass
@@ -34,6 +37,7 @@ from services.learner.feedback import (
     FeedbackLearner,
     sampling_rng,
 )
+from services.learner.feedback_buffer import FeedbackRecord
 from services.learner.networks import ObsNormalizer
 from services.learner.seeding import RunSeeds, Stream
 from services.learner.service.errors import LabelBudgetError, MarkerConflictError
@@ -90,6 +94,8 @@ class LabelOutcome:
     record: LabelRecord
     duplicate: bool
     """The marker id had been labelled before; nothing changed."""
+    prepared: bool = False
+    """The update had been computed in advance (:mod:`services.learner.service.prepared`)."""
 
 
 class HFSession:
@@ -146,6 +152,23 @@ class HFSession:
         reached raises :class:`LabelBudgetError`.
         """
         obs = np.asarray(observation, dtype=np.float32)
+        known = self.check_label(marker_id, obs, action, correct, p_error, oracle_correct)
+        if known is not None:
+            return known
+        fed = self.learner.add(obs, action, correct, oracle_correct)
+        return self._record(marker_id, fed, p_error)
+
+    def check_label(
+        self,
+        marker_id: str,
+        obs: np.ndarray,
+        action: int,
+        correct: bool,
+        p_error: float | None,
+        oracle_correct: bool | None,
+    ) -> LabelOutcome | None:
+        """The ``duplicate`` outcome of a label sent again, None for a new label that fits
+        the budget (raises as :meth:`add_label`)."""
         known = self.labels.get(marker_id)
         if known is not None:
             same = known.observation == obs.tolist() and (
@@ -165,7 +188,37 @@ class HFSession:
             raise LabelBudgetError(
                 f"session {self.id} has all {self.spec.label_budget} labels of its budget"
             )
-        fed = self.learner.add(obs, action, correct, oracle_correct)
+        return None
+
+    def fork(self) -> tuple[FeedbackLearner, np.random.Generator]:
+        """Deep copies of the learner and the sampling generator (caller holds :attr:`lock`):
+        a label and an action applied to them leave this session unchanged."""
+        return copy.deepcopy((self.learner, self.rng))
+
+    def add_forked_label(
+        self,
+        marker_id: str,
+        learner: FeedbackLearner,
+        rng: np.random.Generator,
+        fed: FeedbackRecord,
+        p_error: float | None,
+        sampled: bool,
+    ) -> LabelOutcome:
+        """Adopt a :meth:`fork` of this session that learned label ``fed`` (and then sampled
+        one action if ``sampled``): afterwards the session is exactly what :meth:`add_label`
+        (and :meth:`act`) would have made it. The caller checked the label with
+        :meth:`check_label` and that the session did not change since the fork.
+        """
+        self.learner, self.policy, self.rng = learner, learner.policy, rng
+        outcome = self._record(marker_id, fed, p_error, prepared=True)
+        if sampled:
+            self.ops += 1
+        return outcome
+
+    def _record(
+        self, marker_id: str, fed: FeedbackRecord, p_error: float | None, prepared: bool = False
+    ) -> LabelOutcome:
+        """Enter a label the learner has learned in the label table."""
         record = LabelRecord(
             marker_id=marker_id,
             observation=fed.obs,
@@ -178,7 +231,7 @@ class HFSession:
         )
         self.labels.append(record)
         self.ops += 1
-        return LabelOutcome(record, duplicate=False)
+        return LabelOutcome(record, duplicate=False, prepared=prepared)
 
     def metrics(self) -> dict[str, Any]:
         """Label counts, Fhat's validation accuracies and the realised label accuracy."""

@@ -31,6 +31,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from services.core.artifacts import ArtifactStore, StoredFile
@@ -42,6 +43,7 @@ from services.learner.service.errors import (
 )
 from services.learner.service.export import torchscript_bytes
 from services.learner.service.journal import JOURNAL_FILE, SessionJournal, read_journal
+from services.learner.service.prepared import PreparedLabel, prepare
 from services.learner.service.session import HFSession, LabelOutcome, SessionSpec
 from services.learner.service.settings import LearnerSettings
 from services.sim.registry import resolve_map
@@ -63,6 +65,8 @@ class SessionStore:
         self._journals: dict[str, SessionJournal] = {}
         self._checkpointed_ops: dict[str, int] = {}
         """Each session's operation count in its ``state.pt``."""
+        self._prepared: dict[str, PreparedLabel] = {}
+        """Each session's prepared label (at most one; :mod:`.prepared`)."""
         self._lock = threading.Lock()
         self.last_checkpoint_s = 0.0
         """Seconds the last checkpoint write took (serialise + atomic write)."""
@@ -190,35 +194,104 @@ class SessionStore:
         self.last_checkpoint_s = time.perf_counter() - started
 
     def add_label(
-        self, session: HFSession, next_observation: list[float] | None = None, **label: Any
+        self,
+        session: HFSession,
+        next_observation: list[float] | None = None,
+        *,
+        marker_id: str,
+        observation: list[float],
+        action: int,
+        correct: bool,
+        p_error: float | None = None,
+        oracle_correct: bool | None = None,
     ) -> tuple[LabelOutcome, int | None]:
         """Add a label and journal it; with ``next_observation`` also sample pi_HF's next
         action from the updated Fhat (unless the budget is full).
 
-        Returns the outcome and the action. Nothing is synced here: call :meth:`persist`
-        after answering. If the journal cannot be written, the session is reloaded from its
-        files (the label is undone) and the error raised.
+        Returns the outcome and the action. A label prepared with :meth:`prepare_label` has
+        its update swapped in, not run (``outcome.prepared``). Nothing is synced
+        here: call :meth:`persist` after answering. If the journal cannot be written, the
+        session is reloaded from its files (the label is undone) and the error raised.
         """
         with session.lock:
-            outcome = session.add_label(**label)
-            if not outcome.duplicate:
-                record = outcome.record
-                self._journal(
-                    session,
-                    {
-                        "op": "label",
-                        "marker_id": record.marker_id,
-                        "observation": label["observation"],
-                        "action": record.action,
-                        "correct": record.correct,
-                        "p_error": record.p_error,
-                        "oracle_correct": record.oracle_correct,
-                    },
-                )
+            prepared = self._prepared.pop(session.id, None)
+            obs = np.asarray(observation, dtype=np.float32)
+            outcome = session.check_label(marker_id, obs, action, correct, p_error, oracle_correct)
+            if outcome is not None:  # a duplicate
+                return outcome, self._next_action(session, next_observation)
+            used = prepared is not None and prepared.matches(
+                marker_id, observation, action, oracle_correct, next_observation, session.ops
+            )
             next_action = None
-            if next_observation is not None and not session.done:
-                next_action = self._sample(session, next_observation)
+            if used:
+                ready = prepared.outcomes[correct]
+                sampled = ready.next_action is not None
+                outcome = session.add_forked_label(
+                    marker_id, ready.learner, ready.rng, ready.fed, p_error, sampled
+                )
+                next_action = ready.next_action
+            else:
+                outcome = session.add_label(
+                    marker_id, observation, action, correct, p_error, oracle_correct
+                )
+            record = outcome.record
+            entry = {
+                "op": "label",
+                "marker_id": record.marker_id,
+                "observation": observation,
+                "action": record.action,
+                "correct": record.correct,
+                "p_error": record.p_error,
+                "oracle_correct": record.oracle_correct,
+            }
+            if used and next_action is not None:  # journal both operations, as below
+                self._journal(session, entry, seq=session.ops - 1)
+                self._journal(session, {"op": "act", "observation": next_observation})
+                return outcome, next_action
+            self._journal(session, entry)
+            if not used:
+                next_action = self._next_action(session, next_observation)
             return outcome, next_action
+
+    def prepare_label(
+        self,
+        session: HFSession,
+        *,
+        marker_id: str,
+        observation: list[float],
+        action: int,
+        oracle_correct: bool | None = None,
+        next_observation: list[float] | None = None,
+    ) -> bool:
+        """Compute the session after this label for both feedback values (and pi_HF's next
+        action in ``next_observation``), so that the label itself only swaps one in.
+
+        The updates run on copies, outside the session's lock; the result replaces the
+        session's prepared label if the session did not change meanwhile. Returns whether a
+        label was prepared: not for a marker labelled before or once the budget is full
+        (the label then takes the ordinary path and answers as it does).
+        """
+        with session.lock:
+            if session.labels.get(marker_id) is not None or session.done:
+                return False
+            ops = session.ops
+            sample_next = len(session.labels) + 1 < session.spec.label_budget
+            forks = {True: session.fork(), False: session.fork()}
+        prepared = prepare(
+            forks,
+            marker_id=marker_id,
+            observation=observation,
+            action=action,
+            oracle_correct=oracle_correct,
+            next_observation=next_observation,
+            sample_next=sample_next,
+            ops=ops,
+        )
+        with session.lock:
+            if session.ops != ops:
+                return False
+            self._prepared[session.id] = prepared
+        return True
 
     def act(self, session: HFSession, observation: list[float], greedy: bool) -> tuple[int, int]:
         """pi_HF's action and the model version it came from.
@@ -229,6 +302,7 @@ class SessionStore:
         with session.lock:
             if greedy:
                 return session.act(observation, greedy=True), session.model_version
+            self._prepared.pop(session.id, None)
             return self._sample(session, observation), session.model_version
 
     def persist(self, session: HFSession) -> None:
@@ -263,15 +337,23 @@ class SessionStore:
                 journal.close()
             self._journals.clear()
 
+    def _next_action(self, session: HFSession, next_observation: list[float] | None) -> int | None:
+        """pi_HF's sampled action in ``next_observation`` unless none was asked for or the
+        budget is full."""
+        if next_observation is None or session.done:
+            return None
+        return self._sample(session, next_observation)
+
     def _sample(self, session: HFSession, observation: list[float]) -> int:
         action = session.act(observation, greedy=False)
         self._journal(session, {"op": "act", "observation": observation})
         return action
 
-    def _journal(self, session: HFSession, entry: dict[str, Any]) -> None:
-        """Append ``entry`` as operation ``session.ops``; on failure, reload and raise."""
+    def _journal(self, session: HFSession, entry: dict[str, Any], seq: int | None = None) -> None:
+        """Append ``entry`` as operation ``seq`` (default ``session.ops``); on failure,
+        reload and raise."""
         try:
-            self._journals[session.id].append({"seq": session.ops, **entry})
+            self._journals[session.id].append({"seq": session.ops if seq is None else seq, **entry})
         except BaseException:
             logger.exception("journal of HF session %s cannot be written", session.id)
             with contextlib.suppress(OSError):  # what was written is read back below

@@ -5,7 +5,12 @@ from __future__ import annotations
 from fastapi import APIRouter, BackgroundTasks
 
 from services.learner.service.deps import SessionDep, StoreDep
-from services.learner.service.schemas import LabelCreate, LabelPublic
+from services.learner.service.schemas import (
+    LabelCreate,
+    LabelPrepare,
+    LabelPreparePublic,
+    LabelPublic,
+)
 
 router = APIRouter(prefix="/hf-sessions/{session_id}", tags=["labels"])
 
@@ -22,6 +27,9 @@ def add_label(
     pi_HF's next action (sampled as ``POST /act`` samples it) unless the budget is full.
     The label is in the session's journal before the answer and synced to disk right after
     it (:meth:`SessionStore.persist <services.learner.service.store.SessionStore.persist>`).
+    A label prepared with ``POST /labels/prepare`` (same marker id, observation, action,
+    oracle truth and next observation, nothing else changed the session since) answers
+    without running the update: ``prepared: true``, and the same session as otherwise.
     """
     outcome, next_action = store.add_label(
         session,
@@ -43,4 +51,17 @@ def add_label(
             duplicate=outcome.duplicate,
             validation=outcome.record.validation,
             next_action=next_action,
+            prepared=outcome.prepared,
         )
+
+
+@router.post("/labels/prepare")
+def prepare_label(body: LabelPrepare, session: SessionDep, store: StoreDep) -> LabelPreparePublic:
+    """Compute a label's update for both feedback values before the feedback is decoded.
+
+    The session keeps one prepared label (a new one replaces it) until its next label or
+    sampled action; the label with the same fields then only swaps the matching update in.
+    The session itself does not change here.
+    """
+    prepared = store.prepare_label(session, **body.model_dump())
+    return LabelPreparePublic(prepared=prepared)
