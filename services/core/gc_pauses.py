@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import gc
 from collections.abc import AsyncIterator, Callable
-from contextlib import AbstractAsyncContextManager, asynccontextmanager
+from contextlib import AbstractAsyncContextManager, asynccontextmanager, nullcontext
 from typing import Any
 
 
@@ -38,14 +38,7 @@ def frozen_after_startup(
 
     @asynccontextmanager
     async def run(app: Any) -> AsyncIterator[None]:
-        if lifespan is None:
-            freeze_startup_objects()
-            try:
-                yield
-            finally:
-                unfreeze()
-            return
-        async with lifespan(app):
+        async with lifespan(app) if lifespan is not None else nullcontext():
             freeze_startup_objects()
             try:
                 yield

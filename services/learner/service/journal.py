@@ -31,8 +31,6 @@ class SessionJournal:
         self.path = path
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         self._unsynced = False
-        self.entries = len(read_journal(path))
-        """Entries in the file."""
 
     def append(self, entry: dict[str, Any]) -> None:
         """Add one entry (one ``write``, not yet synced)."""
@@ -41,7 +39,6 @@ class SessionJournal:
         if written != len(line):  # a regular file writes all or raises, short of a full disk
             raise OSError(f"journal {self.path}: {written} of {len(line)} bytes written")
         self._unsynced = True
-        self.entries += 1
 
     def sync(self) -> None:
         """Make the entries written so far durable (``fsync``)."""
@@ -54,7 +51,6 @@ class SessionJournal:
         os.ftruncate(self._fd, 0)
         os.fsync(self._fd)
         self._unsynced = False
-        self.entries = 0
 
     def close(self) -> None:
         """Sync and close the file (closed even if the sync fails)."""
