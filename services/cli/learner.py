@@ -93,12 +93,19 @@ def reproduce(
             "truncated_is, hf_guide_sampling=true, the recommended stage-2 method)."
         ),
     ] = "paper",
+    hf_method: Annotated[
+        str | None,
+        typer.Option(
+            help="Stage-2 method of pi_HF (bgrl hf-sweep --method), in place of the "
+            "preset's (paper: the paper's Fhat; platform: the recommended one)."
+        ),
+    ] = None,
 ) -> None:
     """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG.
 
     ``--preset platform`` replaces the default ``--treatments`` by truncated_is, adds
     ``--ppo hf_guide_sampling=true`` unless given, and learns pi_HF with the recommended
-    stage-2 method (docs/stage2.md).
+    stage-2 method (docs/stage2.md); ``--hf-method`` picks another stage-2 method.
 
     Exits with 1 naming the failed runs if any run fails (the others finish and are kept in
     results.json; the failed ones, with their tracebacks, under "failed"; a rerun retries
@@ -106,13 +113,15 @@ def reproduce(
     """
     from services.learner.pool import reproduce as run_reproduction
     from services.learner.pool import validate_maps
+    from services.learner.hf_methods import get_method
     from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, apply_preset, build_specs
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
     try:
-        treatment_list, overrides, hf_method = apply_preset(
+        treatment_list, overrides, preset_method = apply_preset(
             preset, _split(treatments), parse_ppo_overrides(ppo or [])
         )
+        hf_method = preset_method if hf_method is None else get_method(hf_method).name
         specs = build_specs(
             seeds=n_seeds,
             first_seed=first_seed,

@@ -63,3 +63,30 @@ def test_hf_sweep_refuses_bad_input_naming_the_option(tmp_path, option, message)
     result = CliRunner().invoke(app, ["hf-sweep", "--out", str(tmp_path / "x"), option])
     assert result.exit_code == 2 and message in result.output
     assert not (tmp_path / "x").exists()
+
+
+def test_reproduce_hf_method_replaces_the_presets_stage2_method(tmp_path, monkeypatch) -> None:
+    captured = []
+
+    def fake_reproduce(out, specs, **kwargs):
+        captured.append((list(specs), kwargs["config_note"]["cli"]))
+        (out / "summary.md").parent.mkdir(parents=True, exist_ok=True)
+        (out / "summary.md").write_text("table")
+        return type("Results", (), {"failed": []})()
+
+    monkeypatch.setattr(pool, "reproduce", fake_reproduce)
+    base = ["reproduce", "--out", str(tmp_path), "--seeds", "1", "--tasks", "sssg"]
+    base += ["--methods", "rl_sparse,hf_sparse", "--accuracies", "0.6"]
+    for extra, expected in [
+        ([], RECOMMENDED_METHOD),  # the preset's
+        (["--hf-method", "categorical_kernel"], "categorical_kernel"),
+    ]:
+        result = CliRunner().invoke(app, [*base, "--preset", "platform", *extra])
+        assert result.exit_code == 0, result.output
+        specs, cli = captured.pop()
+        assert cli["hf_method"] == expected and cli["preset"] == "platform"
+        assert [s.hf_method for s in specs if s.method == "hf_sparse"] == [expected]
+        assert [s.hf_method for s in specs if s.method == "rl_sparse"] == [None]
+    result = CliRunner().invoke(app, [*base, "--hf-method", "nope"])
+    assert result.exit_code == 2 and "unknown stage-2 method 'nope'" in result.output
+    assert not captured
