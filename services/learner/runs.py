@@ -10,6 +10,8 @@ paper, where pi_HF is learned in a separate session before RL.
 
 from __future__ import annotations
 
+import importlib.metadata
+import platform
 import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
@@ -69,6 +71,10 @@ class RunRecord:
     keeps beside the last (None in records written before it was kept)."""
     best_spl: float | None = None
     """SPL of that evaluation."""
+    environment: dict[str, str] | None = None
+    """Python's and the numeric packages' versions and the CPU the run had
+    (:func:`software_environment`): a run is bit-for-bit repeatable with the same ones only
+    (None in records written before it was kept)."""
 
     @property
     def run_spec(self) -> RunSpec:
@@ -258,7 +264,23 @@ def run_one(
         spec=spec.to_dict(),
         best_step=result.best_step,
         best_spl=float(result.best_spl),
+        environment=software_environment(),
     )
+
+
+def software_environment() -> dict[str, str]:
+    """Versions of Python and of the packages a run's numbers depend on, and the machine.
+
+    Float results (and so, through sampling, whole trajectories) change with these, so a
+    record can only be repeated bit for bit where they match.
+    """
+    versions = {"python": platform.python_version(), "machine": platform.machine()}
+    for package in ("torch", "numpy", "gymnasium", "pybullet"):
+        try:
+            versions[package] = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            versions[package] = "not installed"
+    return versions
 
 
 @dataclass(frozen=True)

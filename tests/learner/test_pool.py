@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from services.cli.main import app
@@ -32,6 +33,10 @@ def test_run_one_hf_sparse_on_the_real_env() -> None:
     # the label noise comes from the seed's own stream: 41 of the 60 labels are right
     assert record.hf["n_labels"] == 60 and record.hf["label_accuracy"] == pytest.approx(41 / 60)
     assert RunRecord.from_dict(json.loads(json.dumps(record.to_dict()))) == record
+    # what a bit-for-bit repeat needs: the versions the numbers depend on
+    assert record.environment is not None
+    assert record.environment["torch"] == torch.__version__
+    assert {"python", "numpy", "gymnasium", "pybullet"} <= set(record.environment)
 
 
 def test_hf_policy_run_measures_stage_two_alone() -> None:
