@@ -68,6 +68,8 @@ class Checkpoint:
     """Fhat's weights (pi_HF), when the run is guided."""
     best_agent: dict[str, torch.Tensor] | None = None
     """pi_RL's weights at the best evaluation so far (``state.best_step``)."""
+    success_replay: dict[str, torch.Tensor] | None = None
+    """The self-imitation buffer (``SuccessReplay.state_dict``), when ``sil_coef > 0``."""
 
     @classmethod
     def capture(
@@ -81,6 +83,7 @@ class Checkpoint:
         hf_policy: HFPolicy | None,
         *,
         best_agent: dict[str, torch.Tensor] | None = None,
+        success_replay: dict[str, torch.Tensor] | None = None,
     ) -> Checkpoint:
         """Everything a run needs to continue exactly (``config`` is ``asdict(PPOConfig)``)."""
         return cls(
@@ -92,6 +95,7 @@ class Checkpoint:
             state=state,
             hf_model=None if hf_policy is None else hf_policy.model.state_dict(),
             best_agent=best_agent,
+            success_replay=success_replay,
         )
 
     def restore(

@@ -82,6 +82,10 @@ class PPOOverrides(StrictRequest):
     hf_warmup_steps: int | None = Field(None, ge=0, le=MAX_TOTAL_STEPS)
     is_clip: float | None = Field(None, gt=0, le=100)
     hf_guide_sampling: bool | None = None
+    sil_coef: float | None = Field(None, ge=0, le=100)
+    sil_updates: int | None = Field(None, ge=0, le=10_000)
+    sil_value_coef: float | None = Field(None, ge=0, le=100)
+    sil_capacity: int | None = Field(None, ge=1, le=10_000_000)
 
     @field_validator("hidden_sizes")
     @classmethod

@@ -77,6 +77,15 @@ class PPOConfig:
     hf_guide_sampling: bool = False
     """HF episodes sample from pi_HF's softened distribution instead of its argmax (the
     paper's greedy pi_HF is the default; a factor studied in docs/reproduction.md)."""
+    sil_coef: float = 0.0
+    """Weight of the self-imitation loss on the transitions of past successful episodes
+    (:mod:`services.learner.ppo.self_imitation`); 0 (default): off, plain (guided) PPO."""
+    sil_updates: int = 8
+    """Self-imitation minibatch steps (of ``minibatch_size``) after every PPO update."""
+    sil_value_coef: float = 0.01
+    """Weight of the self-imitation value term (SIL's beta, 0.01)."""
+    sil_capacity: int = 20_000
+    """Most transitions of successful episodes kept (the oldest are dropped)."""
 
     def __post_init__(self) -> None:
         self.hidden_sizes = tuple(self.hidden_sizes)
@@ -98,6 +107,10 @@ class PPOConfig:
             raise ValueError("hf_t_trans_fraction must be in (0, 1]")
         if self.eval_every < 1 or not self.eval_seeds:
             raise ValueError("eval_every must be >= 1 and eval_seeds non-empty")
+        if self.sil_coef < 0 or self.sil_value_coef < 0:
+            raise ValueError("sil_coef and sil_value_coef must be >= 0")
+        if self.sil_updates < 0 or self.sil_capacity < 1:
+            raise ValueError("sil_updates must be >= 0 and sil_capacity >= 1")
         if self.target_kl is not None and not self.target_kl > 0.0:
             raise ValueError(f"target_kl must be > 0 or None, got {self.target_kl}")
 

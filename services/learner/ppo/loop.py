@@ -22,6 +22,11 @@ from services.learner.ppo.advantages import advantages_and_returns
 from services.learner.ppo.agent import ActorCritic
 from services.learner.ppo.config import PPOConfig
 from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
+from services.learner.ppo.self_imitation import (
+    SuccessReplay,
+    replay_episode,
+    self_imitation_update,
+)
 from services.learner.ppo.update import update_metrics, update_policy
 from services.learner.seeding import RunSeeds, Stream
 from services.learner.training import Callback, TrainResult
@@ -78,16 +83,30 @@ def train(
         checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
 
         best_agent: dict[str, torch.Tensor] | None = None  # weights at state.best_step
+        success_replay = (
+            SuccessReplay(env.observation_space.shape[0], config.sil_capacity)
+            if config.sil_coef > 0
+            else None
+        )
 
         def save() -> None:
             assert checkpoint is not None
             snapshot = (asdict(config), agent, optimizer, rng, resets, state, hf_policy)
-            save_checkpoint(checkpoint, Checkpoint.capture(*snapshot, best_agent=best_agent))
+            save_checkpoint(
+                checkpoint,
+                Checkpoint.capture(
+                    *snapshot,
+                    best_agent=best_agent,
+                    success_replay=None if success_replay is None else success_replay.state_dict(),
+                ),
+            )
 
         if checkpoint is not None and checkpoint.exists():
             restored = load_checkpoint(checkpoint, asdict(config))
             state = restored.restore(agent, optimizer, rng, resets, hf_policy)
             best_agent = restored.best_agent
+            if success_replay is not None and restored.success_replay is not None:
+                success_replay.load_state_dict(restored.success_replay)
             obs, _ = env.reset(seed=state.episode_seed)
             for action in state.episode_actions:  # replay the episode in progress
                 obs, *_ = env.step(action)
@@ -114,7 +133,7 @@ def train(
         while keep_going and state.global_step < config.total_steps:
             # ---- 1. collect n_steps with the behaviour policy (pi_HF or pi_RL per episode) --
             rollout_start = time.perf_counter()
-            obs, hooks_go_on, episode_returns = collect_rollout(
+            obs, hooks_go_on, episode_returns, successes = collect_rollout(
                 env, agent, obs, rollout, state, config=config, hf_policy=hf_policy, rng=rng,
                 resets=resets, on_step=callback.on_step, evaluate=evaluate,
             )  # fmt: skip
@@ -134,6 +153,15 @@ def train(
                 agent, optimizer, rollout, advantages, returns, weights,
                 config=config, rng=rng, n_updates_done=state.n_updates,
             )  # fmt: skip
+            if success_replay is not None:  # self-imitation of the successful episodes
+                for seed, actions in successes:
+                    observations, rewards = replay_episode(
+                        eval_env, seed, actions, config.reward_scale
+                    )
+                    success_replay.add_episode(
+                        observations, np.asarray(actions), rewards, config.gamma
+                    )
+                metrics.update(self_imitation_update(agent, optimizer, success_replay, config, rng))
             state.n_updates += 1
             metrics.update(
                 update_metrics(

@@ -90,16 +90,18 @@ def collect_rollout(
     resets: TrainingResets,
     on_step: Callable[[int, dict[str, Any]], bool],
     evaluate: Callable[[], bool],
-) -> tuple[np.ndarray, bool, list[float]]:
+) -> tuple[np.ndarray, bool, list[float], list[tuple[int, list[int]]]]:
     """Fill ``rollout`` with ``config.n_steps`` env steps from ``obs``, advancing ``state``
     (step and episode counters, the episode in progress). ``on_step`` runs after every step,
     ``evaluate`` every ``config.eval_every`` steps.
 
-    Returns the observation after the last step, whether every hook asked to go on, and
-    the (scaled) returns of the episodes that ended.
+    Returns the observation after the last step, whether every hook asked to go on, the
+    (scaled) returns of the episodes that ended, and the (reset seed, actions) of those that
+    reached the goal.
     """
     keep_going = True
     episode_returns: list[float] = []
+    successes: list[tuple[int, list[int]]] = []
     for t in range(config.n_steps):
         with torch.inference_mode():
             logits, value = agent(torch.as_tensor(obs))
@@ -134,6 +136,8 @@ def collect_rollout(
         obs = next_obs
         if terminated or truncated:
             episode_returns.append(state.episode_return)
+            if info.get("is_success", False):
+                successes.append((state.episode_seed, list(state.episode_actions)))
             state.episodes.append(
                 (
                     state.global_step,
@@ -149,4 +153,4 @@ def collect_rollout(
         keep_going &= on_step(state.global_step, info)
         if state.global_step % config.eval_every == 0:
             keep_going &= evaluate()
-    return obs, keep_going, episode_returns
+    return obs, keep_going, episode_returns, successes
