@@ -90,7 +90,8 @@ def reproduce(
         str,
         typer.Option(
             help="paper: the paper's settings; platform: the recommended ones (HF steps "
-            "truncated_is, hf_guide_sampling=true, the recommended stage-2 method)."
+            "truncated_is, hf_guide_sampling=true, sil_coef=1 for every method, the "
+            "recommended stage-2 method)."
         ),
     ] = "paper",
     hf_method: Annotated[
@@ -104,16 +105,17 @@ def reproduce(
     """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG.
 
     ``--preset platform`` replaces the default ``--treatments`` by truncated_is, adds
-    ``--ppo hf_guide_sampling=true`` unless given, and learns pi_HF with the recommended
-    stage-2 method (docs/stage2.md); ``--hf-method`` picks another stage-2 method.
+    ``--ppo hf_guide_sampling=true`` and ``--ppo sil_coef=1`` (self-imitation, every method
+    alike) unless given, and learns pi_HF with the recommended stage-2 method
+    (docs/stage2.md); ``--hf-method`` picks another stage-2 method.
 
     Exits with 1 naming the failed runs if any run fails (the others finish and are kept in
     results.json; the failed ones, with their tracebacks, under "failed"; a rerun retries
     them), with 2 on bad input.
     """
+    from services.learner.hf_methods import get_method
     from services.learner.pool import reproduce as run_reproduction
     from services.learner.pool import validate_maps
-    from services.learner.hf_methods import get_method
     from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, apply_preset, build_specs
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)

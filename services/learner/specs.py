@@ -192,14 +192,19 @@ def build_specs(
     return specs
 
 
+PLATFORM_SIL_COEF = 1.0
+"""Self-imitation in the platform preset (docs/reproduction.md, "Self-imitation")."""
+
+
 def apply_preset(
     preset: str, treatments: Sequence[str], ppo_overrides: Mapping[str, Any]
 ) -> tuple[list[str], dict[str, Any], str]:
     """(treatments, PPO overrides, stage-2 method) of a reproduction with ``preset``.
 
     ``paper`` changes nothing (the paper's Fhat); ``platform`` replaces the default
-    treatment (authors) by truncated_is, adds ``hf_guide_sampling=True`` unless the
-    overrides set it, and selects the recommended stage-2 method (docs/stage2.md).
+    treatment (authors) by truncated_is, adds ``hf_guide_sampling=True`` and self-imitation
+    (``sil_coef=1.0``, for every method of the reproduction alike) unless the overrides set
+    them, and selects the recommended stage-2 method (docs/stage2.md).
     """
     if preset not in PRESETS:
         raise ValueError(f"preset: unknown preset {preset!r}; expected one of {PRESETS}")
@@ -207,6 +212,7 @@ def apply_preset(
     if preset == "paper":
         return treatments, overrides, PAPER_METHOD
     overrides.setdefault("hf_guide_sampling", True)
+    overrides.setdefault("sil_coef", PLATFORM_SIL_COEF)
     return (
         (["truncated_is"] if treatments == ["authors"] else treatments),
         overrides,

@@ -16,11 +16,13 @@ from services.learner.specs import apply_preset
 def test_presets() -> None:
     assert apply_preset("paper", ["authors"], {}) == (["authors"], {}, PAPER_METHOD)
     assert apply_preset("platform", ["authors"], {"n_epochs": 10}) == (
-        ["truncated_is"], {"n_epochs": 10, "hf_guide_sampling": True}, RECOMMENDED_METHOD,
+        ["truncated_is"], {"n_epochs": 10, "hf_guide_sampling": True, "sil_coef": 1.0},
+        RECOMMENDED_METHOD,
     )  # fmt: skip
     # what is given explicitly is kept
-    assert apply_preset("platform", ["authors", "truncated_is"], {"hf_guide_sampling": False}) == (
-        ["authors", "truncated_is"], {"hf_guide_sampling": False}, RECOMMENDED_METHOD,
+    given = {"hf_guide_sampling": False, "sil_coef": 0.0}
+    assert apply_preset("platform", ["authors", "truncated_is"], given) == (
+        ["authors", "truncated_is"], given, RECOMMENDED_METHOD,
     )  # fmt: skip
     with pytest.raises(ValueError, match="preset: unknown preset 'lab'"):
         apply_preset("lab", ["authors"], {})

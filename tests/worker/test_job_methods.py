@@ -51,10 +51,12 @@ def test_reproduce_with_the_platform_preset(fs_platform: Platform, worker) -> No
         results = session.get(Artifact, job.result["artifacts"]["results.json"])
     specs = {child.config["method"]: child.config for child in children}
     assert set(specs) == {"rl_sparse", "hf_sparse"}
-    # what `bgrl reproduce --preset platform` runs: truncated_is, guide sampling, the method
+    # what `bgrl reproduce --preset platform` runs: truncated_is, guide sampling, the method,
     hf = specs["hf_sparse"]
     assert (hf["hf_treatment"], hf["hf_method"]) == ("truncated_is", RECOMMENDED_METHOD)
     assert hf["ppo_overrides"]["hf_guide_sampling"] is True
+    # self-imitation for every method of the reproduction alike
+    assert hf["ppo_overrides"]["sil_coef"] == specs["rl_sparse"]["ppo_overrides"]["sil_coef"] == 1.0
     assert specs["rl_sparse"]["hf_method"] is None
     data = json.loads((fs_platform.settings.resolved_artifact_dir / results.relpath).read_text())
     by_method = {run["method"]: run["spec"] for run in data["runs"]}

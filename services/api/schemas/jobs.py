@@ -189,8 +189,9 @@ class ReproduceConfig(StrictRequest):
     preset: Preset = Field(
         "paper",
         description="paper: the paper's settings; platform: the recommended ones (treatments "
-        "['authors'] become ['truncated_is'], ppo.hf_guide_sampling true unless given, pi_HF "
-        "learned with the recommended stage-2 method).",
+        "['authors'] become ['truncated_is'], ppo.hf_guide_sampling true and ppo.sil_coef 1 "
+        "(self-imitation, every method alike) unless given, pi_HF learned with the "
+        "recommended stage-2 method).",
     )
     checkpoint_every: int | None = Field(
         None, ge=1, le=100_000, description="PPO updates between checkpoints of each run."

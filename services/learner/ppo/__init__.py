@@ -33,6 +33,11 @@ Stabilisers (off by default, so the paper's setting is unchanged): ``target_kl``
 update's epoch loop early once a minibatch's approx KL to the rollout policy exceeds it, and
 ``anneal_lr`` anneals the learning rate linearly to 0 over the run (CleanRL, SB3).
 
+Self-imitation (off by default, ``sil_coef > 0``): after each update, extra minibatch steps
+imitate the transitions of past successful episodes where they did better than the value
+function expects (SIL, Oh et al. 2018; :mod:`~services.learner.ppo.self_imitation`), so a
+rare success is learned from more than once.
+
 Best checkpoint. Like SB3's ``EvalCallback``, training keeps the weights of the best
 evaluation (the first of equal bests) beside the last: ``TrainResult.best_agent`` and
 ``best_step``; both are in the checkpoint, so a resumed run keeps them too.
