@@ -63,7 +63,7 @@ def test_results_of_earlier_sessions_still_load(study) -> None:
     assert all(r.run_spec.key == (r.task, r.method, r.accuracy, r.seed, r.hf_treatment)
                for r in results.runs)  # fmt: skip
     raw = json.loads((RESULTS / study / "results.json").read_text())["runs"]
-    added = {"best_step": None, "best_spl": None}  # fields newer than these records
+    added = {"best_step": None, "best_spl": None, "environment": None}  # newer than these records
     assert [r.to_dict() for r in results.runs] == [{**run, **added} for run in raw]
 
 
