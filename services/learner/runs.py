@@ -72,7 +72,7 @@ class RunRecord:
     best_spl: float | None = None
     """SPL of that evaluation."""
     environment: dict[str, str] | None = None
-    """Python's and the numeric packages' versions and the CPU the run had
+    """Python's and the numeric packages' versions and the machine architecture the run had
     (:func:`software_environment`): a run is bit-for-bit repeatable with the same ones only
     (None in records written before it was kept)."""
 
@@ -269,7 +269,8 @@ def run_one(
 
 
 def software_environment() -> dict[str, str]:
-    """Versions of Python and of the packages a run's numbers depend on, and the machine.
+    """Versions of Python and of the packages a run's numbers depend on, and the machine
+    architecture.
 
     Float results (and so, through sampling, whole trajectories) change with these, so a
     record can only be repeated bit for bit where they match.
