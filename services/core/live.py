@@ -14,6 +14,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
+from services.core.hf_methods import HFMethodName
 from services.core.schemas import StrictRequest
 
 DEFAULT_ACTIONS = {"calibration": 600, "test": 200}
@@ -52,6 +53,11 @@ class LiveOptions(StrictRequest):
         None, min_length=1, max_length=200, description="LSL EEG stream name (eeg_source lsl)."
     )
     label_budget: int = Field(1000, ge=1, le=100_000, description="Labels of an online session.")
+    hf_method: HFMethodName | None = Field(
+        None,
+        description="Stage-2 method learning an online session's pi_HF (docs/stage2.md; "
+        "default: the learner's recommended method). The run records the method used.",
+    )
     task: Literal["sssg", "vssg"] = "sssg"
     map: str | None = Field(None, max_length=1024, description="Sim map (default map if None).")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seeds the sim, random policy, Fhat.")

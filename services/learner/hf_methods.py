@@ -107,7 +107,7 @@ HFMethodName = Literal[
 ]
 """The names of :data:`HF_METHODS` (for request schemas)."""
 PAPER_METHOD = "paper"
-RECOMMENDED_METHOD = "categorical"
+RECOMMENDED_METHOD = "categorical_kernel"
 """The platform's stage-2 method (``bgrl reproduce --preset platform``, online sessions and
 guided-PPO jobs); measured in docs/stage2.md."""
 

@@ -158,18 +158,17 @@ class LiveRunner:
         if self.hf_session_id is not None:
             learner.call("GET", f"/hf-sessions/{self.hf_session_id}")
             return
-        created = learner.call(
-            "POST",
-            "/hf-sessions",
-            json={
-                "task": self.options.task,
-                "map": self.options.map,
-                "seed": self.options.seed,
-                "label_budget": self.options.label_budget,
-            },
-        )
+        body = {
+            "task": self.options.task,
+            "map": self.options.map,
+            "seed": self.options.seed,
+            "label_budget": self.options.label_budget,
+        }
+        if self.options.hf_method is not None:
+            body["method"] = self.options.hf_method
+        created = learner.call("POST", "/hf-sessions", json=body)
         self.hf_session_id = created["id"]
-        self._set_run(hf_session_id=self.hf_session_id)
+        self._set_run(hf_session_id=self.hf_session_id, hf_method=created["method"])
 
     @property
     def recording_name(self) -> str:

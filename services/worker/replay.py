@@ -35,7 +35,7 @@ from services.eeg.classifier import ErrPClassifier
 from services.eeg.live import LiveIngest
 from services.eeg.live_session import LiveSession
 from services.learner.feedback import FeedbackConfig
-from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
+from services.learner.hf_methods import PAPER_METHOD
 from services.learner.service.export import torchscript_bytes
 from services.learner.service.session import HFSession, SessionSpec
 from services.sim.registry import resolve_map
@@ -102,15 +102,20 @@ def decode_session(
     return out
 
 
+UNRECORDED_ONLINE_METHOD = "categorical"
+"""The learner service's default stage-2 method when live runs did not yet record theirs
+(2026-12-01 to 2026-12-02)."""
+
+
 def _original_method(runtime: Runtime, run: LiveRun) -> str:
     """The stage-2 method the original session trained with: recorded in its HF model (a
-    model exported before methods were recorded was the paper's); a session that exported
-    none used the learner service's default."""
+    model exported before methods were recorded was the paper's), else in its live run; a
+    run from before runs recorded it used the learner's default of then."""
     with runtime.sessions() as db:
         original = db.get(HFModel, run.hf_model_id) if run.hf_model_id else None
-        if original is None:
-            return RECOMMENDED_METHOD
-        return str((original.metrics or {}).get("hf_method", PAPER_METHOD))
+        if original is not None:
+            return str((original.metrics or {}).get("hf_method", PAPER_METHOD))
+    return run.hf_method or UNRECORDED_ONLINE_METHOD
 
 
 def _hf_session(runtime_data_dir: Path, run: LiveRun, budget: int, method: str) -> HFSession:

@@ -14,13 +14,14 @@ from sqlalchemy.exc import IntegrityError
 
 from services.core.artifacts import ArtifactStore
 from services.core.db.base import Base
+from services.core.db.live import LiveRun
 from services.core.db.migrate import (
     current_revision,
     downgrade_database,
     head_revision,
     upgrade_database,
 )
-from services.core.db.models import Artifact, Job, LoginAttempt, User
+from services.core.db.models import Artifact, Job, LabSession, LoginAttempt, Subject, User
 from services.core.db.session import make_engine, make_session_factory
 from services.core.errors import BadRequestError, PayloadTooLargeError
 
@@ -51,7 +52,7 @@ def test_empty_database_upgrades_to_head_matching_the_models(any_db_url: str) ->
     upgrade_database(any_db_url)
     engine = make_engine(any_db_url)
     try:
-        assert current_revision(engine) == head_revision() == "0004"
+        assert current_revision(engine) == head_revision() == "0005"
         assert set(inspect(engine).get_table_names()) == TABLES
         with engine.connect() as connection:
             diff = compare_metadata(
@@ -77,7 +78,7 @@ def test_previous_revision_upgrades_and_keeps_its_rows(any_db_url: str) -> None:
             )
             db.commit()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0004"
+        assert current_revision(engine) == "0005"
         with sessions() as db:
             job = db.get(Job, "j" * 32)
             assert (job.config, job.status, job.curve, job.attempts) == (
@@ -104,7 +105,7 @@ def test_revision_0003_upgrades_to_the_shared_login_limit_and_back(any_db_url: s
             db.commit()
         assert "login_attempts" not in inspect(engine).get_table_names()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0004"
+        assert current_revision(engine) == "0005"
         with sessions() as db:
             assert db.scalar(select(User.email)) == "a@lab.test"
             db.add(LoginAttempt(key="k" * 64, at=datetime(2026, 12, 2, tzinfo=UTC)))
@@ -113,6 +114,51 @@ def test_revision_0003_upgrades_to_the_shared_login_limit_and_back(any_db_url: s
         assert "login_attempts" not in inspect(engine).get_table_names()
         with sessions() as db:
             assert db.scalar(select(User.email)) == "a@lab.test"
+    finally:
+        engine.dispose()
+
+
+def test_revision_0004_upgrades_to_live_runs_recording_their_method_and_back(
+    any_db_url: str,
+) -> None:
+    upgrade_database(any_db_url, "0004")
+    engine = make_engine(any_db_url)
+    try:
+        sessions = make_session_factory(engine)
+        at = datetime(2026, 12, 2, tzinfo=UTC)
+        with sessions() as db:
+            subject = Subject(code="S01")
+            db.add(subject)
+            db.flush()
+            lab = LabSession(
+                subject_id=subject.id,
+                kind="online",
+                scheduled_at=at,
+                duration_minutes=30,
+                ends_at=at + timedelta(minutes=30),
+            )
+            db.add(lab)
+            db.flush()
+            db.execute(
+                text(
+                    "INSERT INTO live_runs (session_id, mode, options, status, stop_requested,"
+                    " resumes, created_at, updated_at) VALUES (:s, 'online', :o, 'completed',"
+                    " false, 0, :t, :t)"
+                ),
+                {"s": lab.id, "o": '{"seed": 3}', "t": at},
+            )
+            db.commit()
+        upgrade_database(any_db_url)
+        with sessions() as db:
+            run = db.scalar(select(LiveRun))
+            assert (run.options, run.status, run.hf_method) == ({"seed": 3}, "completed", None)
+            run.hf_method = "categorical_kernel"
+            db.commit()
+        downgrade_database(any_db_url, "0004")
+        columns = {c["name"] for c in inspect(engine).get_columns("live_runs")}
+        assert "hf_method" not in columns and "options" in columns
+        with engine.connect() as connection:
+            assert connection.execute(text("SELECT count(*) FROM live_runs")).scalar() == 1
     finally:
         engine.dispose()
 

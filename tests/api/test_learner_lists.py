@@ -6,13 +6,13 @@ import dataclasses
 from typing import get_args
 
 from services.api.schemas.jobs import (
-    HF_METHOD_NAMES,
     PRESETS,
     Method,
     PPOOverrides,
     Task,
     Treatment,
 )
+from services.core.hf_methods import HF_METHOD_NAMES
 from services.learner.hf_methods import HF_METHODS
 from services.learner.ppo import PPOConfig
 from services.learner.specs import METHODS, RUN_FIXED_PPO_FIELDS, TASK_ENV_IDS, TREATMENTS

@@ -26,6 +26,7 @@ from services.learner.ppo import (
     ppo_loss,
     train,
 )
+from services.learner.ppo.config import episode_epsilon, guidance_withdrawn
 from tests.learner.conftest import ToyGridEnv
 
 
@@ -93,6 +94,34 @@ def test_eps_hf_schedule() -> None:
     assert hf_epsilon(999, warm) == 1.0
     assert hf_epsilon(1000, warm) == pytest.approx(0.8)
     assert hf_epsilon(10_500, warm) == pytest.approx(0.4)
+
+
+def test_eps_hf_held_until_the_first_success_then_decays_from_there() -> None:
+    held = PPOConfig(total_steps=40_000, hf_hold_until_success=True)
+    fail, success = (100, 30, False, True, True), (5000, 40, True, False, False)
+    assert episode_epsilon(30_000, [fail] * 50, held) == pytest.approx(0.8)  # no success yet
+    # the decay starts at the first success (an RL episode's too) and lasts as long
+    assert episode_epsilon(15_000, [fail, success, fail], held) == pytest.approx(0.4)
+    assert episode_epsilon(25_000, [fail, success], held) == 0.0
+    warm = replace(held, hf_warmup_steps=1000)
+    assert hf_epsilon(500, warm, 200) == 1.0
+    assert hf_epsilon(5000, warm) == hf_epsilon(5000, warm, 5000) == pytest.approx(0.8)
+    assert hf_epsilon(14_500, warm, 5000) == pytest.approx(0.4)
+    # off (the default): the paper's schedule, successes or not
+    assert episode_epsilon(10_000, [success], PPOConfig()) == pytest.approx(0.4)
+
+
+def test_guidance_withdrawn_after_a_streak_of_failed_hf_episodes() -> None:
+    config = PPOConfig(total_steps=40_000, hf_withdraw_after=3)
+    hf_fail, hf_win, rl_fail = (0, 9, False, True, True), (0, 9, True, False, True), (
+        0, 9, False, True, False)  # fmt: skip
+    assert not guidance_withdrawn([hf_fail, hf_fail, rl_fail], config)
+    assert guidance_withdrawn([hf_win, hf_fail, rl_fail, hf_fail, rl_fail, hf_fail], config)
+    assert not guidance_withdrawn([hf_fail, hf_fail, hf_fail, hf_win], config)
+    assert episode_epsilon(1000, [hf_fail] * 3, config) == 0.0
+    assert episode_epsilon(1000, [hf_fail] * 3, replace(config, hf_withdraw_after=0)) > 0.7
+    with pytest.raises(ValueError, match="hf_withdraw_after"):
+        PPOConfig(hf_withdraw_after=-1)
 
 
 def test_config_rejects_bad_values() -> None:

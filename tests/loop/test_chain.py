@@ -12,6 +12,7 @@ from sqlalchemy import func, select, update
 
 from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion, LiveRun
 from services.core.db.models import Classifier, FeedbackLabel, HFModel, Job, Recording
+from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.worker.calibration import eeg_calibration
 from services.worker.live_services import ServiceClient
 from services.worker.live_session import live_session
@@ -80,6 +81,7 @@ def test_online_session_labels_to_its_budget_and_registers_the_hf_model(
         assert run.result["prepared_labels"] == 40  # each label's update was prepared
         model = db.get(HFModel, run.hf_model_id)
         assert model is not None and model.n_labels == 40 and model.session_id == session_id
+        assert run.hf_method == model.metrics["hf_method"] == RECOMMENDED_METHOD  # the default
         markers = run.result["actions"]
     assert count(loop, FeedbackLabel, session_id=session_id) == 40
     assert count(loop, LiveModelVersion, run_id=run_id) == 40

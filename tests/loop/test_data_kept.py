@@ -29,6 +29,8 @@ pytestmark = pytest.mark.slow
 
 SUBJECT = "S-002"
 LABELS = 15
+HF_METHOD = "paper"
+"""The online session's stage-2 method, chosen by the lab (not the recommended one)."""
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +41,7 @@ def online(loop: LoopPlatform) -> dict[str, int]:
         subject_id = db.scalar(select(LabSession.subject_id).order_by(LabSession.id.desc()))
     session_id = loop.lab_session("online", subject_code=SUBJECT)
     options = {"accelerated": True, "classifier_id": classifier_id, "label_budget": LABELS,
-               "virtual_quality": 0.6, "seed": 3}  # fmt: skip
+               "virtual_quality": 0.6, "seed": 3, "hf_method": HF_METHOD}  # fmt: skip
     run_id, job_id = loop.live_job(session_id, options)
     assert run_job(loop.runtime, job_id, live_session) == "succeeded"
     return {"classifier_id": classifier_id, "session_id": session_id, "run_id": run_id,
@@ -79,8 +81,8 @@ def test_replay_with_the_same_classifier_reproduces_the_labels(
         assert run is not None
         first = db.get(HFModel, run.hf_model_id)
         assert first is not None
-        assert first.metrics["hf_method"] == RECOMMENDED_METHOD  # the learner's default
-        assert model.metrics["hf_method"] == first.metrics["hf_method"]
+        assert run.hf_method == first.metrics["hf_method"] == HF_METHOD != RECOMMENDED_METHOD
+        assert model.metrics["hf_method"] == HF_METHOD
         paths = [
             loop.runtime.store.path(
                 db.scalar(select(Artifact.relpath).where(Artifact.id == m.torchscript_artifact_id))
@@ -103,6 +105,30 @@ def test_replay_with_the_same_classifier_reproduces_the_labels(
     obs = torch.tensor(np.random.default_rng(0).uniform(0, 3, (32, 13)), dtype=torch.float32)
     first_logits, replay_logits = (torch.jit.load(str(p))(obs) for p in paths)
     assert torch.allclose(first_logits, replay_logits, atol=1e-5)
+
+
+def test_replay_of_a_run_without_its_hf_model_trains_with_the_runs_method(
+    loop: LoopPlatform, online: dict[str, int]
+) -> None:
+    with loop.runtime.sessions() as db:
+        run = db.get(LiveRun, online["run_id"])
+        assert run is not None
+        kept_model_id, run.hf_model_id = run.hf_model_id, None  # as if the model were deleted
+        db.commit()
+    try:
+        job_id = _job(loop, "session_replay", {"session_id": online["session_id"]})
+        assert run_job(loop.runtime, job_id, session_replay) == "succeeded"
+        with loop.runtime.sessions() as db:
+            job = db.get(Job, job_id)
+            assert job is not None and job.result is not None
+            model = db.get(HFModel, job.result["hf_model_id"])
+            assert model is not None and model.metrics["hf_method"] == HF_METHOD
+    finally:
+        with loop.runtime.sessions() as db:
+            run = db.get(LiveRun, online["run_id"])
+            assert run is not None
+            run.hf_model_id = kept_model_id
+            db.commit()
 
 
 def test_replay_refuses_a_calibration_session(loop: LoopPlatform, online: dict[str, int]) -> None:

@@ -69,6 +69,17 @@ def test_start_creates_a_run_and_its_job_and_refuses_bad_starts(api: Api) -> Non
         f"/api/v1/sessions/{online}/start", json={"classifier_id": 9}, headers=staff
     )
     assert unknown.json() == {"detail": "no classifier 9", "field": "classifier_id"}
+    bad_method = api.client.post(
+        f"/api/v1/sessions/{online}/start", json={"hf_method": "nope"}, headers=staff
+    )
+    assert bad_method.status_code == 422 and "hf_method" in bad_method.text
+    not_online = api.client.post(
+        f"/api/v1/sessions/{cal}/start", json={"hf_method": "paper"}, headers=staff
+    )
+    assert not_online.json() == {
+        "detail": "hf_method applies to online sessions, not to a calibration session",
+        "field": "hf_method",
+    }
     stopped = api.client.post(f"/api/v1/sessions/{cal}/stop", headers=staff)
     assert stopped.status_code == 200 and stopped.json()["stop_requested"] is True
     never = api.client.post(f"/api/v1/sessions/{online}/stop", headers=staff)

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from services.api.schemas.jobs import HF_METHOD_NAMES
 from services.core.db.models import Classifier, Job
 from services.core.db.session import make_engine, make_session_factory
+from services.core.hf_methods import HF_METHOD_NAMES
 from services.core.platform import PlatformSettings
 from tests.web.conftest import STAFF, Server, open_as
 

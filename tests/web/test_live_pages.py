@@ -318,6 +318,8 @@ def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
     form = page.get_by_role("form", name="Start the session")
     form.get_by_label("Classifier").select_option(str(classifier_id))
     assert form.get_by_label("Label budget").input_value() == "1000"  # not reached: stopped
+    assert form.get_by_label("Stage-2 method").input_value() == ""  # the recommended one
+    form.get_by_label("Stage-2 method").select_option("categorical")
     assert form.get_by_label("Accelerated (virtual subject)").is_checked()
     form.get_by_role("button", name="Start").click()
     page.get_by_text("Session started.").wait_for()
@@ -355,6 +357,7 @@ def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
     run = live["run"]
     assert run["result"]["stopped_on_command"] is True and run["hf_model_id"] is not None
     assert run["options"]["classifier_id"] == classifier_id and run["options"]["accelerated"]
+    assert run["options"]["hf_method"] == run["hf_method"] == "categorical"
     # The page's table is the run's rows: every action, its oracle label, decoded feedback
     # and p(error) as the worker stored them; its running accuracy is the API's.
     rows = page.locator("#live-actions tr")

@@ -56,6 +56,9 @@ class LiveRunPublic(BaseModel):
     job_id: str | None
     mode: str
     options: dict[str, Any]
+    hf_method: str | None = Field(
+        description="Stage-2 method of an online run's pi_HF (known once the run started)."
+    )
     status: str
     stop_requested: bool
     resumes: int
@@ -119,6 +122,11 @@ def start(
         raise BadRequestError(
             f"session {session_id} is a {lab.kind} session; only {', '.join(LIVE_KINDS)} run live",
             field="session_id",
+        )
+    if body.hf_method is not None and lab.kind != "online":
+        raise BadRequestError(
+            f"hf_method applies to online sessions, not to a {lab.kind} session",
+            field="hf_method",
         )
     if lab.kind in ("test", "online"):
         if body.classifier_id is None:

@@ -3,9 +3,9 @@
 The learner cannot be imported here (the api stays free of torch), so what a job config
 takes from it is listed below: the PPO settings a job may override with their types and
 bounds (the fields of ``services.learner.ppo.PPOConfig`` that ``bgrl reproduce --ppo``
-accepts), the stage-2 methods (``services.learner.hf_methods.HF_METHODS``) and the presets
-of ``bgrl reproduce --preset`` (``services.learner.specs.PRESETS``). Tests check that each
-list equals the learner's.
+accepts) and the presets of ``bgrl reproduce --preset`` (``services.learner.specs.PRESETS``);
+the stage-2 methods are :mod:`services.core.hf_methods`'. Tests check that each list equals
+the learner's.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from services.api.schemas.common import MAX_ROW_ID, PublicModel
 from services.core.db.models import JOB_STATUSES
+from services.core.hf_methods import HFMethodName
 from services.core.schemas import StrictRequest
 
 JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration", "bids_export", "session_replay"]
@@ -27,18 +28,6 @@ assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined
 Task = Literal["sssg", "vssg"]
 Method = Literal["rl_sparse", "rl_rich", "rl_shaped", "hf_sparse"]
 Treatment = Literal["authors", "truncated_is"]
-HFMethodName = Literal[
-    "paper",
-    "noise_aware",
-    "categorical",
-    "thompson",
-    "categorical_thompson",
-    "categorical_info",
-    "categorical_onpolicy",
-    "categorical_kernel",
-]
-"""Stage-2 methods that learn pi_HF (docs/stage2.md); the learner's ``HF_METHODS``."""
-HF_METHOD_NAMES: tuple[str, ...] = HFMethodName.__args__  # type: ignore[attr-defined]
 Preset = Literal["paper", "platform"]
 """Settings of a reproduction (``bgrl reproduce --preset``); the learner's ``PRESETS``."""
 PRESETS: tuple[str, ...] = Preset.__args__  # type: ignore[attr-defined]
@@ -82,6 +71,8 @@ class PPOOverrides(StrictRequest):
     hf_warmup_steps: int | None = Field(None, ge=0, le=MAX_TOTAL_STEPS)
     is_clip: float | None = Field(None, gt=0, le=100)
     hf_guide_sampling: bool | None = None
+    hf_hold_until_success: bool | None = None
+    hf_withdraw_after: int | None = Field(None, ge=0, le=MAX_TOTAL_STEPS)
     sil_coef: float | None = Field(None, ge=0, le=100)
     sil_updates: int | None = Field(None, ge=0, le=10_000)
     sil_value_coef: float | None = Field(None, ge=0, le=100)

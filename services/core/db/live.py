@@ -55,6 +55,8 @@ class LiveRun(Base):
     stop_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     sim_session_id: Mapped[str | None] = mapped_column(String(200))
     hf_session_id: Mapped[str | None] = mapped_column(String(64))
+    hf_method: Mapped[str | None] = mapped_column(String(32))
+    """The stage-2 method of an online run's HF session, as the learner created it."""
     eeg_classifier_id: Mapped[str | None] = mapped_column(String(64))
     recording_id: Mapped[int | None] = mapped_column(
         ForeignKey("recordings.id", ondelete="SET NULL")

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from services.learner.seeding import evaluation_reset_seeds
 
 HFTreatment = Literal["authors", "truncated_is"]
+EpisodeRecord = tuple[int, int, bool, bool, bool]
+"""A training episode: (end step, length, reached the goal, collided, followed pi_HF)."""
 
 
 @dataclass
@@ -77,6 +80,14 @@ class PPOConfig:
     hf_guide_sampling: bool = False
     """HF episodes sample from pi_HF's softened distribution instead of its argmax (the
     paper's greedy pi_HF is the default; a factor studied in docs/reproduction.md)."""
+    hf_hold_until_success: bool = False
+    """eps_HF stays at ``hf_eps_init`` until a training episode first reaches the goal; the
+    linear decay to 0 (over ``hf_t_trans_fraction`` of the budget, less the warm-up) starts
+    there. False (default): the paper's schedule, counted from step 0."""
+    hf_withdraw_after: int = 0
+    """Guidance stops for good (eps_HF = 0) once this many pi_HF episodes in a row ended
+    without reaching the goal: a pi_HF that does not find the goal hands exploration over to
+    pi_RL. 0 (default): never, the paper's schedule alone."""
     sil_coef: float = 0.0
     """Weight of the self-imitation loss on the transitions of past successful episodes
     (:mod:`services.learner.ppo.self_imitation`); 0 (default): off, plain (guided) PPO."""
@@ -107,6 +118,8 @@ class PPOConfig:
             raise ValueError("hf_t_trans_fraction must be in (0, 1]")
         if self.eval_every < 1 or not self.eval_seeds:
             raise ValueError("eval_every must be >= 1 and eval_seeds non-empty")
+        if self.hf_withdraw_after < 0:
+            raise ValueError(f"hf_withdraw_after must be >= 0, got {self.hf_withdraw_after}")
         if self.sil_coef < 0 or self.sil_value_coef < 0:
             raise ValueError("sil_coef and sil_value_coef must be >= 0")
         if self.sil_updates < 0 or self.sil_capacity < 1:
@@ -120,13 +133,55 @@ class PPOConfig:
         return cls(**data)
 
 
-def hf_epsilon(global_step: int, config: PPOConfig) -> float:
-    """eps_HF at a step: 1 in the warm-up, then linear from eps_init to 0 at t_trans."""
+def hf_epsilon(global_step: int, config: PPOConfig, first_success_step: int | None = None) -> float:
+    """eps_HF at a step: 1 in the warm-up, then linear from eps_init to 0 at t_trans (with
+    ``hf_hold_until_success``: eps_init until ``first_success_step``, the end step of the
+    first training episode that reached the goal, and the decay shifted to start there)."""
     if global_step < config.hf_warmup_steps:
         return 1.0
+    if config.hf_hold_until_success:
+        if first_success_step is None:
+            return config.hf_eps_init
+        held = max(0, min(global_step, first_success_step) - config.hf_warmup_steps)
+        global_step -= held
     t_trans = config.hf_t_trans_fraction * config.total_steps
     span = t_trans - config.hf_warmup_steps
     if span <= 0:
         return 0.0
     progress = (global_step - config.hf_warmup_steps) / span
     return max(0.0, config.hf_eps_init * (1.0 - progress))
+
+
+def first_success_step(episodes: Sequence[EpisodeRecord]) -> int | None:
+    """End step of the first training episode that reached the goal (None: none yet)."""
+    return next((end for end, _, success, _, _ in episodes if success), None)
+
+
+def guidance_withdrawn(episodes: Sequence[EpisodeRecord], config: PPOConfig) -> bool:
+    """Whether the last ``hf_withdraw_after`` pi_HF episodes all ended without reaching the
+    goal (always False when ``hf_withdraw_after`` is 0). ``episodes`` are the run's
+    ``(end step, length, success, collision, followed pi_HF)`` records, oldest first."""
+    if config.hf_withdraw_after <= 0:
+        return False
+    failed = 0
+    for _, _, success, _, is_hf in reversed(episodes):
+        if not is_hf:
+            continue
+        if success:
+            return False
+        failed += 1
+        if failed >= config.hf_withdraw_after:
+            return True
+    return False
+
+
+def episode_epsilon(
+    global_step: int, episodes: Sequence[EpisodeRecord], config: PPOConfig
+) -> float:
+    """eps_HF of an episode starting at ``global_step`` after ``episodes``: the schedule,
+    held until a first success (``hf_hold_until_success``), 0 once guidance is withdrawn
+    (``hf_withdraw_after``)."""
+    if guidance_withdrawn(episodes, config):
+        return 0.0
+    held_until = first_success_step(episodes) if config.hf_hold_until_success else None
+    return hf_epsilon(global_step, config, held_until)

@@ -166,7 +166,7 @@ def train(
             metrics.update(
                 update_metrics(
                     config, state.global_step, rollout, returns, episode_returns, guided,
-                    optimizer.lr,
+                    optimizer.lr, state.episodes,
                 )
             )  # fmt: skip
             metrics["charts/SPS"] = config.n_steps / max(time.perf_counter() - rollout_start, 1e-9)

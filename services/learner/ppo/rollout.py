@@ -18,7 +18,7 @@ import torch
 from services.learner.checkpoint import RunState
 from services.learner.feedback import HFPolicy
 from services.learner.ppo.agent import ActorCritic
-from services.learner.ppo.config import PPOConfig, hf_epsilon
+from services.learner.ppo.config import PPOConfig, episode_epsilon
 from services.learner.seeding import TrainingResets
 
 
@@ -68,12 +68,14 @@ def begin_episode(
     guided: bool,
 ) -> np.ndarray:
     """Reset ``env`` with the next training reset seed and draw whether the new episode
-    follows pi_HF (with probability eps_HF; never if not ``guided``); its first observation."""
+    follows pi_HF (with probability eps_HF; never if not ``guided`` or once guidance is
+    withdrawn); its first observation."""
     state.episode_seed = resets.next()
     state.episode_actions = []
     state.episode_return = 0.0
     obs, _ = env.reset(seed=state.episode_seed)
-    state.episode_is_hf = guided and rng.random() < hf_epsilon(state.global_step, config)
+    eps_hf = episode_epsilon(state.global_step, state.episodes, config)
+    state.episode_is_hf = guided and rng.random() < eps_hf
     return obs
 
 

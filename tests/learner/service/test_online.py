@@ -77,7 +77,7 @@ def _online(make_client, data_dir, restart_after: set[int], method: str) -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", [RECOMMENDED_METHOD, "categorical_kernel"])
+@pytest.mark.parametrize("method", [RECOMMENDED_METHOD, "categorical"])
 def test_online_session_equals_offline_collection_across_restarts(make_client, tmp_path, method):
     with closing(_env()) as env:
         offline = learn_hf_policy(env, ACCURACY, SEED, N_LABELS, method=method)

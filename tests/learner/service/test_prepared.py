@@ -60,7 +60,6 @@ def _session_dir(data_dir: Path, sid: str) -> Path:
 
 @pytest.mark.parametrize("method", [RECOMMENDED_METHOD, "paper"])
 def test_a_prepared_label_leaves_the_session_the_unprepared_one_does(make_client, tmp_path, method):
-    assert RECOMMENDED_METHOD == "categorical"
     plain_dir, prepared_dir = tmp_path / "plain", tmp_path / "prepared"
     with (
         make_client(data_dir=plain_dir, checkpoint_every=5) as plain,

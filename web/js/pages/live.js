@@ -4,6 +4,7 @@
 import { all, get, post } from "../api.js";
 import { field, fmtNumber, h, messageBox, statusBadge } from "../dom.js";
 import { followEvents, followFrames, whenStarted } from "../frames.js";
+import { HF_METHODS } from "./jobform.js";
 
 const ACTIONS = ["forward", "turn left", "turn right"];
 const label = (correct) => (correct === null || correct === undefined ? "–" : correct ? "correct" : "error");
@@ -24,6 +25,8 @@ function startForm(session, classifiers, message, onStarted) {
       `${c.name} (#${c.id}, balanced accuracy ${fmtNumber(c.metrics.balanced_accuracy)})`)));
   const actions = h("input", { type: "number", min: 1, max: 100000, name: "n_actions" });
   const budget = h("input", { type: "number", min: 1, max: 100000, name: "label_budget", value: 1000 });
+  const hfMethod = h("select", { name: "hf_method" }, h("option", { value: "" }, "Recommended (default)"),
+    HF_METHODS.map(([v, l]) => h("option", { value: v }, l)));
   const accelerated = h("input", { type: "checkbox", name: "accelerated", checked: true });
   const needsClassifier = session.kind !== "calibration";
   const submit = h("button", { type: "submit", class: "btn primary" }, "Start");
@@ -33,6 +36,9 @@ function startForm(session, classifiers, message, onStarted) {
       : null,
     n_actions: field("Actions", actions, `empty: ${DEFAULT_ACTIONS[session.kind]}`),
     label_budget: session.kind === "online" ? field("Label budget", budget) : null,
+    hf_method: session.kind === "online"
+      ? field("Stage-2 method", hfMethod, "How pi_HF is learned from the labels (docs/stage2.md).")
+      : null,
   };
   submit.disabled = needsClassifier && !classifiers.length;
   const form = h(
@@ -50,6 +56,7 @@ function startForm(session, classifiers, message, onStarted) {
     if (actions.value) body.n_actions = Number(actions.value);
     if (needsClassifier) body.classifier_id = Number(classifier.value);
     if (session.kind === "online") body.label_budget = Number(budget.value);
+    if (session.kind === "online" && hfMethod.value) body.hf_method = hfMethod.value;
     try {
       await post(`/api/v1/sessions/${session.id}/start`, body);
       onStarted();
