@@ -26,7 +26,7 @@ from services.learner.ppo import (
     ppo_loss,
     train,
 )
-from services.learner.ppo.config import episode_epsilon, guidance_withdrawn
+from services.learner.ppo.config import episode_epsilon, guidance_withdrawn, prior_weight
 from tests.learner.conftest import ToyGridEnv
 
 
@@ -83,6 +83,47 @@ def test_ppo_loss_on_a_tiny_batch() -> None:
     weights = torch.tensor([0.5, 0.0])
     _, stats = ppo_loss(agent, obs, actions, logp, adv, returns, weights, config)
     assert math.isclose(stats["losses/policy_loss"], -0.25, abs_tol=1e-6)
+
+
+def test_hf_prior_adds_its_weighted_cross_entropy_and_pulls_pi_rl_towards_pi_hf() -> None:
+    space = gym.spaces.Box(low=-np.ones(2, np.float32), high=np.ones(2, np.float32))
+    torch.manual_seed(0)
+    agent = ActorCritic(ObsNormalizer.from_space(space), 3, (8,))
+    config = PPOConfig(norm_adv=False)
+    obs = torch.tensor([[0.1, -0.2], [0.3, 0.4]])
+    actions = torch.tensor([0, 2])
+    with torch.no_grad():
+        logits, values = agent(obs)
+        log_pi = torch.log_softmax(logits, -1)
+    batch = (obs, actions, log_pi.gather(-1, actions[:, None]).squeeze(-1),
+             torch.tensor([1.0, -2.0]), values + 1.0, None, config)  # fmt: skip
+    prior = torch.tensor([[0.0, 1.0, 0.0], [0.2, 0.3, 0.5]])
+    plain, _ = ppo_loss(agent, *batch)
+    unweighted, _ = ppo_loss(agent, *batch, prior, 0.0)
+    assert float(unweighted) == float(plain)
+    weighted, stats = ppo_loss(agent, *batch, prior, 0.25)
+    cross_entropy = float(-(prior * log_pi).sum(-1).mean())
+    assert stats["losses/hf_prior_cross_entropy"] == pytest.approx(cross_entropy, rel=1e-6)
+    assert float(weighted) == pytest.approx(float(plain) + 0.25 * cross_entropy, rel=1e-6)
+    # with only the prior term, gradient steps move pi_RL to pi_HF's distribution
+    optimizer = torch.optim.Adam(agent.parameters(), lr=0.05)
+    for _ in range(300):
+        logits, _ = agent(obs)
+        loss = -(prior * torch.log_softmax(logits, -1)).sum(-1).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert torch.allclose(torch.softmax(agent(obs)[0], -1), prior, atol=0.05)
+
+
+def test_prior_weight_fades_with_the_guidance() -> None:
+    config = PPOConfig(total_steps=40_000, hf_prior_coef=0.5)
+    assert prior_weight(0, [], config) == pytest.approx(0.5)
+    assert prior_weight(10_000, [], config) == pytest.approx(0.25)
+    assert prior_weight(20_000, [], config) == 0.0
+    assert prior_weight(0, [], PPOConfig()) == 0.0
+    with pytest.raises(ValueError, match="hf_prior_coef"):
+        PPOConfig(hf_prior_coef=-1.0)
 
 
 def test_eps_hf_schedule() -> None:
@@ -157,13 +198,20 @@ class _StopAfterUpdates(Callback):
         return self.updates < self.n
 
 
-def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path) -> None:
+@pytest.mark.parametrize(
+    "guidance",
+    [{}, {"hf_prior_coef": 0.5}, {"hf_hold_until_success": True, "hf_withdraw_after": 5}],
+    ids=["paper", "prior", "held"],
+)
+def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path, guidance) -> None:
     env = gym.make(toy_env_id)
     hf = collect_feedback(
         env, OracleFeedbackSource(0.9, seed=0), 150, config=FeedbackConfig(replay_updates=2)
     )
-    config = _toy_config(toy_env_id, hf_treatment="truncated_is")
+    config = _toy_config(toy_env_id, hf_treatment="truncated_is", **guidance)
     full = train(config, hf_policy=hf.policy)
+    with_prior = ["losses/hf_prior_cross_entropy" in m for m in full.metrics]
+    assert with_prior[0] == ("hf_prior_coef" in guidance) and not with_prior[-1]  # it fades
     checkpoint = tmp_path / "run.pt"
     stopped = train(config, _StopAfterUpdates(3), hf_policy=hf.policy, checkpoint_path=checkpoint)
     assert stopped.stopped_early and stopped.global_step == 3 * config.n_steps

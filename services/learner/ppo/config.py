@@ -80,6 +80,11 @@ class PPOConfig:
     hf_guide_sampling: bool = False
     """HF episodes sample from pi_HF's softened distribution instead of its argmax (the
     paper's greedy pi_HF is the default; a factor studied in docs/reproduction.md)."""
+    hf_prior_coef: float = 0.0
+    """Weight of pi_HF as a prior on pi_RL (kickstarting, Schmitt et al. 2018): the
+    cross-entropy from pi_HF's softened distribution to pi_RL on every rollout state, HF and
+    RL steps alike, scaled by eps_HF / ``hf_eps_init`` so that it fades with the guidance.
+    0 (default): off."""
     hf_hold_until_success: bool = False
     """eps_HF stays at ``hf_eps_init`` until a training episode first reaches the goal; the
     linear decay to 0 (over ``hf_t_trans_fraction`` of the budget, less the warm-up) starts
@@ -118,6 +123,8 @@ class PPOConfig:
             raise ValueError("hf_t_trans_fraction must be in (0, 1]")
         if self.eval_every < 1 or not self.eval_seeds:
             raise ValueError("eval_every must be >= 1 and eval_seeds non-empty")
+        if self.hf_prior_coef < 0:
+            raise ValueError(f"hf_prior_coef must be >= 0, got {self.hf_prior_coef}")
         if self.hf_withdraw_after < 0:
             raise ValueError(f"hf_withdraw_after must be >= 0, got {self.hf_withdraw_after}")
         if self.sil_coef < 0 or self.sil_value_coef < 0:
@@ -185,3 +192,11 @@ def episode_epsilon(
         return 0.0
     held_until = first_success_step(episodes) if config.hf_hold_until_success else None
     return hf_epsilon(global_step, config, held_until)
+
+
+def prior_weight(global_step: int, episodes: Sequence[EpisodeRecord], config: PPOConfig) -> float:
+    """Weight of pi_HF's prior term at an update (``hf_prior_coef`` faded like eps_HF)."""
+    if config.hf_prior_coef == 0.0 or config.hf_eps_init == 0.0:
+        return 0.0
+    eps = episode_epsilon(global_step, episodes, config)
+    return config.hf_prior_coef * eps / config.hf_eps_init

@@ -20,7 +20,7 @@ from services.learner.networks import ObsNormalizer
 from services.learner.optimizer import FlatAdam
 from services.learner.ppo.advantages import advantages_and_returns
 from services.learner.ppo.agent import ActorCritic
-from services.learner.ppo.config import PPOConfig
+from services.learner.ppo.config import PPOConfig, prior_weight
 from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
 from services.learner.ppo.self_imitation import (
     SuccessReplay,
@@ -149,9 +149,16 @@ def train(
 
             # ---- 3. n_epochs of minibatch updates --------------------------------------------
             update_start = time.perf_counter()
+            hf_prior_weight = prior_weight(state.global_step, state.episodes, config)
+            prior = (  # pi_HF as a prior on pi_RL (hf_prior_coef), while guidance lasts
+                hf_policy.sampling_probs(rollout.obs)
+                if hf_policy is not None and hf_prior_weight > 0.0
+                else None
+            )
             metrics = update_policy(
                 agent, optimizer, rollout, advantages, returns, weights,
                 config=config, rng=rng, n_updates_done=state.n_updates,
+                prior=prior, prior_weight=hf_prior_weight,
             )  # fmt: skip
             if success_replay is not None:  # self-imitation of the successful episodes
                 for seed, actions in successes:

@@ -27,6 +27,8 @@ def ppo_loss(
     returns: torch.Tensor,
     weights: torch.Tensor | None,
     config: PPOConfig,
+    prior: torch.Tensor | None = None,
+    prior_weight: float = 0.0,
     *,
     with_stats: bool = True,
 ) -> tuple[torch.Tensor, dict[str, float]]:
@@ -34,7 +36,9 @@ def ppo_loss(
 
     ``advantages`` are used as given (:func:`update_policy` normalises them per minibatch
     if ``config.norm_adv``). ``weights`` multiplies each step's surrogate (the truncated
-    importance weight rho for off-policy HF steps; None means 1, on-policy). Returns the loss
+    importance weight rho for off-policy HF steps; None means 1, on-policy). ``prior``
+    (pi_HF's action distribution per state) adds ``prior_weight`` times its cross-entropy to
+    pi_RL (``hf_prior_coef``). Returns the loss
     and CleanRL-named statistics (empty unless ``with_stats``: computing them costs about a
     tenth of an update step).
     """
@@ -56,6 +60,10 @@ def ppo_loss(
     pg_loss = (surrogate if weights is None else weights * surrogate).mean()
     v_loss = 0.5 * ((value - returns) ** 2).mean()
     loss = pg_loss - config.ent_coef * entropy + config.vf_coef * v_loss
+    prior_loss = None
+    if prior is not None:
+        prior_loss = -(prior * log_probs).sum(-1).mean()
+        loss = loss + prior_weight * prior_loss
     if not with_stats:
         return loss, {}
     with torch.no_grad():
@@ -66,6 +74,8 @@ def ppo_loss(
             "losses/approx_kl": float(((ratio - 1) - log_ratio).mean()),
             "losses/clipfrac": float(((ratio - 1.0).abs() > config.clip_coef).float().mean()),
         }
+        if prior_loss is not None:
+            stats["losses/hf_prior_cross_entropy"] = float(prior_loss)
     return loss, stats
 
 
@@ -80,10 +90,14 @@ def update_policy(
     config: PPOConfig,
     rng: np.random.Generator,
     n_updates_done: int,
+    prior: np.ndarray | None = None,
+    prior_weight: float = 0.0,
 ) -> dict[str, float]:
     """``config.n_epochs`` passes of minibatch steps over ``rollout``; ``weights`` (rho)
-    multiply each step's surrogate, None meaning 1. The learning rate is annealed from
-    ``n_updates_done`` (the updates before this one) if ``config.anneal_lr``.
+    multiply each step's surrogate, None meaning 1; ``prior`` (pi_HF's action distribution
+    at each rollout state) adds ``prior_weight`` times its cross-entropy to pi_RL. The
+    learning rate is annealed from ``n_updates_done`` (the updates before this one) if
+    ``config.anneal_lr``.
 
     Returns the loss statistics averaged over the last epoch begun and
     ``losses/update_epochs``, the epochs done (fewer where ``target_kl`` stopped them).
@@ -104,6 +118,9 @@ def update_policy(
         torch.from_numpy(weights.astype(np.float32))[index]
         if weights is not None
         else [None] * len(index),  # all weights 1: skip the multiplication
+        torch.from_numpy(prior.astype(np.float32))[index]
+        if prior is not None
+        else [None] * len(index),
         strict=True,
     )
     if config.anneal_lr:  # linear to 0 over the run, from the update count
@@ -117,7 +134,10 @@ def update_policy(
         last_epoch = i >= len(index) - n_minibatches
         if i % n_minibatches == 0:
             stats_sum, n_in_epoch = {}, 0
-        loss, stats = ppo_loss(agent, *minibatch, config, with_stats=last_epoch or early_stop)
+        *arguments, mb_prior = minibatch
+        loss, stats = ppo_loss(
+            agent, *arguments, config, mb_prior, prior_weight, with_stats=last_epoch or early_stop
+        )
         for key, val in stats.items():
             stats_sum[key] = stats_sum.get(key, 0.0) + val
         n_in_epoch += 1
