@@ -40,6 +40,12 @@ class RunState:
     episode_actions: list[int] = field(default_factory=list)
     """Actions taken so far in the episode in progress (replayed on resume)."""
     episode_is_hf: bool = False
+    episode_handed_over: bool = False
+    """The pi_HF episode in progress revisited an observation and follows pi_RL since
+    (``hf_handover_on_revisit``)."""
+    episode_seen: set[bytes] = field(default_factory=set)
+    """Observations where the pi_HF episode in progress chose an action
+    (``hf_handover_on_revisit``)."""
     episode_return: float = 0.0
     episodes: list[tuple[int, int, bool, bool, bool]] = field(default_factory=list)
     """Per finished episode: (env step at its end, length, success, collision, followed pi_HF)."""

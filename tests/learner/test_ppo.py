@@ -200,7 +200,11 @@ class _StopAfterUpdates(Callback):
 
 @pytest.mark.parametrize(
     "guidance",
-    [{}, {"hf_prior_coef": 0.5}, {"hf_hold_until_success": True, "hf_withdraw_after": 5}],
+    [
+        {},
+        {"hf_prior_coef": 0.5},
+        {"hf_hold_until_success": True, "hf_withdraw_after": 5, "hf_handover_on_revisit": True},
+    ],
     ids=["paper", "prior", "held"],
 )
 def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path, guidance) -> None:
@@ -252,6 +256,33 @@ def test_guided_training_uses_the_hf_policy_then_stops(toy_env_id, sampling) -> 
     assert fractions[0] == 1.0  # warm-up: only pi_HF
     assert fractions[-1] == 0.0  # after t_trans: only pi_RL
     assert result.n_hf_episodes > 0
+
+
+class _Spinner:
+    """A pi_HF that only ever turns left: it comes back to its first observation in 4 steps."""
+
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> int:
+        return 1
+
+    def sampling_probs(self, obs: np.ndarray) -> np.ndarray:
+        return np.array([0.0, 1.0, 0.0])
+
+
+@pytest.mark.parametrize("handover", [False, True])
+def test_a_looping_pi_hf_hands_its_episode_over_to_pi_rl(toy_env_id, handover) -> None:
+    config = _toy_config(
+        toy_env_id, total_steps=256, n_steps=128, minibatch_size=64, hf_warmup_steps=256,
+        hf_treatment="truncated_is", hf_handover_on_revisit=handover,
+    )  # fmt: skip
+    result = train(config, hf_policy=_Spinner())  # type: ignore[arg-type]
+    fractions = [m["charts/hf_step_fraction"] for m in result.metrics]
+    assert result.n_hf_episodes == result.n_episodes > 0  # every episode began with pi_HF
+    if handover:  # 4 turns, then pi_RL until the episode ends (30 steps at most)
+        assert all(0 < f <= 4 * (result.n_episodes + 2) / 256 for f in fractions)
+        assert all(length > 4 for _, length, *_ in result.episodes)
+    else:  # spinning until the time limit
+        assert fractions == [1.0, 1.0]
+        assert all(length == 30 for _, length, *_ in result.episodes)
 
 
 def test_torchscript_export_loads_without_the_project(toy_env_id, tmp_path) -> None:

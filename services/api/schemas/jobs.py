@@ -72,6 +72,7 @@ class PPOOverrides(StrictRequest):
     is_clip: float | None = Field(None, gt=0, le=100)
     hf_guide_sampling: bool | None = None
     hf_prior_coef: float | None = Field(None, ge=0, le=100)
+    hf_handover_on_revisit: bool | None = None
     hf_hold_until_success: bool | None = None
     hf_withdraw_after: int | None = Field(None, ge=0, le=MAX_TOTAL_STEPS)
     sil_coef: float | None = Field(None, ge=0, le=100)

@@ -85,6 +85,10 @@ class PPOConfig:
     cross-entropy from pi_HF's softened distribution to pi_RL on every rollout state, HF and
     RL steps alike, scaled by eps_HF / ``hf_eps_init`` so that it fades with the guidance.
     0 (default): off."""
+    hf_handover_on_revisit: bool = False
+    """A pi_HF episode that comes back to an observation it has already acted at (pi_HF is
+    going round in a loop) follows pi_RL for the rest of the episode. False (default):
+    pi_HF to the end."""
     hf_hold_until_success: bool = False
     """eps_HF stays at ``hf_eps_init`` until a training episode first reaches the goal; the
     linear decay to 0 (over ``hf_t_trans_fraction`` of the budget, less the warm-up) starts

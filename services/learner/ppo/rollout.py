@@ -73,6 +73,8 @@ def begin_episode(
     state.episode_seed = resets.next()
     state.episode_actions = []
     state.episode_return = 0.0
+    state.episode_handed_over = False
+    state.episode_seen = set()
     obs, _ = env.reset(seed=state.episode_seed)
     eps_hf = episode_epsilon(state.global_step, state.episodes, config)
     state.episode_is_hf = guided and rng.random() < eps_hf
@@ -108,7 +110,14 @@ def collect_rollout(
         with torch.inference_mode():
             logits, value = agent(torch.as_tensor(obs))
             log_probs = torch.log_softmax(logits, dim=-1).numpy()
-        if not state.episode_is_hf:
+        follows_hf = state.episode_is_hf and not state.episode_handed_over
+        if follows_hf and config.hf_handover_on_revisit:
+            seen = np.asarray(obs, dtype=np.float32).tobytes()
+            if seen in state.episode_seen:  # pi_HF is in a loop: pi_RL takes over
+                state.episode_handed_over, follows_hf = True, False
+            else:
+                state.episode_seen.add(seen)
+        if not follows_hf:
             action = sample_categorical(np.exp(log_probs.astype(np.float64)), rng)
             mu_logp = float(log_probs[action])
         elif config.hf_guide_sampling:
@@ -128,7 +137,7 @@ def collect_rollout(
         rollout.actions[t] = action
         rollout.pi_logp[t] = log_probs[action]
         rollout.mu_logp[t] = mu_logp
-        rollout.is_hf[t] = state.episode_is_hf
+        rollout.is_hf[t] = follows_hf
         rollout.rewards[t] = reward
         rollout.values[t] = float(value)
         rollout.ends[t] = float(terminated or truncated)
