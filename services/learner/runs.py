@@ -22,6 +22,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch
 
 from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
 from services.learner.feedback import (
@@ -269,13 +270,18 @@ def run_one(
 
 
 def software_environment() -> dict[str, str]:
-    """Versions of Python and of the packages a run's numbers depend on, and the machine
-    architecture.
+    """Versions of Python and of the packages a run's numbers depend on, the machine
+    architecture and the vector instructions torch's CPU kernels use (``cpu_capability``,
+    e.g. AVX2 or AVX512: kernels of different widths round differently).
 
     Float results (and so, through sampling, whole trajectories) change with these, so a
     record can only be repeated bit for bit where they match.
     """
-    versions = {"python": platform.python_version(), "machine": platform.machine()}
+    versions = {
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+    }
     for package in ("torch", "numpy", "gymnasium", "pybullet"):
         try:
             versions[package] = importlib.metadata.version(package)

@@ -36,7 +36,7 @@ def test_run_one_hf_sparse_on_the_real_env() -> None:
     # what a bit-for-bit repeat needs: the versions the numbers depend on
     assert record.environment is not None
     assert record.environment["torch"] == torch.__version__
-    assert {"python", "numpy", "gymnasium", "pybullet"} <= set(record.environment)
+    assert {"python", "numpy", "gymnasium", "pybullet", "cpu_capability"} <= set(record.environment)
 
 
 def test_hf_policy_run_measures_stage_two_alone() -> None:
