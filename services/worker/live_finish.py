@@ -234,7 +234,7 @@ def finish_test(runner: LiveRunner) -> dict[str, Any]:
 def finish_online(runner: LiveRunner) -> dict[str, Any]:
     """Export pi_HF into the artifact store and register it as an HF model."""
     exported = runner.services["learner"].call(
-        "POST", f"/hf-sessions/{runner.hf_session_id}/export", json={}
+        "POST", f"/hf-sessions/{runner.learner.hf_session_id}/export", json={}
     )
     decoding = decoding_accuracy(_decisions(runner))
     with runner.runtime.sessions() as db:

@@ -21,6 +21,9 @@ the finish, which completes what the last attempt left undone (``live_finish``).
 that restarts is waited for (backoff) and re-attached: a sim session that is gone is opened
 again (new episode), the HF session is found again (its state is on the learner's disk),
 the EEG source re-connects.
+
+The learner's side (the HF session, the labels, pi_HF's actions) is ``live_learner``'s
+:class:`~services.worker.live_learner.LearnerLink`; the end of a run is ``live_finish``.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from pydantic import ValidationError
 from sqlalchemy import func, select
 
 from services.core.db.base import utcnow
-from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion, LiveRun
+from services.core.db.live import LiveDecision, LiveMarker, LiveRun
 from services.core.db.models import FeedbackLabel, LabSession
 from services.core.live import DEFAULT_ACTIONS, ONLINE_ACTIONS_PER_LABEL, LiveOptions
 from services.core.markers import ActionMarker
@@ -48,6 +51,7 @@ from services.worker.live_finish import (
     finish_test,
     stored_calibration_recording,
 )
+from services.worker.live_learner import LearnerLink
 from services.worker.live_services import LiveSettings, ServiceCallError, clients
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome
 
@@ -87,7 +91,14 @@ class LiveRunner:
             self.run_id, self.session_id, self.mode = run.id, run.session_id, run.mode
             self.subject_id = lab.subject_id
             self.sim_session_id = run.sim_session_id
-            self.hf_session_id = run.hf_session_id
+            self.learner = LearnerLink(
+                self.services["learner"],
+                self.runtime,
+                run_id=run.id,
+                session_id=run.session_id,
+                options=options,
+                hf_session_id=run.hf_session_id,
+            )
             self.done = db.scalar(select(func.count()).where(LiveMarker.run_id == run_id)) or 0
             if self.done:
                 run.resumes += 1
@@ -101,13 +112,10 @@ class LiveRunner:
         )
         self.observation: list[float] = []
         self.episode_over = False
-        self.next_action: tuple[int, int] | None = None
         self.decoder: EegDecoder | None = None
         self.stored_recording: dict[str, Any] | None = None
         """The EEG service's stored live recording of a calibration (``RecordingPublic``)."""
         self.last_progress = 0.0
-        self.prepared_labels = 0
-        """Labels of this attempt whose Fhat update the learner had prepared."""
 
     # ----------------------------------------------------------------- helpers
     def _set_run(self, **values: Any) -> None:
@@ -152,23 +160,6 @@ class LiveRunner:
         self.observation = list(created["observation"])
         self.episode_over = False
         self._set_run(sim_session_id=self.sim_session_id)
-
-    def attach_learner(self) -> None:
-        learner = self.services["learner"]
-        if self.hf_session_id is not None:
-            learner.call("GET", f"/hf-sessions/{self.hf_session_id}")
-            return
-        body = {
-            "task": self.options.task,
-            "map": self.options.map,
-            "seed": self.options.seed,
-            "label_budget": self.options.label_budget,
-        }
-        if self.options.hf_method is not None:
-            body["method"] = self.options.hf_method
-        created = learner.call("POST", "/hf-sessions", json=body)
-        self.hf_session_id = created["id"]
-        self._set_run(hf_session_id=self.hf_session_id, hf_method=created["method"])
 
     @property
     def recording_name(self) -> str:
@@ -253,22 +244,16 @@ class LiveRunner:
             feedback = {"status": decision.status, "feedback": decision.feedback,
                         "p_error": decision.p_error}  # fmt: skip
         if self.mode == "online" and decision.status == "ok" and labelled is None:
-            self.send_label(step, *marker_row, feedback)
+            self.learner.send_label(step, *marker_row, feedback)
 
     # -------------------------------------------------------------------- loop
     def choose_action(self, step: int) -> tuple[int, int | None]:
         if self.mode != "online":
             rng = np.random.default_rng([self.options.seed, step])
             return int(rng.integers(3)), None
-        if self.next_action is None:
-            self.next_action = self.act()
-        return self.next_action
-
-    def act(self) -> tuple[int, int]:
-        answer = self.services["learner"].call(
-            "POST", f"/hf-sessions/{self.hf_session_id}/act", json={"observation": self.observation}
-        )
-        return int(answer["action"]), int(answer["model_version"])
+        if self.learner.next_action is None:
+            self.learner.next_action = self.learner.act(self.observation)
+        return self.learner.next_action
 
     def execute(self, action: int) -> dict[str, Any]:
         """The sim executes ``action``; a sim session lost to a restart is re-opened once."""
@@ -285,93 +270,6 @@ class LiveRunner:
             "POST", f"/sessions/{self.sim_session_id}/step", json={"action": action}
         )
 
-    def send_label(
-        self,
-        step: int,
-        observation: list[float],
-        action: int,
-        oracle_correct: bool | None,
-        decision: dict[str, Any],
-        next_observation: list[float] | None = None,
-    ) -> bool:
-        """Label one accepted decision; returns False once the learner's budget is full.
-
-        With ``next_observation`` the learner's answer carries pi_HF's next action (one
-        round trip for the update and the action); it is kept in :attr:`next_action`.
-        """
-        body: dict[str, Any] = {
-            "marker_id": f"run{self.run_id}:{step}",
-            "observation": observation,
-            "action": action,
-            "feedback": decision["feedback"],
-            "p_error": decision["p_error"],
-            "oracle_correct": oracle_correct,
-        }
-        if next_observation is not None:
-            body["next_observation"] = next_observation
-        try:
-            answer = self.services["learner"].call(
-                "POST", f"/hf-sessions/{self.hf_session_id}/labels", json=body
-            )
-        except ServiceCallError as exc:
-            if exc.status_code == 409:
-                return False
-            raise
-        updated = local_clock()
-        self.prepared_labels += bool(answer.get("prepared"))
-        next_ready = None
-        if answer.get("next_action") is not None:
-            self.next_action = (int(answer["next_action"]), int(answer["model_version"]))
-            next_ready = updated
-        with self.runtime.sessions() as db:
-            db.add(
-                FeedbackLabel(
-                    session_id=self.session_id,
-                    step=step,
-                    state=observation,
-                    action=action,
-                    decoded_error=decision["feedback"] == "error",
-                    p_error=decision["p_error"],
-                    oracle_error=None if oracle_correct is None else not oracle_correct,
-                    decoded_at=utcnow(),
-                )
-            )
-            db.add(
-                LiveModelVersion(
-                    run_id=self.run_id,
-                    session_id=self.session_id,
-                    step=step,
-                    labels=int(answer["labels"]),
-                    model_version=int(answer["model_version"]),
-                    metrics=answer.get("metrics") or {},
-                    updated_ts=updated,
-                    next_ready_ts=next_ready,
-                )
-            )
-            db.commit()
-        return not answer.get("done", False)
-
-    def prepare_label(
-        self, step: int, observation: list[float], action: int, oracle_correct: bool | None
-    ) -> None:
-        """Have the learner compute this step's label for both feedback values while its
-        epoch is recorded (``POST /labels/prepare``), so that the label's answer, and pi_HF's
-        next action in it, need no Fhat update. Best effort: one attempt, and a failure is
-        logged only (the label then takes the ordinary path)."""
-        body = {
-            "marker_id": f"run{self.run_id}:{step}",
-            "observation": observation,
-            "action": action,
-            "oracle_correct": oracle_correct,
-            "next_observation": self.observation,
-        }
-        try:
-            self.services["learner"].call_once(
-                "POST", f"/hf-sessions/{self.hf_session_id}/labels/prepare", json=body
-            )
-        except Exception as exc:  # an optimisation must not stop the session
-            logger.warning("run %d step %d: label not prepared (%s)", self.run_id, step, exc)
-
     def total_actions(self) -> int:
         if self.options.n_actions is not None:
             return self.options.n_actions
@@ -386,8 +284,8 @@ class LiveRunner:
         service (the decision), one commit (its row, before the label is sent, so a crash
         cannot lose a label the learner has) and one call to the learner (the label's
         answer carries the next action); the sim's episode reset and, online, the label's
-        Fhat update for both feedback values (:meth:`prepare_label`) happen while the epoch
-        is still being recorded.
+        Fhat update for both feedback values (:meth:`LearnerLink.prepare_label`) happen
+        while the epoch is still being recorded.
         """
         action, version = self.choose_action(step)
         obs_before = list(self.observation)
@@ -421,7 +319,7 @@ class LiveRunner:
                 )
             )
             db.commit()
-        self.next_action = None
+        self.learner.next_action = None
         self.observation = list(out["observation"])
         if out["terminated"] or out["truncated"]:
             reset = self.services["sim"].call("POST", f"/sessions/{self.sim_session_id}/reset")
@@ -429,7 +327,7 @@ class LiveRunner:
         self.episode_over = False
         more = True
         if self.mode == "online" and self.decoder is not None:
-            self.prepare_label(step, obs_before, action, marker.correct)
+            self.learner.prepare_label(step, obs_before, action, marker.correct, self.observation)
         if self.decoder is not None:
             decision, epoch_end, decided = self.decoder.decide(
                 marker.model_copy(update={"timestamp": eeg_ts})
@@ -454,11 +352,11 @@ class LiveRunner:
                 )
                 db.commit()
             if self.mode == "online" and decision["status"] == "ok":
-                more = self.send_label(
+                more = self.learner.send_label(
                     step, obs_before, action, marker.correct, decision, self.observation
                 )
-        if self.mode == "online" and more and self.next_action is None:
-            self.next_action = self.act()
+        if self.mode == "online" and more and self.learner.next_action is None:
+            self.learner.next_action = self.learner.act(self.observation)
         return more
 
     def run(self) -> JobOutcome:
@@ -472,7 +370,7 @@ class LiveRunner:
         try:
             self.attach_sim()
             if self.mode == "online":
-                self.attach_learner()
+                self.learner.attach()
             self.attach_eeg()
             self.recover_in_flight()
             if self.episode_over:
@@ -523,7 +421,7 @@ class LiveRunner:
             result = finish_test(self)
         else:
             result = finish_online(self)
-            result["prepared_labels"] = self.prepared_labels
+            result["prepared_labels"] = self.learner.prepared_labels
         result["stopped_on_command"] = stopped
         status = "stopped" if stopped else "completed"
         self._set_run(status=status, result=result, finished_at=utcnow())
