@@ -283,6 +283,7 @@ def demo(
     """Calibration -> classifier -> online session -> guided PPO, with the virtual subject."""
     from services.core.db.models import Subject
     from services.core.logging import configure_logging
+    from services.learner.specs import apply_preset
     from services.worker.calibration import eeg_calibration
     from services.worker.live_session import live_session
     from services.worker.training import guided_ppo
@@ -334,12 +335,11 @@ def demo(
 
         t = time.perf_counter()
         typer.echo(f"guided PPO from HF model {online['hf_model_id']}: {total_steps} steps")
-        job_id = _job(
-            runtime,
-            "guided_ppo",
-            {"task": "sssg", "hf_model_id": online["hf_model_id"], "seed": seed,
-             "total_steps": total_steps},
-        )  # fmt: skip
+        treatments, ppo, _ = apply_preset("platform", ["authors"], {})
+        guided = {"task": "sssg", "method": "hf_sparse", "hf_model_id": online["hf_model_id"],
+                  "seed": seed, "total_steps": total_steps, "hf_treatment": treatments[0],
+                  "ppo": ppo}  # fmt: skip
+        job_id = _job(runtime, "guided_ppo", guided)
         trained_rl = _run(runtime, job_id, guided_ppo)
         stages["guided_ppo_s"] = time.perf_counter() - t
 
@@ -355,7 +355,9 @@ def demo(
             "rejected_epochs": online["decoding_rejected"],
             "hf_policy_spl": online["hf_policy_spl"],
             "final_spl": trained_rl["final_spl"],
+            "best_spl": trained_rl.get("best_spl"),
             "steps": total_steps,
+            "guided_ppo_settings": {"hf_treatment": treatments[0], **ppo},
             "latency_ms": run_latencies(runtime, run_id),
             "wall_seconds": {**stages, "total_s": time.perf_counter() - started},
             "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]},
@@ -369,7 +371,7 @@ def demo(
             online["hf_policy_spl"],
             _accuracy_trace(runtime, run_id),
         )
-        typer.echo(json.dumps({k: summary[k] for k in list(summary)[:12]}, indent=2))
+        typer.echo(json.dumps({k: summary[k] for k in list(summary)[:14]}, indent=2))
         typer.echo(f"wrote {out / 'summary.json'} and {out / 'demo.png'}")
     finally:
         deadline = time.monotonic() + 10
