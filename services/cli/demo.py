@@ -283,7 +283,6 @@ def demo(
     """Calibration -> classifier -> online session -> guided PPO, with the virtual subject."""
     from services.core.db.models import Subject
     from services.core.logging import configure_logging
-    from services.learner.specs import apply_preset
     from services.worker.calibration import eeg_calibration
     from services.worker.live_session import live_session
     from services.worker.training import guided_ppo
@@ -335,10 +334,8 @@ def demo(
 
         t = time.perf_counter()
         typer.echo(f"guided PPO from HF model {online['hf_model_id']}: {total_steps} steps")
-        treatments, ppo, _ = apply_preset("platform", ["authors"], {})
         guided = {"task": "sssg", "method": "hf_sparse", "hf_model_id": online["hf_model_id"],
-                  "seed": seed, "total_steps": total_steps, "hf_treatment": treatments[0],
-                  "ppo": ppo}  # fmt: skip
+                  "seed": seed, "total_steps": total_steps, "preset": "platform"}  # fmt: skip
         job_id = _job(runtime, "guided_ppo", guided)
         trained_rl = _run(runtime, job_id, guided_ppo)
         stages["guided_ppo_s"] = time.perf_counter() - t
@@ -357,7 +354,15 @@ def demo(
             "final_spl": trained_rl["final_spl"],
             "best_spl": trained_rl.get("best_spl"),
             "steps": total_steps,
-            "guided_ppo_settings": {"hf_treatment": treatments[0], **ppo},
+            "guided_ppo_settings": {
+                "preset": "platform",
+                "hf_treatment": trained_rl["spec"]["hf_treatment"],
+                **{
+                    key: value
+                    for key, value in trained_rl["spec"]["ppo_overrides"].items()
+                    if key != "total_steps"
+                },
+            },
             "latency_ms": run_latencies(runtime, run_id),
             "wall_seconds": {**stages, "total_s": time.perf_counter() - started},
             "load_average_1min": {"before": load_before[0], "after": os.getloadavg()[0]},

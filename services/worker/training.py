@@ -28,7 +28,7 @@ from services.learner.feedback import HFPolicy
 from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.ppo import Callback
 from services.learner.runs import RunRecord, run_one
-from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec
+from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec, apply_preset
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
 from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
@@ -39,7 +39,7 @@ PROGRESS_EVERY_S = 1.0
 GUIDED_PPO_FIELDS = frozenset(
     {
         "task", "method", "accuracy", "seed", "total_steps", "ppo", "hf_treatment", "n_labels",
-        "hf_model_id", "checkpoint_every", "hf_method",
+        "hf_model_id", "checkpoint_every", "hf_method", "preset",
     }
 )  # fmt: skip
 
@@ -101,13 +101,22 @@ def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
     seed = config.get("seed", 0)
     if not isinstance(seed, int) or isinstance(seed, bool):
         raise JobConfigError("seed must be an integer >= 0")
+    treatment = config.get("hf_treatment")
+    try:  # the platform preset: truncated IS for hf_sparse, its PPO settings for every method
+        treatments, overrides, _ = apply_preset(
+            config.get("preset", "paper"), [treatment or "authors"], overrides
+        )
+    except ValueError as exc:
+        raise JobConfigError(str(exc)) from None
+    if method == "hf_sparse":
+        treatment = treatments[0]
     try:
         return RunSpec(
             task=task,
             method=method,
             seed=seed,
             accuracy=config.get("accuracy"),
-            hf_treatment=config.get("hf_treatment"),
+            hf_treatment=treatment,
             n_labels=config.get("n_labels", 1000),
             ppo_overrides=overrides,
             hf_method=config.get(

@@ -66,6 +66,7 @@ def test_submit_commits_the_row_then_enqueues_it(api_any_db: Api) -> None:
         "total_steps": 2048,
         "hf_treatment": "authors",
         "ppo": {"n_epochs": 10, "hidden_sizes": [32, 32]},
+        "preset": "paper",
         "n_labels": 1000,
     }
     with api.client.app.state.sessions() as db:

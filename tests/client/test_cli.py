@@ -95,6 +95,7 @@ def test_submit_list_wait_cancel(live_api: LiveApi, signed_in: Path, tmp_path: P
             "hf_treatment": "authors",
             "n_labels": 1000,
             "ppo": {"n_epochs": 4},
+            "preset": "paper",
         }
 
     code, out, _ = bgrl("jobs", "list", "--status", "queued", "--limit", "500")

@@ -53,6 +53,7 @@ def test_submit_list_cancel_and_wait(staff: PlatformClient) -> None:
         "hf_treatment": "authors",
         "n_labels": 1000,
         "ppo": {},
+        "preset": "paper",
     }
     queued = staff.list_jobs(status="queued", kind="guided_ppo", limit=500)
     assert job.id in [j.id for j in queued.items]

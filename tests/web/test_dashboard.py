@@ -229,7 +229,7 @@ def test_job_progress_reaches_the_end_and_model_downloads(
     (job,) = server.call("GET", "/api/v1/jobs", params={"kind": "guided_ppo"})["items"]
     assert job["config"] == {
         "task": "sssg", "method": "rl_sparse", "seed": 3, "total_steps": 1024,
-        "hf_treatment": "authors", "ppo": TINY_PPO, "n_labels": 1000,
+        "hf_treatment": "authors", "ppo": TINY_PPO, "n_labels": 1000, "preset": "paper",
     }  # fmt: skip
     bar = page.locator(f"tr[data-job='{job['id']}'] progress")
     bar.wait_for()
@@ -310,6 +310,7 @@ def test_job_form_sends_the_stage2_method_and_the_preset(context: tuple, server:
     options = hf_method.locator("option").evaluate_all("os => os.map((o) => o.value)")
     assert options == ["", *HF_METHOD_NAMES]  # "": the recommended method
     hf_method.select_option("noise_aware")
+    form.locator("select[name=preset]").select_option("platform")
     form.locator("input[name=seed]").fill("5")
     form.locator("input[name=total_steps]").fill("256")
     form.locator("input[name=n_labels]").fill("50")
@@ -321,6 +322,7 @@ def test_job_form_sends_the_stage2_method_and_the_preset(context: tuple, server:
     assert job["config"] == {
         "task": "sssg", "method": "hf_sparse", "accuracy": 0.7, "seed": 5, "total_steps": 256,
         "hf_treatment": "authors", "ppo": {}, "n_labels": 50, "hf_method": "noise_aware",
+        "preset": "platform",
     }  # fmt: skip
 
     page.reload()

@@ -1,5 +1,6 @@
-"""The stage-2 method of a ``guided_ppo`` job (``hf_method``) and the preset of a
-``reproduce`` job run through a real ``bgrl worker`` on the embedded platform."""
+"""The stage-2 method of a ``guided_ppo`` job (``hf_method``) and the presets of
+``guided_ppo`` and ``reproduce`` jobs run through a real ``bgrl worker`` on the embedded
+platform."""
 
 from __future__ import annotations
 
@@ -36,6 +37,26 @@ def test_guided_ppo_learns_pi_hf_with_the_method_asked_for(
     job = fs_platform.wait(fs_platform.submit("guided_ppo", config), {"succeeded", "failed"}, 120)
     assert job.status == "succeeded", job.error
     assert job.result["spec"]["hf_method"] == used
+
+
+@pytest.mark.parametrize("method", ["hf_sparse", "rl_sparse"])
+def test_guided_ppo_with_the_platform_preset(fs_platform: Platform, worker, method: str) -> None:
+    config = {**HF_JOB, "method": method, "preset": "platform"}
+    if method != "hf_sparse":
+        del config["accuracy"], config["n_labels"]
+    job = fs_platform.wait(fs_platform.submit("guided_ppo", config), {"succeeded", "failed"}, 120)
+    assert job.status == "succeeded", job.error
+    spec = job.result["spec"]
+    assert spec["hf_treatment"] == ("truncated_is" if method == "hf_sparse" else None)
+    assert spec["ppo_overrides"]["sil_coef"] == 1.0  # every method alike, as in reproduce
+    assert spec["ppo_overrides"]["hf_guide_sampling"] is True
+    if method == "hf_sparse":  # what is given stays
+        given = {**config, "ppo": {**TINY_PPO, "sil_coef": 0.5}}
+        job = fs_platform.wait(
+            fs_platform.submit("guided_ppo", given), {"succeeded", "failed"}, 120
+        )
+        assert job.status == "succeeded", job.error
+        assert job.result["spec"]["ppo_overrides"]["sil_coef"] == 0.5
 
 
 def test_reproduce_with_the_platform_preset(fs_platform: Platform, worker) -> None:

@@ -115,6 +115,12 @@ class GuidedPPOConfig(StrictRequest):
     total_steps: int = Field(40_000, ge=1, le=MAX_TOTAL_STEPS)
     hf_treatment: Treatment = "authors"
     ppo: PPOOverrides = Field(default_factory=PPOOverrides)
+    preset: Preset = Field(
+        "paper",
+        description="PPO settings: paper (the paper's) or platform (the recommended ones: "
+        "hf_treatment 'authors' becomes 'truncated_is', ppo.hf_guide_sampling true and "
+        "ppo.sil_coef 1 unless given). The stage-2 method is hf_method's either way.",
+    )
     hf_model_id: int | None = Field(
         None,
         ge=1,

@@ -88,6 +88,12 @@ function ppoFields() {
   };
 }
 
+/** The settings preset of a run or a reproduction (the API's ``preset``). */
+function presetSelect() {
+  return h("select", { name: "preset" }, h("option", { value: "paper" }, "paper: the paper's settings"),
+    h("option", { value: "platform" }, "platform: the recommended ones"));
+}
+
 function guidedForm(hfModels) {
   const task = h("select", { name: "task" }, h("option", { value: "sssg" }, "SSSG"), h("option", { value: "vssg" }, "VSSG"));
   const method = h("select", { name: "method" },
@@ -101,6 +107,7 @@ function guidedForm(hfModels) {
   const nLabels = numberInput("n_labels", { min: 1, max: 1_000_000, value: "1000" });
   const seed = numberInput("seed", { min: 0, max: LIMITS.maxSeed, value: "0" });
   const totalSteps = numberInput("total_steps", { min: 1, max: LIMITS.maxTotalSteps, value: "40000", step: 1 });
+  const preset = presetSelect();
   const ppo = ppoFields();
   const fields = {
     task: field("Task", task),
@@ -111,6 +118,8 @@ function guidedForm(hfModels) {
     n_labels: field("Feedback labels", nLabels, "1 to 1,000,000"),
     seed: field("Seed", seed),
     total_steps: field("Total steps", totalSteps, `1 to ${LIMITS.maxTotalSteps.toLocaleString("en")}`),
+    preset: field("Preset", preset,
+      "platform: HF steps truncated IS instead of authors, guide sampling, self-imitation."),
     ...ppo.fields,
   };
   const hfOnly = [fields.accuracy, fields.hf_model_id, fields.n_labels];
@@ -138,7 +147,8 @@ function guidedForm(hfModels) {
       return errors;
     },
     body() {
-      const config = { task: task.value, method: method.value, seed: Number(seed.value), total_steps: Number(totalSteps.value) };
+      const config = { task: task.value, method: method.value, seed: Number(seed.value), total_steps: Number(totalSteps.value),
+        preset: preset.value };
       if (method.value === "hf_sparse") {
         if (accuracy.value !== "") config.accuracy = Number(accuracy.value);
         if (hfModel.value) config.hf_model_id = Number(hfModel.value);
@@ -162,8 +172,7 @@ function reproduceForm() {
   const accuracies = h("input", { name: "accuracies", value: "0.55, 0.6, 0.7" });
   const treatments = checkboxes("HF treatments", [["authors", "authors"], ["truncated_is", "truncated IS"]], ["authors"]);
   const totalSteps = numberInput("total_steps", { min: 1, max: LIMITS.maxTotalSteps, value: "40000" });
-  const preset = h("select", { name: "preset" }, h("option", { value: "paper" }, "paper: the paper's settings"),
-    h("option", { value: "platform" }, "platform: the recommended ones"));
+  const preset = presetSelect();
   const ppo = ppoFields();
   const runs = h("p", { class: "hint", "aria-live": "polite" });
   const fields = {
@@ -175,7 +184,7 @@ function reproduceForm() {
     accuracies: field("Accuracies C", accuracies, "Comma-separated, each 0 to 1 (HF runs)."),
     treatments: h("div", { class: "field" }, treatments),
     preset: field("Preset", preset,
-      "platform: HF steps truncated IS instead of authors, guide sampling, the recommended stage-2 method."),
+      "platform: HF steps truncated IS instead of authors, guide sampling, self-imitation, the recommended stage-2 method."),
     total_steps: field("Steps per run", totalSteps),
     ...ppo.fields,
   };
