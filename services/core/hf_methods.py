@@ -1,5 +1,6 @@
-"""Names of the learner's stage-2 methods (docs/stage2.md) for the layers that cannot import
-the learner (core, api, client): the learner's ``HF_METHODS``, kept equal by a test."""
+"""Names of the stage-2 methods (docs/stage2.md), here in core so that every layer can name
+them (the api and core cannot import the learner); a test keeps them equal to the learner's
+``HF_METHODS``."""
 
 from __future__ import annotations
 

@@ -44,7 +44,6 @@ the score transform and the collection rule change.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
@@ -95,17 +94,6 @@ HF_METHODS: dict[str, HFMethod] = {
         HFMethod("categorical_kernel", "categorical", "softmax", prior="kernel"),
     )
 }
-HFMethodName = Literal[
-    "paper",
-    "noise_aware",
-    "categorical",
-    "thompson",
-    "categorical_thompson",
-    "categorical_info",
-    "categorical_onpolicy",
-    "categorical_kernel",
-]
-"""The names of :data:`HF_METHODS` (for request schemas)."""
 PAPER_METHOD = "paper"
 RECOMMENDED_METHOD = "categorical_kernel"
 """The platform's stage-2 method (``bgrl reproduce --preset platform``, online sessions and

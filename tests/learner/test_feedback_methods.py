@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from services.core.hf_methods import HFMethodName
 from services.learner.feedback import (
     FeedbackConfig,
     FeedbackLearner,
@@ -19,7 +20,6 @@ from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.hf_methods import (
     HF_METHODS,
     RECOMMENDED_METHOD,
-    HFMethodName,
     expected_information,
     label_nll,
     most_informative_action,

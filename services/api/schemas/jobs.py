@@ -4,8 +4,8 @@ The learner cannot be imported here (the api stays free of torch), so what a job
 takes from it is listed below: the PPO settings a job may override with their types and
 bounds (the fields of ``services.learner.ppo.PPOConfig`` that ``bgrl reproduce --ppo``
 accepts) and the presets of ``bgrl reproduce --preset`` (``services.learner.specs.PRESETS``);
-the stage-2 methods are :mod:`services.core.hf_methods`'. Tests check that each list equals
-the learner's.
+the stage-2 method names come from :mod:`services.core.hf_methods`. Tests check that each
+list equals the learner's.
 """
 
 from __future__ import annotations

@@ -8,8 +8,9 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
 from services.core.feedback import is_error
+from services.core.hf_methods import HFMethodName
 from services.core.schemas import ActionValue, Seed, StrictRequest
-from services.learner.hf_methods import RECOMMENDED_METHOD, HFMethodName
+from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.sim.env import OBS_SIZE
 
 Observation = Annotated[
