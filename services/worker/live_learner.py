@@ -16,7 +16,7 @@ from typing import Any
 from mne_lsl.lsl import local_clock
 
 from services.core.db.base import utcnow
-from services.core.db.live import LiveModelVersion, LiveRun
+from services.core.db.live import LiveModelVersion
 from services.core.db.models import FeedbackLabel
 from services.core.live import LiveOptions
 from services.worker.live_services import ServiceCallError, ServiceClient
@@ -49,12 +49,12 @@ class LearnerLink:
         self.prepared_labels = 0
         """Labels of this attempt whose Fhat update the learner had prepared."""
 
-    def attach(self) -> None:
-        """Find the run's HF session again, or open one and keep its id and method in the
-        run's row."""
+    def attach(self) -> dict[str, str] | None:
+        """Find the run's HF session again (None), or open one and return what the run's row
+        keeps of it (``hf_session_id``, ``hf_method``: the method the learner created it with)."""
         if self.hf_session_id is not None:
             self.client.call("GET", f"/hf-sessions/{self.hf_session_id}")
-            return
+            return None
         body = {
             "task": self.options.task,
             "map": self.options.map,
@@ -65,11 +65,14 @@ class LearnerLink:
             body["method"] = self.options.hf_method
         created = self.client.call("POST", "/hf-sessions", json=body)
         self.hf_session_id = created["id"]
-        with self.runtime.sessions() as db:
-            run = db.get(LiveRun, self.run_id)
-            assert run is not None
-            run.hf_session_id, run.hf_method = self.hf_session_id, created["method"]
-            db.commit()
+        return {"hf_session_id": created["id"], "hf_method": created["method"]}
+
+    def next_action_at(self, observation: list[float]) -> tuple[int, int]:
+        """pi_HF's next action and its model version: the one the last label's answer
+        carried, else asked for at ``observation`` now (and kept until executed)."""
+        if self.next_action is None:
+            self.next_action = self.act(observation)
+        return self.next_action
 
     def act(self, observation: list[float]) -> tuple[int, int]:
         """pi_HF's action at ``observation`` and the model version that chose it."""

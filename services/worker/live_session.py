@@ -251,9 +251,7 @@ class LiveRunner:
         if self.mode != "online":
             rng = np.random.default_rng([self.options.seed, step])
             return int(rng.integers(3)), None
-        if self.learner.next_action is None:
-            self.learner.next_action = self.learner.act(self.observation)
-        return self.learner.next_action
+        return self.learner.next_action_at(self.observation)
 
     def execute(self, action: int) -> dict[str, Any]:
         """The sim executes ``action``; a sim session lost to a restart is re-opened once."""
@@ -355,8 +353,8 @@ class LiveRunner:
                 more = self.learner.send_label(
                     step, obs_before, action, marker.correct, decision, self.observation
                 )
-        if self.mode == "online" and more and self.learner.next_action is None:
-            self.learner.next_action = self.learner.act(self.observation)
+        if self.mode == "online" and more:
+            self.learner.next_action_at(self.observation)
         return more
 
     def run(self) -> JobOutcome:
@@ -369,8 +367,8 @@ class LiveRunner:
             return self.finish(self.done < total)
         try:
             self.attach_sim()
-            if self.mode == "online":
-                self.learner.attach()
+            if self.mode == "online" and (opened := self.learner.attach()) is not None:
+                self._set_run(**opened)
             self.attach_eeg()
             self.recover_in_flight()
             if self.episode_over:

@@ -118,10 +118,10 @@ def test_hf_prior_adds_its_weighted_cross_entropy_and_pulls_pi_rl_towards_pi_hf(
 
 def test_prior_weight_fades_with_the_guidance() -> None:
     config = PPOConfig(total_steps=40_000, hf_prior_coef=0.5)
-    assert prior_weight(0, [], config) == pytest.approx(0.5)
-    assert prior_weight(10_000, [], config) == pytest.approx(0.25)
-    assert prior_weight(20_000, [], config) == 0.0
-    assert prior_weight(0, [], PPOConfig()) == 0.0
+    assert prior_weight(episode_epsilon(0, [], config), config) == pytest.approx(0.5)
+    assert prior_weight(episode_epsilon(10_000, [], config), config) == pytest.approx(0.25)
+    assert prior_weight(episode_epsilon(20_000, [], config), config) == 0.0
+    assert prior_weight(episode_epsilon(0, [], PPOConfig()), PPOConfig()) == 0.0
     with pytest.raises(ValueError, match="hf_prior_coef"):
         PPOConfig(hf_prior_coef=-1.0)
 

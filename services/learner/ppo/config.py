@@ -198,9 +198,9 @@ def episode_epsilon(
     return hf_epsilon(global_step, config, held_until)
 
 
-def prior_weight(global_step: int, episodes: Sequence[EpisodeRecord], config: PPOConfig) -> float:
-    """Weight of pi_HF's prior term at an update (``hf_prior_coef`` faded like eps_HF)."""
+def prior_weight(eps_hf: float, config: PPOConfig) -> float:
+    """Weight of pi_HF's prior term at an update where eps_HF is ``eps_hf``
+    (``hf_prior_coef`` faded like eps_HF)."""
     if config.hf_prior_coef == 0.0 or config.hf_eps_init == 0.0:
         return 0.0
-    eps = episode_epsilon(global_step, episodes, config)
-    return config.hf_prior_coef * eps / config.hf_eps_init
+    return config.hf_prior_coef * eps_hf / config.hf_eps_init

@@ -20,7 +20,7 @@ from services.learner.networks import ObsNormalizer
 from services.learner.optimizer import FlatAdam
 from services.learner.ppo.advantages import advantages_and_returns
 from services.learner.ppo.agent import ActorCritic
-from services.learner.ppo.config import PPOConfig, prior_weight
+from services.learner.ppo.config import PPOConfig, episode_epsilon, prior_weight
 from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
 from services.learner.ppo.self_imitation import (
     SuccessReplay,
@@ -149,7 +149,8 @@ def train(
 
             # ---- 3. n_epochs of minibatch updates --------------------------------------------
             update_start = time.perf_counter()
-            hf_prior_weight = prior_weight(state.global_step, state.episodes, config)
+            eps_hf = episode_epsilon(state.global_step, state.episodes, config) if guided else 0.0
+            hf_prior_weight = prior_weight(eps_hf, config)
             prior = (  # pi_HF as a prior on pi_RL (hf_prior_coef), while guidance lasts
                 hf_policy.sampling_probs(rollout.obs)
                 if hf_policy is not None and hf_prior_weight > 0.0
@@ -172,8 +173,8 @@ def train(
             state.n_updates += 1
             metrics.update(
                 update_metrics(
-                    config, state.global_step, rollout, returns, episode_returns, guided,
-                    optimizer.lr, state.episodes,
+                    state.global_step, rollout, returns, episode_returns, guided, optimizer.lr,
+                    eps_hf,
                 )
             )  # fmt: skip
             metrics["charts/SPS"] = config.n_steps / max(time.perf_counter() - rollout_start, 1e-9)

@@ -7,14 +7,12 @@ rate linearly to 0 over the run (CleanRL, SB3).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 import torch
 
 from services.learner.optimizer import FlatAdam
 from services.learner.ppo.agent import ActorCritic
-from services.learner.ppo.config import EpisodeRecord, PPOConfig, episode_epsilon
+from services.learner.ppo.config import PPOConfig
 from services.learner.ppo.rollout import Rollout
 
 
@@ -154,23 +152,22 @@ def update_policy(
 
 
 def update_metrics(
-    config: PPOConfig,
     global_step: int,
     rollout: Rollout,
     returns: np.ndarray,
     episode_returns: list[float],
     guided: bool,
     learning_rate: float,
-    episodes: Sequence[EpisodeRecord] = (),
+    eps_hf: float,
 ) -> dict[str, float]:
     """CleanRL-named metrics of an update besides the loss statistics (``episode_returns``:
-    of the episodes that ended in ``rollout``; ``episodes``: the run's so far, for eps_HF)."""
+    of the episodes that ended in ``rollout``; ``eps_hf``: eps_HF at the update)."""
     var_returns = float(np.var(returns))
     explained = 1.0 - float(np.var(returns - rollout.values)) / var_returns if var_returns else None
     return {
         "global_step": float(global_step),
         "losses/explained_variance": float("nan") if explained is None else explained,
-        "charts/eps_hf": episode_epsilon(global_step, episodes, config) if guided else 0.0,
+        "charts/eps_hf": eps_hf,
         "charts/hf_step_fraction": float(np.mean(rollout.is_hf)) if guided else 0.0,
         "charts/episodic_return": (
             float(np.mean(episode_returns)) if episode_returns else float("nan")
