@@ -47,6 +47,8 @@ class RunState:
     """Observations where the pi_HF episode in progress chose an action
     (``hf_handover_on_revisit``)."""
     episode_return: float = 0.0
+    visits: dict[tuple[int, int, int], int] = field(default_factory=dict)
+    """Visits per pose cell so far (``explore_coef``)."""
     episodes: list[tuple[int, int, bool, bool, bool]] = field(default_factory=list)
     """Per finished episode: (env step at its end, length, success, collision, followed pi_HF)."""
     curve: list[tuple[int, float]] = field(default_factory=list)

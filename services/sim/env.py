@@ -389,6 +389,20 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         """The oracle's optimal actions in the current state."""
         return self.oracle.optimal_actions(self._x, self._y, self._yaw)
 
+    @staticmethod
+    def observation_cell(obs: np.ndarray, size_m: float) -> tuple[int, int, int]:
+        """The pose cell an observation was taken at, from what the observation says (the
+        count of PPO's exploration bonus): the robot's position relative to the goal (its
+        distance ``obs[N_RAYS]`` and world bearing ``obs[N_RAYS + 1]``) on a ``size_m``
+        grid, and its heading ``obs[N_RAYS + 2]`` in ``TURN_STEP_RAD`` steps (every turn
+        changes it by one)."""
+        distance, bearing, yaw = (float(v) for v in obs[N_RAYS : N_RAYS + 3])
+        return (
+            math.floor(-distance * math.cos(bearing) / size_m),
+            math.floor(-distance * math.sin(bearing) / size_m),
+            round(yaw / TURN_STEP_RAD) % _N_HEADINGS,
+        )
+
     def _sync_body(self) -> None:
         if not self._body_synced:
             pybullet.resetBasePositionAndOrientation(

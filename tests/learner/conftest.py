@@ -77,6 +77,11 @@ class ToyGridEnv(gym.Env):
             "is_success": False,
         }
 
+    @staticmethod
+    def observation_cell(obs: np.ndarray, size_m: float) -> tuple[int, int, int]:
+        """The grid cell and heading of an observation (the exploration bonus's count)."""
+        return int(obs[0] // size_m), int(obs[1] // size_m), int(obs[2])
+
     def optimal_actions(self) -> frozenset[int]:
         best = self._cost[self.state]
         return frozenset(

@@ -13,6 +13,7 @@ import pytest
 import torch
 from torch import nn
 
+from services.learner.checkpoint import RunState
 from services.learner.feedback import FeedbackConfig, collect_feedback
 from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.networks import ObsNormalizer
@@ -27,6 +28,8 @@ from services.learner.ppo import (
     train,
 )
 from services.learner.ppo.config import episode_epsilon, guidance_withdrawn, prior_weight
+from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
+from services.learner.seeding import RunSeeds, Stream
 from tests.learner.conftest import ToyGridEnv
 
 
@@ -170,6 +173,10 @@ def test_config_rejects_bad_values() -> None:
         PPOConfig(n_steps=100, minibatch_size=64)
     with pytest.raises(ValueError, match="hf_treatment"):
         PPOConfig(hf_treatment="magic")
+    with pytest.raises(ValueError, match="explore_coef"):
+        PPOConfig(explore_coef=-1.0)
+    with pytest.raises(ValueError, match="explore_cell_m"):
+        PPOConfig(explore_cell_m=0.0)
 
 
 def test_training_is_deterministic_under_a_seed(toy_env_id) -> None:
@@ -204,8 +211,9 @@ class _StopAfterUpdates(Callback):
         {},
         {"hf_prior_coef": 0.5},
         {"hf_hold_until_success": True, "hf_withdraw_after": 5, "hf_handover_on_revisit": True},
+        {"explore_coef": 2.0},
     ],
-    ids=["paper", "prior", "held"],
+    ids=["paper", "prior", "held", "explore"],
 )
 def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path, guidance) -> None:
     env = gym.make(toy_env_id)
@@ -226,6 +234,58 @@ def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path, guidance) -
         assert torch.equal(p, q)
     with pytest.raises(ValueError, match="different PPOConfig"):
         train(replace(config, seed=5), checkpoint_path=checkpoint)
+
+
+class _StepRecorder(gym.Wrapper):
+    """Keeps (next observation, terminated) of every step."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.steps: list[tuple[np.ndarray, bool]] = []
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.steps.append((obs.copy(), bool(terminated)))
+        return obs, reward, terminated, truncated, info
+
+
+def _first_rollout(config: PPOConfig) -> tuple[Rollout, _StepRecorder, RunState]:
+    env = _StepRecorder(gym.make(config.env_id))
+    seeds = RunSeeds(config.seed)
+    torch.manual_seed(0)
+    agent = ActorCritic(ObsNormalizer.from_space(env.observation_space), 3, config.hidden_sizes)
+    rng, resets, state = seeds.generator(Stream.ACTIONS), seeds.training_resets(), RunState()
+    obs = begin_episode(env, state, resets, rng, config, guided=False)
+    rollout = Rollout.empty(config.n_steps, env.observation_space.shape[0])
+    collect_rollout(
+        env, agent, obs, rollout, state, config=config, hf_policy=None, rng=rng, resets=resets,
+        on_step=lambda step, info: True, evaluate=lambda: True,
+    )  # fmt: skip
+    return rollout, env, state
+
+
+def test_exploration_bonus_is_coef_over_sqrt_visits_of_the_cell_reached(toy_env_id) -> None:
+    config = _toy_config(toy_env_id, explore_coef=2.0, explore_cell_m=2.0)
+    with_bonus, recorder, state = _first_rollout(config)
+    plain, _, _ = _first_rollout(replace(config, explore_coef=0.0))
+    assert np.array_equal(with_bonus.actions, plain.actions)  # same draws, same agent
+    visits: dict[tuple[int, int, int], int] = {}
+    expected = np.zeros(config.n_steps)
+    for t, (next_obs, terminated) in enumerate(recorder.steps):
+        if terminated:  # the goal or a collision: no bonus
+            continue
+        cell = (int(next_obs[0] // 2), int(next_obs[1] // 2), int(next_obs[2]))
+        visits[cell] = visits.get(cell, 0) + 1
+        expected[t] = 2.0 * config.reward_scale / math.sqrt(visits[cell])
+    assert np.allclose(with_bonus.rewards - plain.rewards, expected, rtol=0, atol=1e-12)
+    assert state.visits == visits
+    assert expected.max() == pytest.approx(0.02) and 0 < expected[expected > 0].min() < 0.02
+
+
+def test_exploration_bonus_needs_an_env_that_names_its_cells() -> None:
+    config = PPOConfig(env_id="CartPole-v1", env_kwargs={}, total_steps=128, explore_coef=1.0)
+    with pytest.raises(ValueError, match="observation_cell"):
+        train(config)
 
 
 def test_rich_reward_run_improves(toy_env_id) -> None:

@@ -173,6 +173,31 @@ def test_oracle_path_reaches_goal_with_goal_reward(env: BrainNavEnv) -> None:
     assert rewards[-1] == 100.0 and all(r == -1.0 for r in rewards[:-1])
 
 
+def test_observation_cell_is_the_pose_cell_the_observation_describes() -> None:
+    environment = BrainNavEnv(task="vssg")
+    try:
+        obs, _ = environment.reset(seed=3)
+        environment.action_space.seed(3)
+        goal_x, goal_y = environment.nav_map.goal.x, environment.nav_map.goal.y
+        cells = [BrainNavEnv.observation_cell(obs, 0.5)]
+        for _ in range(60):
+            action = int(environment.action_space.sample())
+            obs, _, terminated, _, info = environment.step(action)
+            if terminated:
+                break
+            cell = BrainNavEnv.observation_cell(obs, 0.5)
+            x, y, _ = info["pose"]
+            for index, offset in ((0, x - goal_x), (1, y - goal_y)):
+                if abs(offset / 0.5 - round(offset / 0.5)) > 1e-4:  # float32 at a cell edge
+                    assert cell[index] == math.floor(offset / 0.5)
+            heading_change = {0: 0, 1: 1, 2: -1}[action]
+            assert cell[2] == (cells[-1][2] + heading_change) % 12  # every turn is one step
+            cells.append(cell)
+        assert len(set(cells)) > 10
+    finally:
+        environment.close()
+
+
 def test_same_seed_same_trajectory() -> None:
     def run(seed: int) -> list[tuple[float, float, float]]:
         environment = BrainNavEnv(task="vssg")

@@ -75,6 +75,8 @@ class PPOOverrides(StrictRequest):
     hf_handover_on_revisit: bool | None = None
     hf_hold_until_success: bool | None = None
     hf_withdraw_after: int | None = Field(None, ge=0, le=MAX_TOTAL_STEPS)
+    explore_coef: float | None = Field(None, ge=0, le=1e6)
+    explore_cell_m: float | None = Field(None, gt=0, le=100)
     sil_coef: float | None = Field(None, ge=0, le=100)
     sil_updates: int | None = Field(None, ge=0, le=10_000)
     sil_value_coef: float | None = Field(None, ge=0, le=100)

@@ -97,6 +97,15 @@ class PPOConfig:
     """Guidance stops for good (eps_HF = 0) once this many pi_HF episodes in a row ended
     without reaching the goal: a pi_HF that does not find the goal hands exploration over to
     pi_RL. 0 (default): never, the paper's schedule alone."""
+    explore_coef: float = 0.0
+    """Count-based exploration bonus (Strehl and Littman 2008): every step that does not end
+    the episode also earns ``explore_coef / sqrt(N)`` (in env-reward units, scaled by
+    ``reward_scale`` like the reward), N the run's visits so far, this one included, of the
+    pose cell it reaches (the env's ``observation_cell(obs, size_m)``, which BrainNavEnv
+    has). HF and RL steps alike; episode returns and self-imitation keep the env's reward.
+    0 (default): off."""
+    explore_cell_m: float = 0.5
+    """Grid size of the exploration bonus's pose cells (m)."""
     sil_coef: float = 0.0
     """Weight of the self-imitation loss on the transitions of past successful episodes
     (:mod:`services.learner.ppo.self_imitation`); 0 (default): off, plain (guided) PPO."""
@@ -131,6 +140,8 @@ class PPOConfig:
             raise ValueError(f"hf_prior_coef must be >= 0, got {self.hf_prior_coef}")
         if self.hf_withdraw_after < 0:
             raise ValueError(f"hf_withdraw_after must be >= 0, got {self.hf_withdraw_after}")
+        if self.explore_coef < 0 or not self.explore_cell_m > 0:
+            raise ValueError("explore_coef must be >= 0 and explore_cell_m > 0")
         if self.sil_coef < 0 or self.sil_value_coef < 0:
             raise ValueError("sil_coef and sil_value_coef must be >= 0")
         if self.sil_updates < 0 or self.sil_capacity < 1:

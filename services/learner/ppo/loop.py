@@ -70,6 +70,11 @@ def train(
     ):
         # ---- setup: networks, optimiser and the run's random streams ------------------------
         n_actions = int(env.action_space.n)
+        if config.explore_coef > 0 and not hasattr(env.unwrapped, "observation_cell"):
+            raise ValueError(
+                f"explore_coef needs an env with observation_cell(obs, size_m) (BrainNav "
+                f"envs have it); {config.env_id} has none"
+            )
         seeds = RunSeeds(config.seed)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seeds.int_seed(Stream.TORCH_INIT))
@@ -177,6 +182,8 @@ def train(
                     eps_hf,
                 )
             )  # fmt: skip
+            if config.explore_coef > 0:
+                metrics["charts/explored_cells"] = float(len(state.visits))
             metrics["charts/SPS"] = config.n_steps / max(time.perf_counter() - rollout_start, 1e-9)
             metrics["charts/rollout_seconds"] = rollout_seconds
             metrics["charts/update_seconds"] = time.perf_counter() - update_start

@@ -7,6 +7,7 @@ the two are equal on RL steps; a greedy pi_HF step has ``mu = 1``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -129,6 +130,11 @@ def collect_rollout(
             mu_logp = 0.0
         next_obs, reward, terminated, truncated, info = env.step(action)
         reward = float(reward) * config.reward_scale
+        bonus = 0.0
+        if config.explore_coef > 0 and not terminated:
+            cell = env.unwrapped.observation_cell(next_obs, config.explore_cell_m)
+            state.visits[cell] = visits = state.visits.get(cell, 0) + 1
+            bonus = config.explore_coef * config.reward_scale / math.sqrt(visits)
         if truncated and not terminated:  # time limit: bootstrap the cut-off tail
             with torch.inference_mode():
                 _, tail_value = agent(torch.as_tensor(next_obs))
@@ -138,7 +144,7 @@ def collect_rollout(
         rollout.pi_logp[t] = log_probs[action]
         rollout.mu_logp[t] = mu_logp
         rollout.is_hf[t] = follows_hf
-        rollout.rewards[t] = reward
+        rollout.rewards[t] = reward + bonus
         rollout.values[t] = float(value)
         rollout.ends[t] = float(terminated or truncated)
         state.global_step += 1
