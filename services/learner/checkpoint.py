@@ -132,13 +132,26 @@ def save_checkpoint(path: Path, checkpoint: Checkpoint) -> None:
     write_bytes_atomic(path, buffer.getvalue())
 
 
-def load_checkpoint(path: Path, config: dict[str, Any]) -> Checkpoint:
-    """Read a checkpoint written for ``config`` (``asdict(PPOConfig)``); ValueError if not."""
+def load_checkpoint(
+    path: Path, config: dict[str, Any], defaults: dict[str, Any] | None = None
+) -> Checkpoint:
+    """Read a checkpoint written for ``config`` (``asdict(PPOConfig)``); ValueError if not.
+
+    A setting missing from the checkpoint's config (written before the setting existed) is
+    taken at its value in ``defaults`` (``asdict(PPOConfig())``: what that code did), so a
+    run checkpointed before an upgrade resumes after it as long as it keeps those values.
+    """
     payload = torch.load(path, weights_only=False)
     if payload.get("version") != CHECKPOINT_VERSION:
         raise ValueError(f"{path}: unsupported checkpoint version {payload.get('version')}")
-    if payload["config"] != config:
-        raise ValueError(f"{path}: checkpoint was written with a different PPOConfig")
+    written_with = {**(defaults or {}), **payload["config"]}
+    if written_with != config:
+        changed = sorted(
+            key for key in {*config, *written_with} if written_with.get(key) != config.get(key)
+        )
+        raise ValueError(
+            f"{path}: checkpoint was written with a different PPOConfig ({', '.join(changed)})"
+        )
     state = RunState(**payload["state"])
     state.curve = [(int(step), float(spl)) for step, spl in state.curve]
     state.episodes = [tuple(e) for e in state.episodes]  # type: ignore[misc]

@@ -232,8 +232,27 @@ def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path, guidance) -
     assert resumed.n_hf_episodes == full.n_hf_episodes > 0
     for p, q in zip(full.agent.parameters(), resumed.agent.parameters(), strict=True):
         assert torch.equal(p, q)
-    with pytest.raises(ValueError, match="different PPOConfig"):
+    with pytest.raises(ValueError, match=r"different PPOConfig \(seed\)"):
         train(replace(config, seed=5), checkpoint_path=checkpoint)
+
+
+def test_a_checkpoint_from_before_a_setting_existed_resumes_at_its_default(
+    toy_env_id, tmp_path
+) -> None:
+    config = _toy_config(toy_env_id, total_steps=768)
+    full = train(config)
+    checkpoint = tmp_path / "run.pt"
+    train(config, _StopAfterUpdates(2), checkpoint_path=checkpoint)
+    payload = torch.load(checkpoint, weights_only=False)
+    for newer_setting in ("explore_coef", "explore_cell_m", "hf_prior_coef"):
+        del payload["config"][newer_setting]  # as written by the code before these settings
+    torch.save(payload, checkpoint)
+    with pytest.raises(ValueError, match=r"different PPOConfig \(explore_coef\)"):
+        train(replace(config, explore_coef=1.0), checkpoint_path=checkpoint)
+    resumed = train(config, checkpoint_path=checkpoint)
+    assert resumed.curve == full.curve
+    for p, q in zip(full.agent.parameters(), resumed.agent.parameters(), strict=True):
+        assert torch.equal(p, q)
 
 
 class _StepRecorder(gym.Wrapper):

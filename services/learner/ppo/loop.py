@@ -107,7 +107,7 @@ def train(
             )
 
         if checkpoint is not None and checkpoint.exists():
-            restored = load_checkpoint(checkpoint, asdict(config))
+            restored = load_checkpoint(checkpoint, asdict(config), asdict(PPOConfig()))
             state = restored.restore(agent, optimizer, rng, resets, hf_policy)
             best_agent = restored.best_agent
             if success_replay is not None and restored.success_replay is not None:
