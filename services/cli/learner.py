@@ -101,6 +101,14 @@ def reproduce(
             "preset's (paper: the paper's Fhat; platform: the recommended one)."
         ),
     ] = None,
+    labels: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            help="Labels each HF+sparse run learns pi_HF from (every labelled action; the "
+            "paper's 1000). One count per output folder.",
+        ),
+    ] = 1000,
 ) -> None:
     """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG.
 
@@ -134,6 +142,7 @@ def reproduce(
             map_path=None if map_path is None else str(map_path),
             ppo_overrides=overrides,
             hf_method=hf_method,
+            n_labels=labels,
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
@@ -163,6 +172,7 @@ def reproduce(
                         "overrides": overrides,
                         "preset": preset,
                         "hf_method": hf_method,
+                        "labels": labels,
                     }
                 },
                 on_done=done,

@@ -32,6 +32,8 @@ TREATMENTS = ("authors", "truncated_is")
 N_VSSG_EVAL_STARTS = 5
 QUICK_SEEDS = 2
 FULL_SEEDS = 10
+DEFAULT_LABELS = 1000
+"""Labels pi_HF is learned from (every labelled action), the paper's budget."""
 PRESETS = ("paper", "platform")
 """Settings of a reproduction (``bgrl reproduce --preset``, ``reproduce`` jobs): the paper's
 or the platform's recommended ones."""
@@ -53,7 +55,7 @@ class RunSpec:
     seed: int
     accuracy: float | None = None
     hf_treatment: str | None = None
-    n_labels: int = 1000
+    n_labels: int = DEFAULT_LABELS
     map_path: str | None = None
     ppo_overrides: Mapping[str, Any] = field(default_factory=dict)
     hf_method: str | None = None
@@ -164,15 +166,19 @@ def build_specs(
     map_path: str | None = None,
     ppo_overrides: Mapping[str, Any] | None = None,
     hf_method: str | None = None,
+    n_labels: int = DEFAULT_LABELS,
 ) -> list[RunSpec]:
-    """Every run of a reproduction, seed-major so early results cover every method."""
+    """Every run of a reproduction, seed-major so early results cover every method; every
+    hf_sparse run learns pi_HF from ``n_labels`` labels."""
     overrides = dict(ppo_overrides or {})
     specs = []
     for seed in range(first_seed, first_seed + seeds):
         for task in tasks:
             for method in methods:
                 if method != "hf_sparse":
-                    specs.append(RunSpec(task, method, seed, None, None, 1000, map_path, overrides))
+                    specs.append(
+                        RunSpec(task, method, seed, None, None, DEFAULT_LABELS, map_path, overrides)
+                    )
                     continue
                 for treatment in treatments:
                     for accuracy in accuracies:
@@ -183,7 +189,7 @@ def build_specs(
                                 seed,
                                 accuracy,
                                 treatment,
-                                1000,
+                                n_labels,
                                 map_path,
                                 overrides,
                                 hf_method,

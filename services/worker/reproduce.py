@@ -21,13 +21,20 @@ from services.core.queue import enqueue_job
 from services.learner.outputs import Results, load_results, save_results
 from services.learner.pool import reproduce as write_reproduction
 from services.learner.runs import RunFailure, RunRecord
-from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, RunSpec, apply_preset, build_specs
+from services.learner.specs import (
+    DEFAULT_LABELS,
+    FULL_SEEDS,
+    QUICK_SEEDS,
+    RunSpec,
+    apply_preset,
+    build_specs,
+)
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome, JobStoppedError
 
 REPRODUCE_FIELDS = frozenset(
     {
         "quick", "seeds", "first_seed", "tasks", "methods", "accuracies", "treatments", "ppo",
-        "checkpoint_every", "preset",
+        "checkpoint_every", "preset", "n_labels",
     }
 )  # fmt: skip
 PLOT_SUFFIXES = (".png",)
@@ -51,9 +58,11 @@ def specs_from_config(config: dict[str, Any]) -> list[RunSpec]:
     quick = bool(config.get("quick", False))
     seeds = config.get("seeds", QUICK_SEEDS if quick else FULL_SEEDS)
     first_seed = config.get("first_seed", 0)
-    for name, value in (("seeds", seeds), ("first_seed", first_seed)):
-        if not isinstance(value, int) or isinstance(value, bool) or value < (name == "seeds"):
-            raise JobConfigError(f"{name} must be an integer >= {int(name == 'seeds')}")
+    n_labels = config.get("n_labels", DEFAULT_LABELS)
+    for name, value, least in (("seeds", seeds, 1), ("first_seed", first_seed, 0),
+                               ("n_labels", n_labels, 1)):  # fmt: skip
+        if not isinstance(value, int) or isinstance(value, bool) or value < least:
+            raise JobConfigError(f"{name} must be an integer >= {least}")
     overrides = config.get("ppo") or {}
     if not isinstance(overrides, dict):
         raise JobConfigError("ppo must be an object of PPO settings")
@@ -74,6 +83,7 @@ def specs_from_config(config: dict[str, Any]) -> list[RunSpec]:
             treatments=treatments,
             ppo_overrides=overrides,
             hf_method=hf_method,
+            n_labels=n_labels,
         )
     except (TypeError, ValueError) as exc:
         raise JobConfigError(str(exc)) from None

@@ -198,11 +198,19 @@ def test_reproduce_config_takes_the_cli_options(api: Api) -> None:
         "treatments": ["truncated_is"],
         "ppo": {"hf_guide_sampling": True},
         "preset": "paper",
+        "n_labels": 1000,
     }
     assert broker_messages(api) == [("bgrl.jobs.reproduce", [response.json()["id"]])]
     platform = submit(api, "reproduce", {"quick": True, "preset": "platform"})
     assert platform.status_code == 201, platform.text
     assert platform.json()["config"]["preset"] == "platform"
+    assert (
+        submit(api, "reproduce", {"quick": True, "n_labels": 4000}).json()["config"]["n_labels"]
+        == 4000
+    )
+    no_labels = submit(api, "reproduce", {"quick": True, "n_labels": 0})
+    assert no_labels.status_code == 422
+    assert no_labels.json()["detail"][0]["field"] == "config.n_labels"
     unknown = submit(api, "reproduce", {"quick": True, "preset": "lab"})
     assert unknown.status_code == 422
     assert unknown.json()["detail"][0]["field"] == "config.preset"

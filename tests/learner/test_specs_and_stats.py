@@ -49,6 +49,12 @@ def test_run_spec_validates_and_round_trips() -> None:
     specs = build_specs(seeds=2, tasks=["sssg"], treatments=["authors", "truncated_is"])
     assert len(specs) == 2 * (2 + 2 * 3)
     assert not settings_conflict(specs)
+    more_labels = build_specs(seeds=1, tasks=["sssg"], methods=["rl_sparse", "hf_sparse"],
+                              accuracies=[0.6], n_labels=4000)  # fmt: skip
+    assert [(s.method, s.n_labels) for s in more_labels] == [
+        ("rl_sparse", 1000), ("hf_sparse", 4000),
+    ]  # fmt: skip
+    assert settings_conflict([*specs, *more_labels])  # one label count per output folder
     assert settings_conflict([*specs, RunSpec("sssg", "rl_sparse", 5, map_path="x.json")])
     shaped = RunSpec("vssg", "rl_shaped", 1, ppo_overrides={"gamma": 0.95}).ppo_config()
     assert shaped.env_kwargs == {"reward_mode": "shaped", "shaping_gamma": 0.95}

@@ -89,6 +89,14 @@ def test_reproduce_hf_method_replaces_the_presets_stage2_method(tmp_path, monkey
         assert cli["hf_method"] == expected and cli["preset"] == "platform"
         assert [s.hf_method for s in specs if s.method == "hf_sparse"] == [expected]
         assert [s.hf_method for s in specs if s.method == "rl_sparse"] == [None]
+        assert [s.n_labels for s in specs] == [1000, 1000] and cli["labels"] == 1000
+    result = CliRunner().invoke(app, [*base, "--labels", "4000"])
+    assert result.exit_code == 0, result.output
+    specs, cli = captured.pop()
+    assert {s.method: s.n_labels for s in specs} == {"rl_sparse": 1000, "hf_sparse": 4000}
+    assert cli["labels"] == 4000
+    result = CliRunner().invoke(app, [*base, "--labels", "0"])
+    assert result.exit_code == 2 and "--labels" in result.output
     result = CliRunner().invoke(app, [*base, "--hf-method", "nope"])
     assert result.exit_code == 2 and "unknown stage-2 method 'nope'" in result.output
     assert not captured

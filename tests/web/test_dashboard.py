@@ -333,11 +333,18 @@ def test_job_form_sends_the_stage2_method_and_the_preset(context: tuple, server:
     form.locator("input[value=hf_sparse]").uncheck()
     form.locator("input[name=total_steps]").fill("256")
     form.locator("select[name=preset]").select_option("platform")
+    form.locator("input[name=n_labels]").fill("0")
+    form.get_by_text("labels must be between 1 and 1,000,000").wait_for()
+    assert form.get_by_role("button", name="Submit job").is_disabled()
+    form.locator("input[name=n_labels]").fill("4000")
     form.get_by_role("button", name="Submit job").click()
     page.get_by_text(re.compile(r"^Job \w{8} submitted\.$")).wait_for()
     (sweep,) = server.call("GET", "/api/v1/jobs", params={"kind": "reproduce"})["items"]
     server.call("POST", f"/api/v1/jobs/{sweep['id']}/cancel")
-    assert (sweep["config"]["preset"], sweep["config"]["methods"]) == ("platform", ["rl_sparse"])
+    config = sweep["config"]
+    assert (config["preset"], config["methods"], config["n_labels"]) == (
+        "platform", ["rl_sparse"], 4000,
+    )  # fmt: skip
     assert watch.console_errors == []
 
 

@@ -11,6 +11,8 @@ from sqlalchemy import select
 
 from services.core.db.models import Artifact, Job
 from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
+from services.worker.reproduce import specs_from_config
+from services.worker.runtime import JobConfigError
 from tests.worker.conftest import TINY_PPO, Platform
 
 pytestmark = pytest.mark.slow
@@ -63,6 +65,7 @@ def test_reproduce_with_the_platform_preset(fs_platform: Platform, worker) -> No
     config = {
         "seeds": 1, "tasks": ["sssg"], "methods": ["rl_sparse", "hf_sparse"],
         "accuracies": [0.7], "preset": "platform", "ppo": {**TINY_PPO, "total_steps": 256},
+        "n_labels": 200,
     }  # fmt: skip
     job_id = fs_platform.submit("reproduce", config)
     job = fs_platform.wait(job_id, {"succeeded", "failed"}, timeout=240)
@@ -79,6 +82,13 @@ def test_reproduce_with_the_platform_preset(fs_platform: Platform, worker) -> No
     # self-imitation for every method of the reproduction alike
     assert hf["ppo_overrides"]["sil_coef"] == specs["rl_sparse"]["ppo_overrides"]["sil_coef"] == 1.0
     assert specs["rl_sparse"]["hf_method"] is None
+    assert (hf["n_labels"], specs["rl_sparse"]["n_labels"]) == (200, 1000)
     data = json.loads((fs_platform.settings.resolved_artifact_dir / results.relpath).read_text())
     by_method = {run["method"]: run["spec"] for run in data["runs"]}
     assert by_method["hf_sparse"]["hf_method"] == RECOMMENDED_METHOD
+
+
+@pytest.mark.parametrize("n_labels", [0, -5, "many", True, 2.5])
+def test_reproduce_refuses_a_bad_label_count_naming_it(n_labels) -> None:
+    with pytest.raises(JobConfigError, match="n_labels must be an integer >= 1"):
+        specs_from_config({"quick": True, "n_labels": n_labels})

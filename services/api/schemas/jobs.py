@@ -197,6 +197,10 @@ class ReproduceConfig(StrictRequest):
     checkpoint_every: int | None = Field(
         None, ge=1, le=100_000, description="PPO updates between checkpoints of each run."
     )
+    n_labels: int = Field(
+        1000, ge=1, le=1_000_000,
+        description="Labels each hf_sparse run learns pi_HF from (every labelled action).",
+    )  # fmt: skip
 
     @field_validator("tasks", mode="before")
     @classmethod

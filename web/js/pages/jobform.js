@@ -170,6 +170,7 @@ function reproduceForm() {
   const methods = checkboxes("Methods", [["rl_sparse", "RL sparse"], ["rl_rich", "RL rich"], ["hf_sparse", "HF sparse"]],
     ["rl_sparse", "rl_rich", "hf_sparse"]);
   const accuracies = h("input", { name: "accuracies", value: "0.55, 0.6, 0.7" });
+  const nLabels = numberInput("n_labels", { min: 1, max: 1_000_000, value: "1000" });
   const treatments = checkboxes("HF treatments", [["authors", "authors"], ["truncated_is", "truncated IS"]], ["authors"]);
   const totalSteps = numberInput("total_steps", { min: 1, max: LIMITS.maxTotalSteps, value: "40000" });
   const preset = presetSelect();
@@ -182,6 +183,7 @@ function reproduceForm() {
     tasks: h("div", { class: "field" }, tasks),
     methods: h("div", { class: "field" }, methods),
     accuracies: field("Accuracies C", accuracies, "Comma-separated, each 0 to 1 (HF runs)."),
+    n_labels: field("Feedback labels", nLabels, "Labels each HF run learns pi_HF from; 1 to 1,000,000 (the paper: 1000)."),
     treatments: h("div", { class: "field" }, treatments),
     preset: field("Preset", preset,
       "platform: HF steps truncated IS instead of authors, guide sampling, self-imitation, the recommended stage-2 method."),
@@ -202,6 +204,7 @@ function reproduceForm() {
       const errors = {
         seeds: intIn(seeds.value, 1, 100, "seeds"),
         first_seed: intIn(firstSeed.value, 0, LIMITS.maxSeed, "first seed"),
+        n_labels: intIn(nLabels.value, 1, 1_000_000, "labels") || (nLabels.value === "" ? "labels are required" : null),
         total_steps: intIn(totalSteps.value, 1, LIMITS.maxTotalSteps, "steps per run") ||
           (totalSteps.value === "" ? "steps per run are required" : null),
         ...ppo.errors(Number(totalSteps.value)),
@@ -227,6 +230,7 @@ function reproduceForm() {
         tasks: checked(tasks),
         methods: checked(methods),
         accuracies: parseAccuracies(),
+        n_labels: Number(nLabels.value),
         treatments: checked(treatments),
         preset: preset.value,
         ppo: { total_steps: Number(totalSteps.value), ...ppo.values() },
