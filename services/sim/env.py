@@ -331,7 +331,10 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Execute one action; see the class docstring for rewards and termination."""
-        a = int(action)
+        try:
+            a = int(action)
+        except (TypeError, ValueError):
+            raise ValueError(f"action must be 0, 1 or 2, got {action!r}") from None
         if not 0 <= a < N_ACTIONS or a != action:
             raise ValueError(f"action must be 0, 1 or 2, got {action!r}")
         collision = False

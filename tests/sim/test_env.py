@@ -222,8 +222,10 @@ def test_same_seed_same_trajectory() -> None:
 
 def test_invalid_arguments_are_rejected(env: BrainNavEnv) -> None:
     env.reset(seed=0)
-    with pytest.raises(ValueError, match="action must be"):
-        env.step(3)
+    for bad_action in (3, -1, 1.5, np.array([0, 1]), None, "forward"):
+        with pytest.raises(ValueError, match="action must be"):
+            env.step(bad_action)
+    env.step(np.int64(1))  # numpy scalars (what agents sample) are actions
     with pytest.raises(ValueError, match="task"):
         BrainNavEnv(task="maze")
     with pytest.raises(ValueError, match="reward_mode"):
