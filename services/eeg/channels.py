@@ -41,6 +41,10 @@ REQUIRED_SITES = ("Fz", "Cz")
 FRONTO_CENTRAL_SITES = ("FCz", "FC1", "FC2")
 """At least one of these must be present too (FCz is often the reference of 32-channel caps,
 which then carry FC1 and FC2)."""
+_EDF_SIGNAL_TYPE = "eeg "
+"""EDF+ labels start with the signal type (``EEG Fpz-Cz``)."""
+_REFERENCE_SUFFIXES = frozenset({"ref", "avg", "ave", "ar", "le"})
+"""Suffixes naming a common reference (``Fp1-REF``, ``Cz-AVG``...): the site is monopolar."""
 _STANDARD_MONTAGE = "colin27_1005"
 """MNE's 10-5 montage (343 names, a superset of 10-20 and 10-10); bundled, no download."""
 
@@ -57,8 +61,19 @@ def _standard_names() -> dict[str, str]:
 
 
 def standard_name(name: str) -> str | None:
-    """The standard spelling of a 10-20/10-10/10-5 name (case-insensitive), else None."""
-    return _standard_names().get(name.strip().lower())
+    """The standard spelling of a 10-20/10-10/10-5 name (case-insensitive), else None.
+
+    EDF+ labels are accepted too: the signal type prefix ``EEG `` and a common-reference
+    suffix (``-REF``, ``-AVG``, ``-AR``, ``-LE``), e.g. ``EEG Fz-REF`` is ``Fz``; a
+    bipolar derivation such as ``Fz-Cz`` is no standard name.
+    """
+    key = name.strip().lower()
+    if key.startswith(_EDF_SIGNAL_TYPE):
+        key = key[len(_EDF_SIGNAL_TYPE) :].strip()
+    site, dash, reference = key.rpartition("-")
+    if dash and reference.strip() in _REFERENCE_SUFFIXES:
+        key = site.strip()
+    return _standard_names().get(key)
 
 
 def builtin_channel_map(montage: str) -> dict[str, str]:
@@ -145,7 +160,7 @@ def resolve_channels(
     renamed: dict[str, str] = {}
     for name in names:
         target = mapping.get(name, name)
-        if target == STIM_CHANNEL:
+        if target.strip().lower() == STIM_CHANNEL.lower():  # STATUS, status: the trigger
             new = STIM_CHANNEL
         else:
             std = standard_name(target)

@@ -20,6 +20,7 @@ import re
 import shutil
 import tempfile
 import zipfile
+from contextlib import suppress
 from pathlib import Path
 from typing import Literal
 
@@ -43,7 +44,13 @@ Label = Literal["correct", "error"]
 BRAINVISION_MAGIC = (b"Brain Vision Data Exchange Header File", b"BrainVision Data Exchange")
 MAX_UNZIPPED_BYTES = 4 << 30
 """Largest BrainVision set read out of a zip (4 GiB: 20 minutes of 256 channels at 1 kHz)."""
+MAX_RATE_MISMATCH = 0.01
+"""Largest relative difference between an XDF EEG stream's nominal rate and the rate its
+timestamps give (clock drift is ppm; a percent is a wrong rate or lost samples)."""
 _TRIGGER = {"correct": TRIGGER_CORRECT, "error": TRIGGER_ERROR}
+_BINARY_FORMAT_BYTES = {"INT_16": 2, "UINT_16": 2, "INT_32": 4, "IEEE_FLOAT_32": 4}
+_MARKER_POSITION = re.compile(r"^Mk\d+=[^,\r\n]*,[^,\r\n]*,\s*(\d+)", re.MULTILINE)
+"""The (1-based) sample position of each ``Mk<n>=<type>,<description>,<position>,...``."""
 _CODE_DESCRIPTION = re.compile(r"^(?:S|R)?\s*(\d+)$")
 """``"S  1"`` (a BrainVision stimulus marker), ``"R  2"`` (response) or a bare ``"1"``."""
 _VOLT_SCALE = {
@@ -165,12 +172,19 @@ def _referenced_files(vhdr_text: str, shown: str) -> tuple[str, str]:
     try:
         parser.read_string(body)
         common = parser["Common Infos"]
-        return Path(common["DataFile"]).name, Path(common["MarkerFile"]).name
+        named = {key: Path(common[key].strip()).name for key in ("DataFile", "MarkerFile")}
     except (configparser.Error, KeyError) as exc:
         raise FormatError(
             f"{shown}: malformed BrainVision header (no DataFile/MarkerFile in "
             f"[Common Infos]: {exc})"
         ) from exc
+    for key, name in named.items():
+        if name in ("", ".", "..") or name.lower().endswith(".vhdr"):
+            raise FormatError(
+                f"{shown}: malformed BrainVision header ({key}={common[key].strip()!r} names "
+                "no data or marker file)"
+            )
+    return named["DataFile"], named["MarkerFile"]
 
 
 def _read_vhdr(vhdr: Path, shown: str, preload: bool) -> mne.io.BaseRaw:
@@ -183,9 +197,45 @@ def _read_vhdr(vhdr: Path, shown: str, preload: bool) -> mne.io.BaseRaw:
             "(keep the .vhdr, .vmrk and .eeg together; upload them as one zip)"
         )
     try:
-        return mne.io.read_raw_brainvision(vhdr, preload=preload, verbose="error")
+        raw = mne.io.read_raw_brainvision(vhdr, preload=preload, verbose="error")
     except Exception as exc:
         raise FormatError(f"{shown}: not a readable BrainVision set ({exc})") from exc
+    _check_brainvision_length(text, vhdr.parent / data_file, vhdr.parent / marker_file, raw, shown)
+    return raw
+
+
+def _check_brainvision_length(
+    vhdr_text: str, data_path: Path, marker_path: Path, raw: mne.io.BaseRaw, shown: str
+) -> None:
+    """Refuse a truncated BrainVision set: a binary ``.eeg`` that ends inside a sample, or
+    markers after the last sample (MNE reads the part that is there, silently)."""
+    parser = configparser.ConfigParser(interpolation=None, strict=False)
+    with suppress(configparser.Error):
+        parser.read_string(vhdr_text.split("\n", 1)[1] if "\n" in vhdr_text else "")
+    common = parser["Common Infos"] if parser.has_section("Common Infos") else {}
+    binary = parser["Binary Infos"] if parser.has_section("Binary Infos") else {}
+    sample_bytes = _BINARY_FORMAT_BYTES.get(str(binary.get("BinaryFormat", "")).strip().upper())
+    n_channels = str(common.get("NumberOfChannels", "")).strip()
+    if (
+        str(common.get("DataFormat", "BINARY")).strip().upper() == "BINARY"
+        and sample_bytes
+        and n_channels.isdigit()
+        and int(n_channels) > 0
+    ):
+        frame = sample_bytes * int(n_channels)
+        extra = data_path.stat().st_size % frame
+        if extra:
+            raise FormatError(
+                f"{shown}: truncated: the .eeg file ends inside a sample ({extra} bytes of a "
+                f"{frame}-byte sample of {n_channels} channels; was the copy cut short?)"
+            )
+    markers = marker_path.read_text(encoding="utf-8", errors="replace")
+    positions = [int(match) for match in _MARKER_POSITION.findall(markers)]
+    if positions and max(positions) > raw.n_times:
+        raise FormatError(
+            f"{shown}: truncated: the .vmrk places markers up to sample {max(positions)} "
+            f"but the .eeg holds {raw.n_times} samples (was the copy cut short?)"
+        )
 
 
 def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io.BaseRaw:
@@ -197,28 +247,43 @@ def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io
     if not zipfile.is_zipfile(path):
         return _read_vhdr(path, shown, preload)
     with zipfile.ZipFile(path) as archive:
-        members = {Path(info.filename).name: info for info in archive.infolist()}
-        headers = [name for name in members if name.lower().endswith(".vhdr")]
+        files = [info for info in archive.infolist() if not info.is_dir()]
+        headers = [info for info in files if info.filename.lower().endswith(".vhdr")]
         if len(headers) != 1:
             raise FormatError(
                 f"{shown}: a BrainVision zip holds one .vhdr with its .vmrk and .eeg; "
                 f"found {len(headers)} .vhdr files"
             )
-        text = archive.read(members[headers[0]]).decode("utf-8", "replace")
-        wanted = [headers[0], *_referenced_files(text, shown)]
-        absent = [name for name in wanted if name not in members]
-        if absent:
-            raise FormatError(f"{shown}: the zip lacks {', '.join(absent)} (named by the .vhdr)")
-        size = sum(members[name].file_size for name in wanted)
+        text = archive.read(headers[0]).decode("utf-8", "replace")
+        data_file, marker_file = _referenced_files(text, shown)
+        # Members are matched by base name (the set may sit in a folder of the zip), and
+        # case-insensitively when no exact match exists (sets written on Windows).
+        chosen = []
+        for name in (data_file, marker_file):
+            exact = [info for info in files if Path(info.filename).name == name]
+            found = exact or [
+                info for info in files if Path(info.filename).name.lower() == name.lower()
+            ]
+            if not found:
+                raise FormatError(f"{shown}: the zip lacks {name} (named by the .vhdr)")
+            if len(found) > 1:
+                raise FormatError(
+                    f"{shown}: the zip holds {len(found)} files named {name} "
+                    f"({', '.join(info.filename for info in found[:4])}); keep one set per zip"
+                )
+            chosen.append(found[0])
+        size = headers[0].file_size + sum(info.file_size for info in chosen)
         if size > MAX_UNZIPPED_BYTES:
             raise FormatError(
                 f"{shown}: {size} bytes unzipped; at most {MAX_UNZIPPED_BYTES} are read"
             )
+        header_name = f"{Path(headers[0].filename).stem or 'recording'}.vhdr"
+        targets = [header_name, data_file, marker_file]  # MNE wants a lower-case .vhdr
         with tempfile.TemporaryDirectory(prefix="bgrl-vhdr-") as folder:
-            for name in wanted:
-                with archive.open(members[name]) as src, (Path(folder) / name).open("wb") as dst:
+            for info, target in zip([headers[0], *chosen], targets, strict=True):
+                with archive.open(info) as src, (Path(folder) / target).open("wb") as dst:
                     shutil.copyfileobj(src, dst, 1 << 20)
-            return _read_vhdr(Path(folder) / headers[0], shown, preload=True)
+            return _read_vhdr(Path(folder) / header_name, shown, preload=True)
 
 
 def is_brainvision(path: Path, head: bytes) -> bool:
@@ -337,8 +402,21 @@ def read_xdf(
     times = np.asarray(eeg["time_stamps"], dtype=np.float64)
     if data.ndim != 2 or data.shape[0] < 2:
         raise FormatError(f"{shown}: EEG stream {_stream_label(eeg)} holds no samples")
+    effective = (times.size - 1) / (times[-1] - times[0]) if times[-1] > times[0] else 0.0
+    if abs(effective / sfreq - 1.0) > MAX_RATE_MISMATCH:
+        raise FormatError(
+            f"{shown}: EEG stream {_stream_label(eeg)} declares {sfreq:g} Hz but its "
+            f"timestamps give {effective:.6g} Hz ({times.size} samples in "
+            f"{times[-1] - times[0]:.3f} s): a wrong nominal rate, or samples lost"
+        )
     entries = _channel_descriptions(eeg, shown)
     names = [str(_first(entry.get("label"), f"ch{i}")) for i, entry in enumerate(entries)]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise FormatError(
+            f"{shown}: EEG stream {_stream_label(eeg)} labels several channels "
+            f"{', '.join(repeated[:8])}"
+        )
     scale = np.ones(len(names))
     for i, entry in enumerate(entries):
         unit = str(_first(entry.get("unit"), "microvolts")).strip().lower()

@@ -20,6 +20,7 @@ import hashlib
 import logging
 import re
 import struct
+import zipfile
 from pathlib import Path
 from typing import Literal
 
@@ -33,6 +34,7 @@ from services.eeg.channels import ChannelError, resolve_channels
 from services.eeg.formats import (
     EventLabels,
     FormatError,
+    _with_status,
     apply_event_labels,
     is_brainvision,
     read_brainvision,
@@ -73,6 +75,9 @@ MAX_SFREQ = 20000.0
 MIN_DURATION_S = 5.0
 FLAT_STD_V = 1e-9
 """A channel whose standard deviation is below 1 nV is flat (disconnected or saturated)."""
+MAX_STD_V = 1.0
+"""A channel whose standard deviation exceeds 1 V is not EEG in volts (no EEG amplifier's
+input range reaches it): typically microvolts stored as volts, or a unit the file misstates."""
 TRIGGER_MASK = 0xFF
 """Low byte of ``Status``: BioSemi amplifiers set status flags in the upper bits."""
 _XDF_MAGIC = b"XDF:"
@@ -140,10 +145,15 @@ def detect_format(path: str | Path, *, name: str | None = None) -> RecordingForm
         return "edf"
     if len(head) >= 12 and struct.unpack(">iii", head[:12]) == _FIF_FILE_ID:
         return "fif"
-    raise RecordingError(
-        f"{shown}: not a readable BDF, EDF, FIF, BrainVision or XDF file (its first bytes "
-        "match none of them)"
-    )
+    unreadable = f"{shown}: not a readable BDF, EDF, FIF, BrainVision or XDF file"
+    if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
+        if not zipfile.is_zipfile(path):
+            raise RecordingError(f"{unreadable}: a damaged or truncated zip (it cannot be opened)")
+        raise RecordingError(
+            f"{unreadable}: a zip without a BrainVision .vhdr (a zip is read only as a "
+            "BrainVision set: its .vhdr, .vmrk and .eeg; upload other formats unzipped)"
+        )
+    raise RecordingError(f"{unreadable} (its first bytes match none of them)")
 
 
 def format_mismatch(name: str, fmt: RecordingFormat) -> str | None:
@@ -222,6 +232,87 @@ def _check_edf_layout(path: Path, fmt: Literal["bdf", "edf"], shown: str) -> Non
         )
 
 
+def _check_fif_layout(path: Path, shown: str) -> None:
+    """Refuse a FIF file whose tags run past its end (e.g. a truncated copy).
+
+    Every FIF tag is a 16-byte header (kind, type, size, next; big-endian) and ``size``
+    bytes of data; ``next`` is 0 for the tag that follows, a byte position, or -1 (none).
+    MNE reads a cut file's header and fails only when it reaches the missing samples.
+    """
+    size = path.stat().st_size
+    pos, seen = 0, set()
+    with path.open("rb") as fh:
+        while pos < size and pos not in seen:
+            seen.add(pos)
+            fh.seek(pos)
+            head = fh.read(16)
+            if len(head) < 16:
+                raise RecordingError(
+                    f"{shown}: truncated: the FIF file ends inside a tag header at byte {pos} "
+                    f"of {size} (was the copy or upload cut short?)"
+                )
+            _, _, tag_size, next_pos = struct.unpack(">iIii", head)
+            end = pos + 16 + tag_size
+            if tag_size < 0 or end > size:
+                raise RecordingError(
+                    f"{shown}: truncated: a FIF tag at byte {pos} holds {tag_size} bytes but "
+                    f"the file ends after {size - pos - 16} (was the copy or upload cut short?)"
+                )
+            if next_pos == 0:
+                pos = end
+            elif next_pos > 0:
+                pos = next_pos
+            else:
+                break
+
+
+def _bdf_scaled_status(path: Path, n_times: int) -> np.ndarray | None:
+    """The codes of a BDF ``Status`` signal written with a scaled physical range, else None.
+
+    BioSemi (and :func:`write_bdf`) store the trigger word with physical range = digital
+    range; MNE reads any BDF ``Status`` signal as that raw word. ``mne.export.export_raw``
+    instead maps the codes' physical range (e.g. 0..2) onto the digital range, which MNE
+    then reads as nonsense (1 for no event, 0 for code 1...). Here such a signal is decoded
+    through its header: physical = pmin + (digital - dmin) * (pmax - pmin) / (dmax - dmin).
+    """
+    with path.open("rb") as fh:
+        head = fh.read(256)
+        header_bytes, n_records = int(head[184:192]), int(head[236:244])
+        n_signals = int(head[252:256])
+        fields = fh.read(header_bytes - 256)
+
+    def column(offset: int, width: int) -> list[bytes]:
+        """One per-signal header field (``offset``: bytes before it per signal)."""
+        start = offset * n_signals
+        ends = range(start, start + width * n_signals, width)
+        return [fields[end : end + width].strip() for end in ends]
+
+    labels = [label.decode("ascii", "replace").lower() for label in column(0, 16)]
+    if STIM_CHANNEL.lower() not in labels:
+        return None
+    index = labels.index(STIM_CHANNEL.lower())
+    pmin, pmax, dmin, dmax = (float(column(offset, 8)[index]) for offset in (104, 112, 120, 128))
+    if (pmin, pmax) == (dmin, dmax) or dmax == dmin:
+        return None
+    per_record = [int(value) for value in column(216, 8)]
+    n_status = per_record[index]
+    record_bytes = 3 * sum(per_record)
+    if n_records == -1:
+        n_records = (path.stat().st_size - header_bytes) // record_bytes
+    start = 3 * sum(per_record[:index])
+    records = np.memmap(
+        path, dtype=np.uint8, mode="r", offset=header_bytes, shape=(n_records, record_bytes)
+    )
+    raw_bytes = np.asarray(records[:, start : start + 3 * n_status]).reshape(-1, 3)
+    digital = raw_bytes.astype(np.int32) @ np.array([1, 1 << 8, 1 << 16], dtype=np.int32)
+    digital = np.where(digital >= 1 << 23, digital - (1 << 24), digital)
+    physical = pmin + (digital - dmin) * ((pmax - pmin) / (dmax - dmin))
+    codes = np.rint(physical)
+    if codes.size != n_times:  # fewer Status samples per record than the EEG: hold each
+        codes = codes[np.arange(n_times) * codes.size // n_times]
+    return codes
+
+
 # ----------------------------------------------------------------------------- reading
 
 
@@ -254,7 +345,9 @@ def _read_any(
             return apply_event_labels(read_brainvision(path, shown, preload=preload), labels)
         except FormatError as exc:
             raise RecordingError(_scrub_paths(str(exc), path, shown)) from exc
-    if fmt != "fif":
+    if fmt == "fif":
+        _check_fif_layout(path, shown)
+    else:
         _check_edf_layout(path, fmt, shown)
     try:
         if fmt == "bdf":  # the classes, not read_raw_*: those insist on the suffix
@@ -275,6 +368,13 @@ def _read_any(
             if not description.startswith(SYNTHETIC_TAG):
                 description = f"{SYNTHETIC_TAG} (file header: {patient} / {recording})"
             raw.info["description"] = description
+    if fmt == "bdf":
+        try:
+            codes = _bdf_scaled_status(path, raw.n_times)
+        except ValueError as exc:
+            raise RecordingError(f"{shown}: malformed BDF header ({exc})") from exc
+        if codes is not None:
+            raw = _with_status(raw, codes)
     return apply_event_labels(raw, labels)
 
 
@@ -357,14 +457,22 @@ def read_recording(
     raw = _read_any(
         path, fmt, shown, preload, labels or EventLabels(), (xdf_stream, xdf_marker_stream)
     )
-    validate_recording(
-        raw,
-        ch_names=ch_names,
-        channel_map=channel_map,
-        min_sfreq=min_sfreq,
-        min_duration_s=min_duration_s,
-        name=shown,
-    )
+    try:
+        validate_recording(
+            raw,
+            ch_names=ch_names,
+            channel_map=channel_map,
+            min_sfreq=min_sfreq,
+            min_duration_s=min_duration_s,
+            name=shown,
+        )
+    except RecordingError:
+        raise
+    except (ValueError, OSError, EOFError) as exc:  # samples read lazily from a damaged file
+        reason = _scrub_paths(f"{type(exc).__name__}: {exc}", path, shown)
+        raise RecordingError(
+            f"{shown}: damaged {fmt.upper()} file: its samples cannot be read ({reason})"
+        ) from exc
     return raw
 
 
@@ -455,7 +563,20 @@ def validate_recording(
         raise RecordingError(f"{name}: NaN or infinite samples in channels {', '.join(bad_nan)}")
     flat = [ch for ch, sd in zip(required, std, strict=True) if sd < FLAT_STD_V]
     if flat:
-        raise RecordingError(f"{name}: flat channels (std < 1 nV): {', '.join(flat)}")
+        hint = (
+            " (every EEG channel: are the samples in volts? a file whose unit says microvolts "
+            "but holds volts reads a million times too small)"
+            if len(flat) == len(required)
+            else ""
+        )
+        raise RecordingError(f"{name}: flat channels (std < 1 nV): {', '.join(flat)}{hint}")
+    huge = [f"{ch} ({sd:.3g} V)" for ch, sd in zip(required, std, strict=True) if sd > MAX_STD_V]
+    if huge:
+        raise RecordingError(
+            f"{name}: EEG amplitudes beyond any amplifier's range, standard deviation over "
+            f"{MAX_STD_V:g} V in {', '.join(huge[:8])}{' ...' if len(huge) > 8 else ''}: the "
+            "samples are not in volts (microvolts stored as volts, or a wrong unit in the file)"
+        )
     if len(action_events(raw)) == 0:
         raise RecordingError(
             f"{name}: no action events (Status codes {TRIGGER_CORRECT} = correct, "

@@ -16,6 +16,9 @@ from services.core.schemas import StrictRequest
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 """A job's status; the last three are final."""
 ChannelName = Annotated[str, Field(min_length=1, max_length=64)]
+Sample = Annotated[float, Field(strict=True), AllowInfNan(True)]
+"""A sample value: a JSON number (``true`` or ``"1"`` are refused), NaN and infinities
+accepted here and handled by the endpoint."""
 FINAL_JOB_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 
 HEX_ID = "^[0-9a-f]+$"
@@ -49,9 +52,12 @@ class JobCreate(StrictRequest):
     """Start calibration training on a stored recording."""
 
     recording_id: str = Field(min_length=8, max_length=64, pattern=HEX_ID)
-    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seeds the split and the training.")
+    seed: int = Field(
+        0, strict=True, ge=0, le=2**31 - 1, description="Seeds the split and the training."
+    )
     max_passes: int = Field(
         300,
+        strict=True,
         ge=1,
         description="Most training passes over the training split (early stopping may end "
         "sooner); at most the service's BGRL_EEG_MAX_TRAINING_PASSES.",
@@ -104,7 +110,7 @@ class ClassifierPublic(BaseModel):
 class EpochClassify(StrictRequest):
     """One preprocessed epoch in volts, channels x times."""
 
-    epoch: list[list[Annotated[float, AllowInfNan(True)]]] = Field(
+    epoch: list[list[Sample]] = Field(
         description="Rows in ch_names order, in volts (not microvolts); NaN is refused."
     )
     ch_names: list[str] = Field(description="Channel of each row, in order.")
@@ -233,6 +239,6 @@ class IngestChunk(StrictRequest):
     """Every later message of ``WS /live/ingest``: consecutive samples of the stream."""
 
     first_timestamp: float = Field(description="LSL-clock time (s) of the first sample.")
-    samples: list[list[Annotated[float, AllowInfNan(True)]]] = Field(
+    samples: list[list[Sample]] = Field(
         description="n_times x n_channels, volts; NaN marks bad samples (reported as issues)."
     )

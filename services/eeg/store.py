@@ -103,11 +103,14 @@ class RecordingStore:
         return RecordingPublic.model_validate_json(path.read_text())
 
     def list(self) -> list[RecordingPublic]:
-        """Every stored recording, by id."""
-        return [
-            RecordingPublic.model_validate_json(p.read_text())
-            for p in sorted(self.folder.glob("*.json"))
-        ]
+        """Every readable stored recording, by id (an unreadable record is logged)."""
+        recordings = []
+        for path in sorted(self.folder.glob("*.json")):
+            try:
+                recordings.append(RecordingPublic.model_validate_json(path.read_text()))
+            except ValueError as exc:
+                logger.warning("skipping unreadable recording record %s: %s", path.name, exc)
+        return recordings
 
     def file(self, recording_id: str) -> Path:
         """The stored file of one recording."""
@@ -231,7 +234,12 @@ class ClassifierStore:
         """What the API shows of one classifier."""
         clf = self.get(classifier_id)
         source = self.folder / classifier_id / SOURCE_FILE
-        recording_id = json.loads(source.read_text())["recording_id"] if source.is_file() else None
+        recording_id = None
+        if source.is_file():
+            try:
+                recording_id = str(json.loads(source.read_text())["recording_id"])
+            except (ValueError, KeyError, TypeError) as exc:
+                logger.warning("classifier %s: unreadable %s: %s", classifier_id, SOURCE_FILE, exc)
         return ClassifierPublic(
             id=classifier_id,
             recording_id=recording_id,
@@ -241,6 +249,17 @@ class ClassifierStore:
             epoch_shape=clf.epoch_shape,
             metrics=jsonable(clf.metrics),
         )
+
+    def list(self) -> list[ClassifierPublic]:
+        """Every usable classifier; one whose files cannot be loaded is left out (logged;
+        ``GET /classifiers/{id}`` answers 409 with the reason)."""
+        usable = []
+        for classifier_id in self.ids():
+            try:
+                usable.append(self.public(classifier_id))
+            except ClassifierUnusableError:
+                continue
+        return usable
 
     def ids(self) -> list[str]:
         """Ids of every trained classifier."""

@@ -19,8 +19,8 @@ below it, while the same epoch in microvolts exceeds it."""
 
 @router.get("")
 def list_classifiers(classifiers: ClassifiersDep) -> list[ClassifierPublic]:
-    """Trained classifiers with their calibration metrics."""
-    return [classifiers.public(classifier_id) for classifier_id in classifiers.ids()]
+    """Trained classifiers with their calibration metrics (unusable ones are left out)."""
+    return classifiers.list()
 
 
 @router.get("/{classifier_id}")

@@ -254,6 +254,16 @@ def _ingest_chunk(ingest: LiveIngest, message: dict[str, Any]) -> dict[str, Any]
             samples, first = _binary_chunk(data, len(ingest.stream_ch_names))
         elif text is not None:
             chunk = IngestChunk.model_validate_json(text)
+            n_channels = len(ingest.stream_ch_names)
+            ragged = next(
+                (i for i, row in enumerate(chunk.samples) if len(row) != n_channels), None
+            )
+            if ragged is not None:
+                return {
+                    "ok": False,
+                    "error": f"samples: each row holds one value per channel ({n_channels}); "
+                    f"row {ragged} holds {len(chunk.samples[ragged])}",
+                }
             samples = np.asarray(chunk.samples, dtype=np.float64)
             first = chunk.first_timestamp
         else:
