@@ -7,7 +7,7 @@ import json
 import math
 import types
 import typing
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from datetime import UTC, datetime
 from json.encoder import encode_basestring
 from typing import Any, Literal, TypeVar
@@ -33,6 +33,7 @@ from sqlalchemy.sql.functions import FunctionElement
 
 from services.api.deps import PageParams
 from services.core.db.base import UtcDateTime
+from services.core.db.models import Job
 from services.core.errors import NotFoundError
 
 RowT = TypeVar("RowT")
@@ -41,12 +42,43 @@ TOTAL_COLUMN = "total_matching"
 
 
 def get_or_404(db: Session, model: type[RowT], row_id: object, field: str) -> RowT:
-    """The row of ``model`` with primary key ``row_id``; 404 naming ``field`` otherwise."""
-    row = db.get(model, row_id)
+    """The row of ``model`` with primary key ``row_id``; 404 naming ``field`` otherwise
+    (also for a text id no row can have: one with a NUL character, which PostgreSQL
+    cannot even compare)."""
+    row = None if isinstance(row_id, str) and "\x00" in row_id else db.get(model, row_id)
     if row is None:
         name = getattr(model, "__tablename__", model.__name__).rstrip("s").replace("_", " ")
         raise NotFoundError(f"no {name} with id {row_id}", field=field)
     return row
+
+
+ACTIVE_JOB_STATUSES = ("queued", "running")
+
+
+def busy_job(
+    db: Session,
+    *,
+    subject_id: int | None = None,
+    session_ids: Collection[int] = (),
+    recording_ids: Collection[int] = (),
+) -> Job | None:
+    """A queued or running job working on the subject, its sessions or its recordings (a live
+    session, a BIDS export, a replay, a calibration), which deleting them would break."""
+    active = db.scalars(
+        select(Job).where(
+            Job.status.in_(ACTIVE_JOB_STATUSES),
+            Job.kind.in_(("live_session", "bids_export", "session_replay", "eeg_calibration")),
+        )
+    )
+    for job in active:
+        config = job.config or {}
+        if (
+            (subject_id is not None and config.get("subject_id") == subject_id)
+            or config.get("session_id") in session_ids
+            or config.get("recording_id") in recording_ids
+        ):
+            return job
+    return None
 
 
 def page_rows(

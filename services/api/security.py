@@ -14,6 +14,7 @@ from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 
 from services.api.errors import UnauthorizedError
+from services.api.schemas.common import MAX_ROW_ID
 from services.api.settings import ApiSettings
 from services.core.db.base import utcnow
 
@@ -100,7 +101,12 @@ def decode_access_token(token: str, key: str) -> int:
     except jwt.PyJWTError:
         raise UnauthorizedError("malformed or invalid access token", field="token") from None
     subject = claims.get("sub")
-    if claims.get("typ") != "access" or not isinstance(subject, str) or not subject.isdigit():
+    if (
+        claims.get("typ") != "access"
+        or not isinstance(subject, str)
+        or not (subject.isascii() and subject.isdigit())
+        or int(subject) > MAX_ROW_ID  # no user has such an id (nor could the database hold it)
+    ):
         raise UnauthorizedError("malformed or invalid access token", field="token")
     return int(subject)
 

@@ -26,6 +26,10 @@ def check_recording_name(filename: str) -> str:
     name = PurePosixPath(filename.replace("\\", "/")).name
     if not name or len(name) > 255:
         raise BadRequestError("give the recording's file name", field="filename")
+    if any(ord(char) < 32 or ord(char) == 127 for char in name):
+        raise BadRequestError(
+            f"the file name {name!r} has control characters; rename the file", field="filename"
+        )
     if PurePosixPath(name).suffix.lower() not in RECORDING_SUFFIXES:
         raise UnsupportedMediaError(
             f"{name!r} is not a recording; send one of {', '.join(RECORDING_SUFFIXES)}",

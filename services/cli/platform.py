@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import math
 import socket
 import sys
 from collections.abc import Iterator
@@ -72,6 +73,9 @@ def _client(url: str | None) -> Iterator[PlatformClient]:
             yield client
     except PlatformError as exc:
         _fail(str(exc), EXIT_BAD_INPUT if exc.is_bad_input else EXIT_FAILED)
+    except OSError as exc:  # a local file: e.g. where a download is saved
+        where = f"{exc.filename}: " if exc.filename else ""
+        _fail(f"{where}{exc.strerror or exc}")
 
 
 def login(
@@ -112,19 +116,49 @@ def login(
                     api_url=base_url, email=user.email, token=created.token, token_id=created.id
                 )
                 expires = f"until {created.expires_at:%Y-%m-%d}" if created.expires_at else ""
+            try:
+                save_credentials(settings.credentials_file, saved)
+            except OSError as exc:
+                if saved.token_id is not None:  # a token not kept is not left valid either
+                    client.revoke_api_token(saved.token_id)
+                _fail(
+                    f"cannot save the credentials to {settings.credentials_file} "
+                    f"({exc.strerror or exc}); set BGRL_CREDENTIALS_FILE to a writable path"
+                )
     except PlatformError as exc:
         _fail(str(exc), EXIT_BAD_INPUT if exc.is_bad_input else EXIT_FAILED)
-    save_credentials(settings.credentials_file, saved)
     typer.echo(
         f"signed in to {base_url} as {user.email} ({user.role}); API token ({expires}) saved "
         f"to {settings.credentials_file}"
     )
 
 
+class NotJsonNumberError(ValueError):
+    """A number the api's JSON cannot carry: NaN, Infinity, or one too large for a float."""
+
+
+def _refuse_constant(name: str) -> Any:
+    raise NotJsonNumberError(f"{name} is not a number JSON can carry")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise NotJsonNumberError(f"{text} is out of range for a number")
+    return value
+
+
+def _loads(text: str) -> Any:
+    """JSON as the api reads it: no NaN, Infinity or numbers too large for a float."""
+    return json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float)
+
+
 def _parse_value(text: str) -> Any:
     """``--set`` values: JSON when they parse as JSON (numbers, true, lists...), else text."""
     try:
-        return json.loads(text)
+        return _loads(text)
+    except NotJsonNumberError:
+        raise
     except ValueError:
         return text
 
@@ -142,12 +176,16 @@ def build_config(config: str | None, assignments: list[str]) -> dict[str, Any]:
                 text = Path(source).read_text(encoding="utf-8")
             except OSError as exc:
                 raise ValueError(f"--config: cannot read {source} ({exc.strerror})") from None
+            except UnicodeDecodeError:
+                raise ValueError(f"--config: {source} is not UTF-8 text") from None
         try:
-            parsed = json.loads(text)
+            parsed = _loads(text)
         except json.JSONDecodeError as exc:
             raise ValueError(
                 f"{source} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
             ) from None
+        except ValueError as exc:
+            raise ValueError(f"{source} is not valid JSON: {exc}") from None
         if not isinstance(parsed, dict):
             raise ValueError(f"{source} must be a JSON object, not {type(parsed).__name__}")
         values = parsed
@@ -162,7 +200,10 @@ def build_config(config: str | None, assignments: list[str]) -> dict[str, Any]:
             if not isinstance(child, dict):
                 raise ValueError(f"--set {item!r}: {part} is not an object in the config")
             target = child
-        target[parts[-1]] = _parse_value(raw.strip())
+        try:
+            target[parts[-1]] = _parse_value(raw.strip())
+        except NotJsonNumberError as exc:
+            raise ValueError(f"--set {item!r}: {exc}") from None
     return values
 
 
@@ -213,6 +254,9 @@ def list_jobs(
             f"unknown status {status!r}; use one of {', '.join(get_args(JobStatus))}",
             EXIT_BAD_INPUT,
         )
+    kinds = (*get_args(JobKind), "reproduce_run")
+    if kind is not None and kind not in kinds:
+        _fail(f"unknown job kind {kind!r}; use one of {', '.join(kinds)}", EXIT_BAD_INPUT)
     with _client(url) as client:
         page = client.list_jobs(status=status, kind=kind, limit=limit)  # type: ignore[arg-type]
     if as_json:

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import math
 import os
+import string
 import time
 import uuid
 from collections.abc import Callable, Mapping
@@ -73,6 +75,35 @@ def _query(**params: Any) -> dict[str, Any]:
     return {key: value for key, value in params.items() if value is not None}
 
 
+ID_CHARACTERS = frozenset(string.ascii_letters + string.digits + "_-")
+
+
+def _segment(value: str, field: str) -> str:
+    """A text id (a job's, an artifact's) as one path segment; :class:`PlatformError` for
+    an empty one or one with other characters than letters, digits, ``_`` and ``-`` (which
+    would address another route: ``/``, ``?``, ``#``, ``..``)."""
+    if not value or not set(value) <= ID_CHARACTERS:
+        raise PlatformError(f"{value!r} is not a valid id", field=field)
+    return value
+
+
+def _non_finite(value: Any, path: str = "") -> str | None:
+    """The dotted path of the first NaN or infinity in a JSON body, None if there is none."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return path or "body"
+    if isinstance(value, Mapping):
+        items: Any = value.items()
+    elif isinstance(value, list | tuple):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = _non_finite(item, f"{path}.{key}" if path else str(key))
+        if found is not None:
+            return found
+    return None
+
+
 class PlatformClient:
     """The platform api at ``base_url`` (e.g. ``http://127.0.0.1:8000``).
 
@@ -104,26 +135,50 @@ class PlatformClient:
     # -- transport ---------------------------------------------------------------------
 
     def _headers(self) -> dict[str, str]:
-        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
+        if not self.token:
+            return {}
+        if not (self.token.isascii() and self.token.isprintable()) or " " in self.token:
+            raise PlatformError(
+                "the token is malformed: it has spaces, control or non-ASCII characters",
+                field="token",
+            )
+        return {"Authorization": f"Bearer {self.token}"}
 
     def _send(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        body = kwargs.get("json")
+        if body is not None and (where := _non_finite(body)) is not None:
+            raise PlatformError(
+                f"{where} is NaN or infinite, which JSON cannot carry; give a finite number",
+                field=where,
+            )
         try:
             response = self._http.request(method, path, headers=self._headers(), **kwargs)
         except httpx.HTTPError as exc:
             raise PlatformError(f"cannot reach {self.base_url}: {exc}") from None
-        if response.is_error:
+        if not response.is_success:
             raise error_from_response(response)
         return response
 
+    def _parse(self, response: httpx.Response, model: type[ModelT]) -> ModelT:
+        """The answer as ``model``; :class:`PlatformError` if it is not what the api sends
+        (e.g. a proxy's page, or another server at ``base_url``)."""
+        try:
+            return model.model_validate(response.json())
+        except ValueError as exc:  # not JSON, or JSON of another shape
+            summary = str(exc).splitlines()[0]
+            raise PlatformError(
+                f"unexpected answer from {response.request.url} (is {self.base_url} the "
+                f"platform api?): {summary}",
+                status=response.status_code,
+            ) from None
+
     def _get(self, path: str, model: type[ModelT], **params: Any) -> ModelT:
-        response = self._send("GET", path, params=_query(**params))
-        return model.model_validate(response.json())
+        return self._parse(self._send("GET", path, params=_query(**params)), model)
 
     def _post(
         self, path: str, model: type[ModelT], body: Mapping[str, Any] | None = None
     ) -> ModelT:
-        response = self._send("POST", path, json=body)
-        return model.model_validate(response.json())
+        return self._parse(self._send("POST", path, json=body), model)
 
     # -- auth --------------------------------------------------------------------------
 
@@ -132,7 +187,7 @@ class PlatformClient:
         response = self._send(
             "POST", f"{API}/auth/token", data={"username": email, "password": password}
         )
-        access = AccessToken.model_validate(response.json())
+        access = self._parse(response, AccessToken)
         self.token = access.access_token
         return access
 
@@ -255,19 +310,19 @@ class PlatformClient:
 
     def get_job(self, job_id: str) -> Job:
         """One job."""
-        return self._get(f"{API}/jobs/{job_id}", Job)
+        return self._get(f"{API}/jobs/{_segment(job_id, 'job_id')}", Job)
 
     def cancel_job(self, job_id: str) -> Job:
         """Cancel a job: a queued one at once, a running one within seconds."""
-        return self._post(f"{API}/jobs/{job_id}/cancel", Job)
+        return self._post(f"{API}/jobs/{_segment(job_id, 'job_id')}/cancel", Job)
 
     def retry_job(self, job_id: str) -> Job:
         """Run a failed or cancelled job again (it resumes from its last checkpoint)."""
-        return self._post(f"{API}/jobs/{job_id}/retry", Job)
+        return self._post(f"{API}/jobs/{_segment(job_id, 'job_id')}/retry", Job)
 
     def job_curve(self, job_id: str) -> Curve:
         """The job's learning curve so far."""
-        return self._get(f"{API}/jobs/{job_id}/curve", Curve)
+        return self._get(f"{API}/jobs/{_segment(job_id, 'job_id')}/curve", Curve)
 
     def wait_job(
         self,
@@ -303,7 +358,7 @@ class PlatformClient:
     def download_model(self, job_id: str, path: str | os.PathLike[str]) -> DownloadedFile:
         """Save a finished training job's policy (TorchScript with its observation
         normalisation) to ``path``, verifying ``X-Checksum-Sha256``."""
-        return self._download(f"{API}/jobs/{job_id}/model", Path(path))
+        return self._download(f"{API}/jobs/{_segment(job_id, 'job_id')}/model", Path(path))
 
     def list_hf_models(
         self, *, task: str | None = None, limit: int = 50, offset: int = 0
@@ -366,11 +421,12 @@ class PlatformClient:
 
     def get_artifact(self, artifact_id: str) -> Artifact:
         """One stored file's record."""
-        return self._get(f"{API}/artifacts/{artifact_id}", Artifact)
+        return self._get(f"{API}/artifacts/{_segment(artifact_id, 'artifact_id')}", Artifact)
 
     def download_artifact(self, artifact_id: str, path: str | os.PathLike[str]) -> DownloadedFile:
         """Save a stored file to ``path``, verifying its checksum."""
-        return self._download(f"{API}/artifacts/{artifact_id}/download", Path(path))
+        route = f"{API}/artifacts/{_segment(artifact_id, 'artifact_id')}/download"
+        return self._download(route, Path(path))
 
     def _download(self, route: str, path: Path, **params: Any) -> DownloadedFile:
         """Stream ``route`` into a temporary file next to ``path``, hashing as it goes; keep
@@ -380,10 +436,11 @@ class PlatformClient:
         digest = hashlib.sha256()
         size = 0
         try:
+            headers = self._headers()
             with self._http.stream(
-                "GET", route, params=_query(**params), headers=self._headers()
+                "GET", route, params=_query(**params), headers=headers
             ) as response:
-                if response.is_error:
+                if not response.is_success:
                     response.read()
                     raise error_from_response(response)
                 expected = response.headers.get(CHECKSUM_HEADER, "").strip().lower()

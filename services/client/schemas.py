@@ -12,8 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 ItemT = TypeVar("ItemT")
 
-JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration"]
-"""Kinds a user may submit."""
+JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration", "bids_export", "session_replay"]
+"""Kinds a user may submit (the api's; a test holds them equal)."""
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 FINAL_JOB_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 """A job in one of these stays there (until it is retried)."""

@@ -214,6 +214,8 @@ def test_subject_with_recordings_needs_an_admin_purge(api: Api) -> None:
         "code": "S01",
         "recordings": 1,
         "classifiers": 0,
+        "live_runs": 0,
+        "feedback_labels": 0,
         "files": 1,
     }
     assert entry["items"][0]["actor_email"] == "admin@lab.test"

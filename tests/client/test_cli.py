@@ -148,7 +148,8 @@ def test_submit_sets_the_stage2_method_and_the_preset(live_api: LiveApi, signed_
     ("args", "message"),
     [
         (["jobs", "submit", "ppo"],
-         "error: unknown job kind 'ppo'; use one of guided_ppo, reproduce, eeg_calibration\n"),
+         "error: unknown job kind 'ppo'; use one of guided_ppo, reproduce, eeg_calibration, "
+         "bids_export, session_replay\n"),
         (["jobs", "submit", "guided_ppo", "--config", "{task: sssg}"],
          "error: --config is not valid JSON: Expecting property name enclosed in double quotes "
          "at line 1 column 2\n"),

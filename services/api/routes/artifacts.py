@@ -12,7 +12,7 @@ from services.api.crud import get_or_404, paginate
 from services.api.deps import DbDep, PageDep, StoreDep, get_current_user
 from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
 from services.api.schemas.artifacts import ArtifactPublic
-from services.api.schemas.common import Page
+from services.api.schemas.common import NO_NUL_PATTERN, Page
 from services.core.db.models import Artifact
 
 router = APIRouter(
@@ -24,8 +24,8 @@ router = APIRouter(
 def list_artifacts(
     db: DbDep,
     page: PageDep,
-    kind: Annotated[str | None, Query(max_length=32)] = None,
-    job_id: Annotated[str | None, Query(max_length=32)] = None,
+    kind: Annotated[str | None, Query(max_length=32, pattern=NO_NUL_PATTERN)] = None,
+    job_id: Annotated[str | None, Query(max_length=32, pattern=NO_NUL_PATTERN)] = None,
 ) -> Page[ArtifactPublic]:
     """Stored files, newest first, by kind or job."""
     query = select(Artifact).order_by(Artifact.created_at.desc(), Artifact.id)

@@ -45,7 +45,8 @@ def login(
         raise TooManyRequestsError(
             f"too many failed logins; try again in {wait} s", retry_after_s=wait, field="username"
         )
-    user = db.scalar(select(User).where(User.email == email))
+    # an address with a NUL character names nobody (and PostgreSQL cannot compare it)
+    user = None if "\x00" in email else db.scalar(select(User).where(User.email == email))
     if user is None:
         valid = verify_nobody(form.password)
     else:

@@ -23,7 +23,7 @@ def _check(websocket: WebSocket, token: str | None, job_id: str) -> tuple[int, s
     with websocket.app.state.sessions() as db:
         if (refused := websocket_sign_in_refusal(db, websocket, token)) is not None:
             return refused
-        if db.get(Job, job_id) is None:
+        if "\x00" in job_id or db.get(Job, job_id) is None:  # PostgreSQL cannot compare NUL
             return CLOSE_NOT_FOUND, f"no job with id {job_id}"
     return None
 

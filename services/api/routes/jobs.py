@@ -39,12 +39,12 @@ from services.api.deps import (
 from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
 from services.api.errors import UnauthorizedError
 from services.api.plots import curve_png
-from services.api.schemas.common import MAX_ROW_ID, Page
+from services.api.schemas.common import MAX_ROW_ID, NO_NUL_PATTERN, Page
 from services.api.schemas.jobs import (
     CONFIG_MODELS,
     CurvePublic,
     JobCreate,
-    JobKind,
+    JobListKind,
     JobPublic,
     JobStatus,
 )
@@ -170,9 +170,11 @@ async def list_jobs(
     token: BearerToken,
     page: PageDep,
     status_: Annotated[JobStatus | None, Query(alias="status")] = None,
-    kind: Annotated[JobKind | Literal["reproduce_run"] | None, Query()] = None,
+    kind: Annotated[JobListKind | None, Query()] = None,
     submitter_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
-    parent_id: Annotated[str | None, Query(max_length=MAX_PARENT_ID_CHARS)] = None,
+    parent_id: Annotated[
+        str | None, Query(max_length=MAX_PARENT_ID_CHARS, pattern=NO_NUL_PATTERN)
+    ] = None,
 ) -> Response:
     """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs).
 
@@ -216,9 +218,11 @@ HOT_LIST_PARAMETERS: dict[str, Callable[[str], Any]] = {
     "limit": _decimal(1, MAX_PAGE_LIMIT),
     "offset": _decimal(0, MAX_PAGE_OFFSET),
     "status": _one_of(typing.get_args(JobStatus)),
-    "kind": _one_of([*typing.get_args(JobKind), "reproduce_run"]),
+    "kind": _one_of(typing.get_args(JobListKind)),
     "submitter_id": _decimal(1, MAX_ROW_ID),
-    "parent_id": lambda text: text if 0 < len(text) <= MAX_PARENT_ID_CHARS else None,
+    "parent_id": lambda text: (
+        text if 0 < len(text) <= MAX_PARENT_ID_CHARS and "\x00" not in text else None
+    ),
 }
 """The list's query parameters as :func:`hot_list_jobs` reads them: each parser gives the
 value :func:`list_jobs` would get, or None where it leaves the request to the route."""

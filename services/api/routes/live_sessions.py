@@ -8,7 +8,7 @@ from datetime import datetime
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Query
-from pydantic import AwareDatetime, BaseModel, Field
+from pydantic import BaseModel, Field
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -25,6 +25,7 @@ from services.api.deps import (
     get_current_user,
 )
 from services.api.routes.jobs import _enqueue
+from services.api.schemas.common import MAX_ROW_ID, NUL_MESSAGE, ApiRequest, UtcDatetime, has_nul
 from services.core.db.live import (
     LiveDecision,
     LiveFrameShown,
@@ -36,7 +37,6 @@ from services.core.db.live import (
 from services.core.db.models import Classifier, FeedbackLabel, Job, LabSession
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.live import LiveOptions, latency_summary, pace_drift, timeline_latencies
-from services.core.schemas import StrictRequest
 
 router = APIRouter(
     prefix="/api/v1/sessions", tags=["live sessions"], dependencies=[Depends(get_current_user)]
@@ -87,11 +87,11 @@ class LiveStatusPublic(BaseModel):
     pace: dict[str, float | None] | None
 
 
-class FrameShown(StrictRequest):
+class FrameShown(ApiRequest):
     """When the subject's display showed the frame of action ``step``."""
 
     step: int = Field(ge=0, le=10**7)
-    shown_at: AwareDatetime
+    shown_at: UtcDatetime
 
 
 def _latest_run(db: Session, session_id: int) -> LiveRun | None:
@@ -118,6 +118,9 @@ def start(
 ) -> LiveRunPublic:
     """Start (or resume, after a failure) the session's live loop as a ``live_session`` job."""
     lab = get_or_404(db, LabSession, session_id, "session_id")
+    for name, value in body:
+        if has_nul(value):
+            raise BadRequestError(NUL_MESSAGE, field=name)
     if lab.kind not in LIVE_KINDS:
         raise BadRequestError(
             f"session {session_id} is a {lab.kind} session; only {', '.join(LIVE_KINDS)} run live",
@@ -131,7 +134,7 @@ def start(
     if lab.kind in ("test", "online"):
         if body.classifier_id is None:
             raise BadRequestError(f"{lab.kind} sessions need a classifier", field="classifier_id")
-        if db.get(Classifier, body.classifier_id) is None:
+        if body.classifier_id > MAX_ROW_ID or db.get(Classifier, body.classifier_id) is None:
             raise BadRequestError(f"no classifier {body.classifier_id}", field="classifier_id")
     run = _latest_run(db, session_id)
     job = db.get(Job, run.job_id) if run is not None and run.job_id else None

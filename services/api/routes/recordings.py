@@ -10,7 +10,7 @@ from fastapi.responses import FileResponse
 from sqlalchemy import select
 
 from services.api import audit
-from services.api.crud import get_or_404, paginate
+from services.api.crud import busy_job, get_or_404, paginate
 from services.api.deps import (
     AdminUser,
     DbDep,
@@ -29,7 +29,7 @@ from services.api.uploads import receive_recording
 from services.core.artifacts import ArtifactStore, StoredFile
 from services.core.db.base import utcnow
 from services.core.db.models import Artifact, LabSession, Recording, User
-from services.core.errors import NotFoundError
+from services.core.errors import ConflictError, NotFoundError
 
 router = APIRouter(tags=["recordings"], dependencies=[Depends(get_current_user)])
 
@@ -210,8 +210,16 @@ def revalidate(
 
 @router.delete("/api/v1/recordings/{recording_id}", status_code=status.HTTP_204_NO_CONTENT)
 def delete(recording_id: RowId, admin: AdminUser, db: DbDep, store: StoreDep) -> None:
-    """Delete a recording and its file (admin, audited)."""
+    """Delete a recording and its file (admin, audited); 409 while a queued or running
+    calibration job trains on it."""
     recording = get_or_404(db, Recording, recording_id, "recording_id")
+    job = busy_job(db, recording_ids={recording_id})
+    if job is not None:
+        raise ConflictError(
+            f"{job.kind} job {job.id} ({job.status}) uses recording {recording_id}; "
+            "cancel it first",
+            field="recording_id",
+        )
     artifact = db.get(Artifact, recording.artifact_id)
     db.delete(recording)
     db.flush()

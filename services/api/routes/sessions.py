@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import date, datetime, timedelta
+from datetime import UTC, date, datetime, timedelta
 from typing import Annotated
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
@@ -103,6 +103,19 @@ def create(body: SessionCreate, user: StaffUser, db: DbDep) -> SessionPublic:
 
 
 def _period(day: date | None, week: str | None, tz_name: str) -> tuple[datetime, datetime] | None:
+    try:
+        period = _local_period(day, week, tz_name)
+        return None if period is None else (period[0].astimezone(UTC), period[1].astimezone(UTC))
+    except OverflowError:  # a day or week at the very end of the calendar
+        field = "day" if day is not None else "week"
+        raise BadRequestError(
+            f"{field} {day or week} is out of the calendar's range", field=field
+        ) from None
+
+
+def _local_period(
+    day: date | None, week: str | None, tz_name: str
+) -> tuple[datetime, datetime] | None:
     try:
         tz = ZoneInfo(tz_name)
     except (ZoneInfoNotFoundError, ValueError):

@@ -5,16 +5,24 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, status
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
 from services.api import audit
-from services.api.crud import apply_update, get_or_404, paginate
+from services.api.crud import apply_update, busy_job, get_or_404, paginate
 from services.api.deps import DbDep, PageDep, RowId, StaffUser, StoreDep, get_current_user
 from services.api.errors import ForbiddenError
-from services.api.schemas.common import Page
+from services.api.schemas.common import NO_NUL_PATTERN, Page
 from services.api.schemas.subjects import SubjectCreate, SubjectPublic, SubjectUpdate
-from services.core.db.models import Artifact, Classifier, LabSession, Recording, Subject
+from services.core.db.live import LiveRun
+from services.core.db.models import (
+    Artifact,
+    Classifier,
+    FeedbackLabel,
+    LabSession,
+    Recording,
+    Subject,
+)
 from services.core.errors import ConflictError
 
 router = APIRouter(
@@ -48,7 +56,8 @@ def list_subjects(
     db: DbDep,
     page: PageDep,
     code: Annotated[
-        str | None, Query(max_length=64, description="Codes starting with this.")
+        str | None,
+        Query(max_length=64, pattern=NO_NUL_PATTERN, description="Codes starting with this."),
     ] = None,
 ) -> Page[SubjectPublic]:
     """Subjects, by code."""
@@ -83,21 +92,46 @@ def delete(
     store: StoreDep,
     purge: Annotated[
         bool,
-        Query(description="Also delete its recordings and classifiers and their files (admin)."),
+        Query(
+            description="Also delete its recorded data (recordings, classifiers, live runs, "
+            "feedback labels) and their files (admin)."
+        ),
     ] = False,
 ) -> None:
-    """Delete a subject and its sessions (staff); one with recordings needs an admin and purge."""
+    """Delete a subject and its sessions (staff); one with recorded data (recordings,
+    classifiers, live runs, feedback labels) needs an admin and purge; one a queued or
+    running job works on is refused (cancel or stop it first)."""
     subject = get_or_404(db, Subject, subject_id, "subject_id")
+    session_ids = set(db.scalars(select(LabSession.id).where(LabSession.subject_id == subject_id)))
     recordings = db.scalars(
         select(Recording)
         .join(LabSession, Recording.session_id == LabSession.id)
         .where(LabSession.subject_id == subject_id)
     ).all()
     classifiers = db.scalars(select(Classifier).where(Classifier.subject_id == subject_id)).all()
-    if (recordings or classifiers) and not purge:
+    job = busy_job(
+        db,
+        subject_id=subject_id,
+        session_ids=session_ids,
+        recording_ids={r.id for r in recordings},
+    )
+    if job is not None:
         raise ConflictError(
-            f"subject {subject.code} has {len(recordings)} recording(s) and {len(classifiers)} "
-            "classifier(s); an admin can delete it with purge=true, which removes their files",
+            f"{job.kind} job {job.id} ({job.status}) works on subject {subject.code}; "
+            "cancel it or stop the session first",
+            field="subject_id",
+        )
+    live_runs = labels = 0
+    if session_ids:
+        live_runs = db.scalar(select(func.count()).where(LiveRun.session_id.in_(session_ids))) or 0
+        labels = (
+            db.scalar(select(func.count()).where(FeedbackLabel.session_id.in_(session_ids))) or 0
+        )
+    if (recordings or classifiers or live_runs or labels) and not purge:
+        raise ConflictError(
+            f"subject {subject.code} has {len(recordings)} recording(s), {len(classifiers)} "
+            f"classifier(s), {live_runs} live run(s) and {labels} feedback label(s); an admin "
+            "can delete it with purge=true, which removes their files",
             field="purge",
         )
     if purge and user.role != "admin":
@@ -121,6 +155,8 @@ def delete(
         code=subject.code,
         recordings=len(recordings),
         classifiers=len(classifiers),
+        live_runs=live_runs,
+        feedback_labels=labels,
         files=len(artifacts),
     )
     db.commit()

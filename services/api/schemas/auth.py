@@ -7,8 +7,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from services.api.schemas.common import PublicModel
-from services.core.schemas import StrictRequest
+from services.api.schemas.common import ApiRequest, PublicModel
 
 
 class AccessToken(PublicModel):
@@ -19,7 +18,7 @@ class AccessToken(PublicModel):
     expires_at: datetime
 
 
-class ApiTokenCreate(StrictRequest):
+class ApiTokenCreate(ApiRequest):
     """A new API token for the signed-in user's scripts."""
 
     name: str = Field(min_length=1, max_length=100, description="What the token is for.")

@@ -15,13 +15,17 @@ from typing import Any, Literal
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from services.api.schemas.common import MAX_ROW_ID, PublicModel
+from services.api.schemas.common import MAX_ROW_ID, ApiRequest, PublicModel
 from services.core.db.models import JOB_STATUSES
 from services.core.hf_methods import HFMethodName
-from services.core.schemas import StrictRequest
 
 JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration", "bids_export", "session_replay"]
 """Kinds a user may submit (``reproduce_run`` jobs are created by a reproduce job)."""
+JobListKind = Literal[
+    "guided_ppo", "reproduce", "eeg_calibration", "bids_export", "session_replay", "reproduce_run"
+]
+"""Kinds the job list filters on: the submitted kinds and a reproduce job's runs."""
+assert set(JobListKind.__args__) == {*JobKind.__args__, "reproduce_run"}  # type: ignore[attr-defined]
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
 
@@ -41,7 +45,7 @@ def _task(value: object) -> object:
     return value.lower() if isinstance(value, str) else value
 
 
-class PPOOverrides(StrictRequest):
+class PPOOverrides(ApiRequest):
     """PPO settings to change (``bgrl reproduce --ppo KEY=VALUE``); omitted ones keep defaults.
 
     ``env_id``, ``env_kwargs``, ``seed``, ``eval_seeds`` and ``hf_treatment`` are set per run
@@ -105,7 +109,7 @@ class PPOOverrides(StrictRequest):
             raise ValueError(f"total_steps ({total_steps}) must be at least n_steps ({n_steps})")
 
 
-class GuidedPPOConfig(StrictRequest):
+class GuidedPPOConfig(ApiRequest):
     """One training run of (guided) PPO: ``bgrl`` learner's run of one task, method and seed."""
 
     task: Task = Field(description="SSSG or VSSG (case-insensitive).")
@@ -169,7 +173,7 @@ class GuidedPPOConfig(StrictRequest):
         return self
 
 
-class ReproduceConfig(StrictRequest):
+class ReproduceConfig(ApiRequest):
     """A reproduction of Fig. 3 (``bgrl reproduce`` options): one run per worker task.
 
     Not offered: ``--out`` (the results are the job's artifacts), ``--workers`` (the runs
@@ -207,6 +211,15 @@ class ReproduceConfig(StrictRequest):
     def _lower_tasks(cls, value: object) -> object:
         return [_task(v) for v in value] if isinstance(value, list) else value
 
+    @field_validator("tasks", "methods", "accuracies", "treatments")
+    @classmethod
+    def _distinct(cls, value: list[Any]) -> list[Any]:
+        repeated = sorted({str(v) for v in value if value.count(v) > 1})
+        if repeated:
+            # a repeated entry would run (and count in the results) the same runs twice
+            raise ValueError(f"each entry once: {', '.join(repeated)} repeated")
+        return value
+
     @field_validator("accuracies")
     @classmethod
     def _accuracies(cls, value: list[float]) -> list[float]:
@@ -230,7 +243,7 @@ class ReproduceConfig(StrictRequest):
         return self
 
 
-class EEGCalibrationConfig(StrictRequest):
+class EEGCalibrationConfig(ApiRequest):
     """Train an ErrP classifier on a stored, valid recording."""
 
     recording_id: int = Field(ge=1, le=MAX_ROW_ID)
@@ -242,13 +255,13 @@ class EEGCalibrationConfig(StrictRequest):
     report: bool = Field(True, description="Also write the calibration report.")
 
 
-class BIDSExportConfig(StrictRequest):
+class BIDSExportConfig(ApiRequest):
     """Export a subject's sessions as a BIDS dataset (a zip artifact of kind ``bids``)."""
 
     subject_id: int = Field(ge=1, le=MAX_ROW_ID)
 
 
-class SessionReplayConfig(StrictRequest):
+class SessionReplayConfig(ApiRequest):
     """Replay an online session through the live decoder and the learner (a new pi_HF)."""
 
     session_id: int = Field(ge=1, le=MAX_ROW_ID)
@@ -263,7 +276,7 @@ class SessionReplayConfig(StrictRequest):
     )
 
 
-CONFIG_MODELS: dict[str, type[StrictRequest]] = {
+CONFIG_MODELS: dict[str, type[ApiRequest]] = {
     "guided_ppo": GuidedPPOConfig,
     "reproduce": ReproduceConfig,
     "eeg_calibration": EEGCalibrationConfig,
@@ -272,7 +285,7 @@ CONFIG_MODELS: dict[str, type[StrictRequest]] = {
 }
 
 
-class JobCreate(StrictRequest):
+class JobCreate(ApiRequest):
     """A job to run: its kind and that kind's config."""
 
     kind: JobKind

@@ -6,11 +6,10 @@ from datetime import datetime
 
 from pydantic import Field
 
-from services.api.schemas.common import PublicModel
-from services.core.schemas import StrictRequest
+from services.api.schemas.common import ApiRequest, PublicModel
 
 
-class RigCreate(StrictRequest):
+class RigCreate(ApiRequest):
     """A new rig (admin only)."""
 
     name: str = Field(min_length=1, max_length=100)
@@ -19,7 +18,7 @@ class RigCreate(StrictRequest):
     active: bool = True
 
 
-class RigUpdate(StrictRequest):
+class RigUpdate(ApiRequest):
     """Changes to a rig; omitted fields stay."""
 
     name: str | None = Field(None, min_length=1, max_length=100)

@@ -2,22 +2,19 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
-from typing import Annotated, Literal
+from datetime import datetime
+from typing import Literal
 
-from pydantic import AfterValidator, AwareDatetime, Field
+from pydantic import Field
 
-from services.api.schemas.common import MAX_ROW_ID, PublicModel
-from services.core.schemas import StrictRequest
+from services.api.schemas.common import MAX_ROW_ID, ApiRequest, PublicModel, UtcDatetime
 
 SessionKind = Literal["calibration", "test", "online", "rl"]
 SessionStatus = Literal["scheduled", "running", "completed", "cancelled", "failed"]
 MAX_DURATION_MINUTES = 24 * 60
-UtcDatetime = Annotated[AwareDatetime, AfterValidator(lambda value: value.astimezone(UTC))]
-"""A timestamp that must carry a timezone; kept in UTC."""
 
 
-class SessionCreate(StrictRequest):
+class SessionCreate(ApiRequest):
     """A session to schedule; it may not overlap another of the same subject or rig."""
 
     subject_id: int = Field(ge=1, le=MAX_ROW_ID)
@@ -31,7 +28,7 @@ class SessionCreate(StrictRequest):
     notes: str = Field("", max_length=10_000)
 
 
-class SessionUpdate(StrictRequest):
+class SessionUpdate(ApiRequest):
     """Reschedule or edit a session, or move it along scheduled -> running -> completed/failed.
 
     Cancel with ``POST /api/v1/sessions/{id}/cancel``.

@@ -8,14 +8,13 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from services.api.accounts import EMAIL_PATTERN, MIN_PASSWORD_CHARS
-from services.api.schemas.common import PublicModel
-from services.core.schemas import StrictRequest
+from services.api.schemas.common import ApiRequest, PublicModel
 
 Role = Literal["admin", "staff", "viewer"]
 Password = Annotated[str, Field(min_length=MIN_PASSWORD_CHARS, max_length=256)]
 
 
-class UserCreate(StrictRequest):
+class UserCreate(ApiRequest):
     """A new account (admin only)."""
 
     email: str = Field(pattern=EMAIL_PATTERN, max_length=320)
@@ -23,7 +22,7 @@ class UserCreate(StrictRequest):
     role: Role = "viewer"
 
 
-class UserUpdate(StrictRequest):
+class UserUpdate(ApiRequest):
     """Changes to an account (admin only); omitted fields stay."""
 
     role: Role | None = None
@@ -31,7 +30,7 @@ class UserUpdate(StrictRequest):
     password: Password | None = None
 
 
-class PasswordChange(StrictRequest):
+class PasswordChange(ApiRequest):
     """A user changing their own password."""
 
     current_password: str = Field(min_length=1, max_length=256)
