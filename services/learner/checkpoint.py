@@ -141,9 +141,18 @@ def load_checkpoint(
     taken at its value in ``defaults`` (``asdict(PPOConfig())``: what that code did), so a
     run checkpointed before an upgrade resumes after it as long as it keeps those values.
     """
-    payload = torch.load(path, weights_only=False)
-    if payload.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: unsupported checkpoint version {payload.get('version')}")
+    try:  # weights_only: tensors and plain containers, never code from the file
+        payload = torch.load(path, weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as exc:
+        raise ValueError(
+            f"{path}: not a readable checkpoint (truncated or corrupt? delete it to start the "
+            f"run afresh): {type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+        ) from exc
+    if not isinstance(payload, dict) or payload.get("version") != CHECKPOINT_VERSION:
+        version = payload.get("version") if isinstance(payload, dict) else None
+        raise ValueError(f"{path}: unsupported checkpoint version {version}")
     written_with = {**(defaults or {}), **payload["config"]}
     if written_with != config:
         changed = sorted(

@@ -66,7 +66,13 @@ class HFPolicy:
         return z / z.sum(axis=-1, keepdims=True)
 
     def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> int:
-        """Greedy action when ``rng`` is None (guiding RL), else a softened sample."""
+        """Greedy action when ``rng`` is None (guiding RL), else a softened sample; for one
+        observation (a batch is refused: ``scores`` and ``sampling_probs`` take one)."""
+        if np.ndim(obs) != 1:
+            raise ValueError(
+                f"act takes one observation (a 1-D array), got shape {np.shape(obs)}; "
+                "use scores(batch).argmax(axis=-1) for a batch"
+            )
         if rng is None:
             return int(np.argmax(self.scores(obs)))
         probs = self.sampling_probs(obs)

@@ -60,6 +60,26 @@ class ObsNormalizer(nn.Module):
         return (obs - self.offset) / self.scale
 
 
+def exported_observations(obs: torch.Tensor, n_obs: int) -> torch.Tensor:
+    """Raw observations given to an exported (TorchScript) policy, checked and as float32.
+
+    Any float or integer dtype is accepted (numpy's float64 included); the last dimension
+    must be ``n_obs``, any leading ones are the batch.
+    """
+    if obs.dim() == 0 or obs.shape[-1] != n_obs:
+        raise ValueError(
+            "expected raw observations of shape ("
+            + str(n_obs)
+            + ",) or (..., "
+            + str(n_obs)
+            + "), got shape "
+            + str(list(obs.shape))
+        )
+    if obs.is_complex() or obs.dtype == torch.bool:
+        raise ValueError("expected real-valued observations, got " + str(obs.dtype))
+    return obs.to(torch.float32)
+
+
 def layer_init(layer: nn.Linear, std: float = math.sqrt(2.0), bias: float = 0.0) -> nn.Linear:
     """Orthogonal weights, constant bias (the CleanRL / SB3 initialisation)."""
     nn.init.orthogonal_(layer.weight, std)

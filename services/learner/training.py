@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from services.learner.networks import exported_observations
+
 if TYPE_CHECKING:
     from services.learner.ppo import ActorCritic, PPOConfig
 
@@ -30,11 +32,14 @@ class PolicyExport(nn.Module):
     def __init__(self, agent: ActorCritic) -> None:  # any module giving (logits, value)
         super().__init__()
         self.agent = agent
+        self.n_obs: int = int(agent.normalizer.n_obs)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        """Action logits for raw (unnormalised) observations, one or a batch."""
-        logits, _ = self.agent(obs)
-        return logits
+        """Action logits for raw (unnormalised) observations of shape (n_obs,) or a batch
+        (..., n_obs), of any real dtype (float64 too)."""
+        obs = exported_observations(obs, self.n_obs)
+        logits, _ = self.agent(obs.reshape(-1, self.n_obs))
+        return logits.reshape(obs.shape[:-1] + [logits.shape[-1]])  # noqa: RUF005 (TorchScript)
 
     @torch.jit.export
     def act(self, obs: torch.Tensor) -> torch.Tensor:
@@ -99,9 +104,17 @@ class TrainResult:
         return best
 
     def act(self, obs: np.ndarray) -> int:
-        """Greedy action of the trained policy."""
+        """Greedy action of the trained policy for one observation (shape ``(n_obs,)``; a
+        batch is refused: the exported module's ``act`` takes one)."""
+        obs = np.asarray(obs, dtype=np.float32)
+        n_obs = self.agent.normalizer.n_obs
+        if obs.shape != (n_obs,):
+            raise ValueError(
+                f"act takes one observation of shape ({n_obs},), got shape {obs.shape}; "
+                "for a batch use export_torchscript(...) and the module's act"
+            )
         with torch.no_grad():
-            logits, _ = self.agent(torch.as_tensor(np.asarray(obs, dtype=np.float32)))
+            logits, _ = self.agent(torch.as_tensor(obs))
         return int(torch.argmax(logits))
 
     def export_torchscript(self, path: str | Path, *, which: Checkpointed = "last") -> Path:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -10,6 +11,7 @@ from typing import Any, ClassVar, Literal
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.error import ClosedEnvironmentError
 
 from services.core.actions import FORWARD_STEP_M, N_ACTIONS, TURN_STEP_RAD, Action
 from services.sim import bullet, rendering
@@ -43,6 +45,9 @@ of a random walk's poses, pressed against a wall): the episode's time limit."""
 
 Task = Literal["sssg", "vssg"]
 RewardMode = Literal["sparse", "rich", "shaped"]
+
+MAX_RENDER_SIZE = 4096
+"""Largest ``render_width`` / ``render_height`` (px): TinyRenderer allocates the whole frame."""
 
 _TWO_PI = 2.0 * math.pi
 _N_HEADINGS = round(_TWO_PI / TURN_STEP_RAD)
@@ -145,6 +150,16 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self.shaping_gamma = float(shaping_gamma)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        for name, size in (("render_width", render_width), ("render_height", render_height)):
+            # pybullet aborts the whole process (std::bad_alloc) on a negative frame size.
+            if (
+                not isinstance(size, numbers.Integral)
+                or isinstance(size, bool)
+                or not 1 <= size <= MAX_RENDER_SIZE
+            ):
+                raise ValueError(
+                    f"{name} must be an integer in [1, {MAX_RENDER_SIZE}] pixels, got {size!r}"
+                )
         self.task: Task = task
         self.reward_mode: RewardMode = reward_mode
         self.render_mode = render_mode
@@ -280,6 +295,7 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Start a new episode (VSSG draws the start from ``self.np_random``)."""
+        self._check_open("reset")
         super().reset(seed=seed)
         start = self.nav_map.start
         x, y = start.x, start.y
@@ -331,6 +347,7 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Execute one action; see the class docstring for rewards and termination."""
+        self._check_open("step")
         try:
             a = int(action)
         except (TypeError, ValueError):
@@ -420,6 +437,7 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         """A third-person RGB frame (H, W, 3) uint8 with the rays drawn, or None."""
         if self.render_mode != "rgb_array":
             return None
+        self._check_open("render")
         self._sync_body()
         return rendering.third_person_frame(
             self._client, self.pose, self._rays, self._ray_z, RAY_ANGLES_RAD, *self.render_size
@@ -433,8 +451,23 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         path = self._trajectory if trajectory is None else trajectory
         return rendering.top_down_image(self.nav_map, self.pose, path)
 
+    def _check_open(self, what: str) -> None:
+        if self._closed:
+            raise ClosedEnvironmentError(
+                f"cannot {what}: this BrainNavEnv was closed; make a new env"
+            )
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Refused: a copy would share (and its ``close`` would end) this env's pybullet
+        connection."""
+        raise TypeError(
+            "a BrainNavEnv holds a pybullet connection and cannot be copied or pickled; "
+            "make another env with the same arguments (gymnasium.make) and reset it with the "
+            "same seed: the same actions then give the same trajectory"
+        )
+
     def close(self) -> None:
-        """Disconnect this env's pybullet client."""
+        """Disconnect this env's pybullet client (a second call does nothing)."""
         if not self._closed:
             self._closed = True
             bullet.disconnect(self._client)

@@ -56,7 +56,10 @@ def resolve_map(
     elif spec in allowed:
         path = allowed[spec]
     else:
-        candidate = Path(spec).expanduser().resolve()
+        try:
+            candidate = Path(spec).expanduser().resolve()
+        except (ValueError, OSError, RuntimeError):  # a NUL byte, no home folder, a loop
+            candidate = None
         if candidate not in allowed.values():
             raise MapRequestError(
                 f"unknown map {spec!r}: give the name or path of one of the maps this service "

@@ -128,8 +128,18 @@ def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
 
 
 def checkpoint_progress(path: Path) -> tuple[int, list[list[float]]]:
-    """Env steps and SPL curve stored in a learner checkpoint."""
-    state = torch.load(path, weights_only=False, map_location="cpu")["state"]
+    """Env steps and SPL curve stored in a learner checkpoint.
+
+    Read with ``weights_only`` (tensors and plain containers, never code from the file); an
+    unreadable checkpoint is a ValueError naming the file (the attempt fails).
+    """
+    try:
+        state = torch.load(path, weights_only=True, map_location="cpu")["state"]
+    except Exception as exc:
+        raise ValueError(
+            f"checkpoint: {path.name} is not a readable checkpoint (truncated or corrupt?): "
+            f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
+        ) from exc
     return int(state["global_step"]), [[int(s), float(v)] for s, v in state["curve"]]
 
 

@@ -4,7 +4,8 @@ The exported module is the observation normalisation plus Fhat. ``forward(obs)``
 Fhat's logits (one per action: "this action is judged correct"), ``act(obs)`` the greedy
 pi_HF action ``argmax_a sigmoid(Fhat(s, a))``, exactly :meth:`HFPolicy.act
 <services.learner.feedback.HFPolicy.act>` without a generator. Observations are the raw
-(unnormalised) 13 floats of the env, one vector or a batch.
+(unnormalised) 13 numbers of the env, one vector or a batch, of any real dtype (numpy's
+float64 too); another last dimension is refused with an error saying so.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import torch
 from torch import nn
 
 from services.learner.feedback import FeedbackModel
+from services.learner.networks import exported_observations
 
 META_FILE = "bgrl_meta.json"
 """Extra file inside the TorchScript archive with the session's description and metrics."""
@@ -30,10 +32,11 @@ class HFPolicyExport(nn.Module):
     def __init__(self, model: FeedbackModel) -> None:
         super().__init__()
         self.model = model
+        self.n_obs: int = model.normalizer.n_obs
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        """Fhat's logits for raw observations, shape (..., 3)."""
-        return self.model(obs)
+        """Fhat's logits for raw observations (..., n_obs) of any real dtype, shape (..., 3)."""
+        return self.model(exported_observations(obs, self.n_obs))
 
     @torch.jit.export
     def act(self, obs: torch.Tensor) -> torch.Tensor:

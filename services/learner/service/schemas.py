@@ -14,12 +14,13 @@ from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.sim.env import OBS_SIZE
 
 Observation = Annotated[
-    list[float],
+    list[Annotated[float, Field(strict=True)]],  # JSON numbers only: no "1" or true
     Field(
         min_length=OBS_SIZE,
         max_length=OBS_SIZE,
         description=f"The env's {OBS_SIZE} finite floats (10 ray distances, goal distance, "
-        "goal angle, heading), unnormalised.",
+        "goal angle, heading), unnormalised, each within the env's observation space on the "
+        "session's map (422 naming the element otherwise).",
     ),
 ]
 

@@ -40,13 +40,20 @@ from services.learner.feedback import (
 from services.learner.feedback_buffer import FeedbackRecord
 from services.learner.networks import ObsNormalizer
 from services.learner.seeding import RunSeeds, Stream
-from services.learner.service.errors import LabelBudgetError, MarkerConflictError
+from services.learner.service.errors import (
+    InvalidRequestError,
+    LabelBudgetError,
+    MarkerConflictError,
+)
 from services.learner.service.labels import LabelRecord, LabelTable
 from services.sim.env import N_RAYS, RAY_LENGTH_M
 from services.sim.maps import NavMap, load_map
 
 STATE_FORMAT = 2
 """Version of :meth:`HFSession.state_dict`'s layout (1: before :attr:`HFSession.ops`)."""
+OBSERVATION_TOLERANCE = 1e-4
+"""How far (in the observation's units) a value may lie outside the env's observation space
+and still be accepted (rounding by the client)."""
 
 
 def observation_space(nav_map: NavMap) -> spaces.Box:
@@ -104,7 +111,10 @@ class HFSession:
     def __init__(self, spec: SessionSpec) -> None:
         self.spec = spec
         self.config = FeedbackConfig(**spec.fhat)
-        normalizer = ObsNormalizer.from_space(observation_space(load_map(Path(spec.map_path))))
+        space = observation_space(load_map(Path(spec.map_path)))
+        self._obs_low = space.low.astype(np.float64) - OBSERVATION_TOLERANCE
+        self._obs_high = space.high.astype(np.float64) + OBSERVATION_TOLERANCE
+        normalizer = ObsNormalizer.from_space(space)
         self.learner = FeedbackLearner(normalizer, self.config, spec.learner_seed)
         self.policy = self.learner.policy
         self.rng = sampling_rng(spec.learner_seed)
@@ -127,6 +137,30 @@ class HFSession:
     def done(self) -> bool:
         """True once the label budget is reached."""
         return len(self.labels) >= self.spec.label_budget
+
+    def check_observation(self, observation: list[float], field: str = "observation") -> None:
+        """Raise :class:`InvalidRequestError` naming ``field.<i>`` unless every value lies in
+        the env's observation space on the session's map.
+
+        The env never leaves it; a value far outside (e.g. ``1e39``, which is infinite as the
+        float32 Fhat computes in) would turn Fhat's weights into NaN for good.
+        """
+        values = np.asarray(observation, dtype=np.float64)
+        if values.shape != self._obs_low.shape:
+            raise InvalidRequestError(
+                f"{field} must hold {self._obs_low.size} numbers, got shape {values.shape}",
+                field=field,
+            )
+        outside = ~((values >= self._obs_low) & (values <= self._obs_high))
+        if outside.any():
+            i = int(np.argmax(outside))
+            low = self._obs_low[i] + OBSERVATION_TOLERANCE
+            high = self._obs_high[i] - OBSERVATION_TOLERANCE
+            raise InvalidRequestError(
+                f"{field}.{i} is {values[i]:g}, outside the env's range [{low:.6g}, {high:.6g}] "
+                f"on map {self.spec.map!r}: not an observation of this task",
+                field=f"{field}.{i}",
+            )
 
     def act(self, observation: list[float], greedy: bool) -> int:
         """pi_HF's action: a sample (label collection) or the greedy argmax (guidance)."""

@@ -213,6 +213,7 @@ class SessionStore:
         here: call :meth:`persist` after answering. If the journal cannot be written, the
         session is reloaded from its files (the label is undone) and the error raised.
         """
+        _check_observations(session, observation, next_observation)
         with session.lock:
             prepared = self._prepared.pop(session.id, None)
             obs = np.asarray(observation, dtype=np.float32)
@@ -271,6 +272,7 @@ class SessionStore:
         label was prepared: not for a marker labelled before or once the budget is full
         (the label then takes the ordinary path and answers as it does).
         """
+        _check_observations(session, observation, next_observation)
         with session.lock:
             if session.labels.get(marker_id) is not None or session.done:
                 return False
@@ -299,6 +301,7 @@ class SessionStore:
         A sampled action advances the sampling generator and is journaled (a greedy one
         changes nothing).
         """
+        session.check_observation(observation)
         with session.lock:
             if greedy:
                 return session.act(observation, greedy=True), session.model_version
@@ -380,6 +383,15 @@ class SessionStore:
         )
         logger.info("HF session %s exported as %s", session.id, stored.relpath)
         return stored, version, metrics
+
+
+def _check_observations(
+    session: HFSession, observation: list[float], next_observation: list[float] | None
+) -> None:
+    """Refuse a request whose observations are not the env's (nothing changes)."""
+    session.check_observation(observation)
+    if next_observation is not None:
+        session.check_observation(next_observation, "next_observation")
 
 
 def _replay(session: HFSession, entry: dict[str, Any]) -> None:

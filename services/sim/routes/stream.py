@@ -61,6 +61,15 @@ logger = logging.getLogger(__name__)
 
 CLOSE_SESSION_CLOSED = 4410
 """Close code when the streamed session is (or gets) closed."""
+MAX_CLOSE_REASON_BYTES = 123
+"""A close frame's reason is at most 123 bytes of UTF-8 (RFC 6455, 5.5: 125-byte control
+frames, 2 of them the code); a longer one is a protocol error in the server."""
+
+
+def close_reason(text: str) -> str:
+    """``text`` cut to fit a close frame, never inside a UTF-8 character."""
+    data = text.encode()[:MAX_CLOSE_REASON_BYTES]
+    return data.decode(errors="ignore")
 
 
 def _frame_message(
@@ -174,14 +183,14 @@ async def stream_frames(websocket: WebSocket, session_id: str) -> None:
         body = validation_error_body(exc.errors())
         fields = ", ".join(dict.fromkeys(e["field"] for e in body["detail"]))
         await websocket.send_json({"type": "error", "detail": body["message"], "field": fields})
-        await websocket.close(code=CLOSE_BAD_REQUEST, reason=body["message"][:120])
+        await websocket.close(code=CLOSE_BAD_REQUEST, reason=close_reason(body["message"]))
         return
     try:
         session = get_registry(websocket).get(session_id)
     except (SessionClosedError, SessionNotFoundError) as exc:
         code = CLOSE_SESSION_CLOSED if isinstance(exc, SessionClosedError) else CLOSE_NOT_FOUND
         await websocket.send_json({"type": "error", "detail": str(exc)})
-        await websocket.close(code=code, reason=str(exc)[:120])
+        await websocket.close(code=code, reason=close_reason(str(exc)))
         return
     sender = asyncio.create_task(
         _send_frames(
