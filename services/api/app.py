@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Any
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from services.api.accounts import ensure_first_admin
@@ -49,26 +47,9 @@ from services.core.db.session import make_engine, make_session_factory, pool_cap
 from services.core.logging import configure_logging
 from services.core.queue import make_celery
 from services.core.settings import load_settings
-from services.core.web import create_service_app, validation_error_body
+from services.core.web import create_service_app
 
 log = logging.getLogger(__name__)
-
-
-def readable_errors(errors: Sequence[Any]) -> list[dict[str, Any]]:
-    """FastAPI's validation errors, a body that is not JSON named as such: its entry names
-    the field ``body`` and says what is wrong where (FastAPI names the character offset as
-    the field and gives only "JSON decode error")."""
-    readable = []
-    for error in errors:
-        error = dict(error)
-        if error.get("type") == "json_invalid":
-            position = error.get("loc", ("body", 0))[-1]
-            reason = (error.get("ctx") or {}).get("error", "not JSON")
-            error["loc"] = ("body",)
-            error["msg"] = f"the body is not valid JSON: {reason} (at character {position})"
-            error.pop("input", None)
-        readable.append(error)
-    return readable
 
 
 MULTIPART_OVERHEAD_BYTES = 64 * 1024
@@ -143,12 +124,6 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
             status_code=401,
             content={"detail": str(exc), "field": exc.field},
             headers={"WWW-Authenticate": "Bearer"},
-        )
-
-    @app.exception_handler(RequestValidationError)
-    async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
-        return JSONResponse(
-            status_code=422, content=validation_error_body(readable_errors(exc.errors()))
         )
 
     @app.exception_handler(TooManyRequestsError)

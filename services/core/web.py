@@ -59,10 +59,19 @@ def validation_error_body(errors: Sequence[Any]) -> dict[str, Any]:
     """FastAPI's 422 list, each entry with ``field``, and inputs safe to serialise.
 
     ``detail`` stays a list (FastAPI clients read it); ``message`` sums it up in one line.
+    A body that is not JSON is named ``body`` and the message says where it breaks (FastAPI
+    names the character offset as the field and says only "JSON decode error").
     """
     entries = []
     for err in errors:
-        entry = {k: jsonable(v) for k, v in dict(err).items() if k in ("loc", "msg", "type")}
+        err = dict(err)
+        if err.get("type") == "json_invalid":
+            position = err.get("loc", ("body", 0))[-1]
+            reason = (err.get("ctx") or {}).get("error", "not JSON")
+            err["loc"] = ("body",)
+            err["msg"] = f"the body is not valid JSON: {reason} (at character {position})"
+            err.pop("input", None)
+        entry = {k: jsonable(v) for k, v in err.items() if k in ("loc", "msg", "type")}
         entry["field"] = _field_name(err.get("loc", ()))
         if "input" in err:
             text = json.dumps(jsonable(err["input"]))
@@ -234,13 +243,13 @@ def create_service_app(
 
     @app.exception_handler(WebSocketRequestValidationError)
     async def ws_validation_error(request: Any, exc: WebSocketRequestValidationError) -> None:
-        from services.core.websockets import CLOSE_BAD_REQUEST
+        from services.core.websockets import CLOSE_BAD_REQUEST, close_reason
 
         body = validation_error_body(exc.errors())
         # accept first: a close before accept reaches the client as a bare HTTP 403
         await request.accept()
         await request.send_json({"type": "error", **body})
-        await request.close(code=CLOSE_BAD_REQUEST, reason=body["message"][:120])
+        await request.close(code=CLOSE_BAD_REQUEST, reason=close_reason(body["message"]))
 
     if not any(getattr(r, "path", None) == "/health" for r in routers):
 

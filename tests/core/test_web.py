@@ -16,6 +16,7 @@ from services.core.files import write_json_atomic
 from services.core.schemas import StrictRequest
 from services.core.settings import BaseServiceSettings, SettingsError, load_settings
 from services.core.web import create_service_app
+from services.core.websockets import close_reason
 
 router = APIRouter()
 
@@ -59,6 +60,22 @@ def test_unknown_field_is_refused(client: TestClient) -> None:
     resp = client.post("/echo", json={"x": 1, "typo": 2})
     assert resp.status_code == 422
     assert resp.json()["detail"][0]["field"] == "typo"
+
+
+@pytest.mark.parametrize("text", ['{"x": 1,', "x=1", '{"x": 1} trailing'])
+def test_a_body_that_is_not_json_names_the_body(client: TestClient, text: str) -> None:
+    r = client.post("/echo", content=text, headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    (entry,) = r.json()["detail"]
+    assert entry["field"] == "body" and "input" not in entry
+    assert entry["msg"].startswith("the body is not valid JSON: ")
+    assert "(at character " in entry["msg"]
+
+
+def test_close_reasons_fit_a_close_frame_without_splitting_a_character() -> None:
+    assert close_reason("short") == "short"
+    cut = close_reason("\u00e9" * 100)  # 200 bytes of UTF-8
+    assert cut == "\u00e9" * 61 and len(cut.encode()) == 122
 
 
 def test_over_limit_body_is_a_json_413(client: TestClient) -> None:

@@ -11,7 +11,12 @@ from fastapi.concurrency import run_in_threadpool
 from services.api.deps import websocket_sign_in_refusal, websocket_token
 from services.api.schemas.jobs import JobPublic
 from services.core.db.models import JOB_FINAL_STATUSES, Job
-from services.core.websockets import CLOSE_NOT_FOUND, CLOSE_ORIGIN_REFUSED, origin_allowed
+from services.core.websockets import (
+    CLOSE_NOT_FOUND,
+    CLOSE_ORIGIN_REFUSED,
+    close_reason,
+    origin_allowed,
+)
 
 router = APIRouter(tags=["jobs"])
 
@@ -52,7 +57,7 @@ async def job_events(
     token = websocket_token(websocket, token)
     refused = await run_in_threadpool(_check, websocket, token, job_id)
     if refused is not None:
-        await websocket.close(code=refused[0], reason=refused[1][:120])
+        await websocket.close(code=refused[0], reason=close_reason(refused[1]))
         return
     await websocket.accept()
     last_update = None

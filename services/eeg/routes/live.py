@@ -42,6 +42,7 @@ from services.core.websockets import (
     CLOSE_BAD_REQUEST,
     CLOSE_NOT_FOUND,
     CLOSE_ORIGIN_REFUSED,
+    close_reason,
     origin_allowed,
 )
 from services.eeg.deps import ServiceDep, get_service
@@ -65,8 +66,6 @@ logger = logging.getLogger(__name__)
 
 CLOSE_REPLACED = 4410
 """Close code of an ingest websocket whose live session was replaced or disconnected."""
-MAX_REASON = 120
-"""Websocket close reasons are limited to 123 bytes."""
 BINARY_HEADER_BYTES = 8
 """A binary ingest chunk starts with its first timestamp (float64)."""
 
@@ -188,7 +187,7 @@ async def _close(websocket: WebSocket, code: int, detail: str) -> None:
     """Tell the client why (one message), then close with ``code`` and the reason."""
     with suppress(WebSocketDisconnect, RuntimeError):
         await websocket.send_json({"ok": False, "error": detail})
-        await websocket.close(code=code, reason=detail[:MAX_REASON])
+        await websocket.close(code=code, reason=close_reason(detail))
 
 
 @router.websocket("/feedback")

@@ -40,6 +40,7 @@ from services.core.websockets import (
     CLOSE_BAD_REQUEST,
     CLOSE_NOT_FOUND,
     CLOSE_ORIGIN_REFUSED,
+    close_reason,
     origin_allowed,
 )
 from services.sim.deps import get_registry, get_settings
@@ -61,15 +62,6 @@ logger = logging.getLogger(__name__)
 
 CLOSE_SESSION_CLOSED = 4410
 """Close code when the streamed session is (or gets) closed."""
-MAX_CLOSE_REASON_BYTES = 123
-"""A close frame's reason is at most 123 bytes of UTF-8 (RFC 6455, 5.5: 125-byte control
-frames, 2 of them the code); a longer one is a protocol error in the server."""
-
-
-def close_reason(text: str) -> str:
-    """``text`` cut to fit a close frame, never inside a UTF-8 character."""
-    data = text.encode()[:MAX_CLOSE_REASON_BYTES]
-    return data.decode(errors="ignore")
 
 
 def _frame_message(
