@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from services.api.security import generate_password, hash_password
 from services.api.settings import ApiSettings
+from services.core.db.base import utcnow
 from services.core.db.models import ROLES, User
 from services.core.errors import BadRequestError, ConflictError
 
@@ -36,6 +37,13 @@ def check_password(password: str) -> None:
         raise BadRequestError(
             f"password needs at least {MIN_PASSWORD_CHARS} characters", field="password"
         )
+
+
+def set_password(user: User, password: str) -> None:
+    """Give ``user`` a new password (not committed); the access tokens issued before it stop
+    working (API tokens stay: revoke those one by one)."""
+    user.password_hash = hash_password(password)
+    user.password_changed_at = utcnow()
 
 
 def create_user(db: Session, email: str, password: str, role: str) -> User:

@@ -18,7 +18,12 @@ from starlette.requests import HTTPConnection
 from services.api.errors import ForbiddenError, UnauthorizedError
 from services.api.ratelimit import LoginLimiter
 from services.api.schemas.common import MAX_ROW_ID
-from services.api.security import API_TOKEN_PREFIX, decode_access_token, hash_api_token
+from services.api.security import (
+    API_TOKEN_PREFIX,
+    check_issued_after_password_change,
+    decode_access_token,
+    hash_api_token,
+)
 from services.api.settings import ApiSettings
 from services.core.artifacts import ArtifactStore
 from services.core.db.base import utcnow
@@ -94,7 +99,7 @@ API_TOKEN_SIGN_IN = (
 )
 """An API token (by its hash: a unique index) and its user's ``active``, in one query."""
 API_TOKEN_USED = update(ApiToken).where(ApiToken.id == bindparam("token_id"))
-USER_ACTIVE = select(User.active).where(User.id == bindparam("user_id"))
+USER_ACTIVE = select(User.active, User.password_changed_at).where(User.id == bindparam("user_id"))
 
 
 def _api_token_user(db: Session | Connection, token: str) -> tuple[int, bool]:
@@ -121,13 +126,17 @@ def _refuse_inactive(active: bool | None) -> None:
 
 def authenticate(db: Session, token: str, jwt_key: str) -> User:
     """The active user an access token or API token belongs to; 401 otherwise."""
+    claims = None
     if token.startswith(API_TOKEN_PREFIX):
         user_id, _ = _api_token_user(db, token)
     else:
-        user_id = decode_access_token(token, jwt_key)
+        claims = decode_access_token(token, jwt_key)
+        user_id = claims.user_id
     user = db.get(User, user_id)
     _refuse_inactive(user is not None and user.active)
     assert user is not None
+    if claims is not None:
+        check_issued_after_password_change(claims, user.password_changed_at)
     return user
 
 
@@ -137,8 +146,12 @@ def sign_in(db: Connection, token: str, jwt_key: str) -> int:
     if token.startswith(API_TOKEN_PREFIX):
         user_id, active = _api_token_user(db, token)
     else:
-        user_id = decode_access_token(token, jwt_key)
-        active = db.scalar(USER_ACTIVE, {"user_id": user_id})
+        claims = decode_access_token(token, jwt_key)
+        user_id = claims.user_id
+        row = db.execute(USER_ACTIVE, {"user_id": user_id}).first()
+        active = row is not None and row.active
+        if active:
+            check_issued_after_password_change(claims, row.password_changed_at)
     _refuse_inactive(active)
     return user_id
 

@@ -7,7 +7,7 @@ import os
 import secrets
 from datetime import datetime, timedelta
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jwt
 from argon2 import PasswordHasher
@@ -86,15 +86,24 @@ def create_access_token(user_id: int, key: str, lifetime: timedelta) -> tuple[st
     """A signed JWT naming the user, and when it expires."""
     now = utcnow()
     expires = now + lifetime
-    claims = {"sub": str(user_id), "iat": now, "exp": expires, "typ": "access"}
+    # iat to the microsecond (a NumericDate may have a fraction): a token issued just
+    # before a password change is told from one issued just after
+    claims = {"sub": str(user_id), "iat": now.timestamp(), "exp": expires, "typ": "access"}
     return jwt.encode(claims, key, algorithm=JWT_ALGORITHM), expires
 
 
-def decode_access_token(token: str, key: str) -> int:
-    """The user id of a valid access token; :class:`UnauthorizedError` otherwise."""
+class AccessClaims(NamedTuple):
+    """What a valid access token says: whose it is and when it was issued (Unix seconds)."""
+
+    user_id: int
+    issued_at: float
+
+
+def decode_access_token(token: str, key: str) -> AccessClaims:
+    """The claims of a valid access token; :class:`UnauthorizedError` otherwise."""
     try:
         claims: dict[str, Any] = jwt.decode(
-            token, key, algorithms=[JWT_ALGORITHM], options={"require": ["exp", "sub"]}
+            token, key, algorithms=[JWT_ALGORITHM], options={"require": ["exp", "iat", "sub"]}
         )
     except jwt.ExpiredSignatureError:
         raise UnauthorizedError("access token expired; log in again", field="token") from None
@@ -108,7 +117,15 @@ def decode_access_token(token: str, key: str) -> int:
         or int(subject) > MAX_ROW_ID  # no user has such an id (nor could the database hold it)
     ):
         raise UnauthorizedError("malformed or invalid access token", field="token")
-    return int(subject)
+    return AccessClaims(int(subject), float(claims["iat"]))
+
+
+def check_issued_after_password_change(claims: AccessClaims, changed_at: datetime | None) -> None:
+    """401 for an access token issued before its user's password last changed."""
+    if changed_at is not None and claims.issued_at < changed_at.timestamp():
+        raise UnauthorizedError(
+            "access token issued before the password changed; log in again", field="token"
+        )
 
 
 def new_api_token() -> str:

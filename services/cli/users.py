@@ -74,7 +74,7 @@ def set_password(
     from sqlalchemy import select
 
     from services.api.accounts import check_password, normalize_email
-    from services.api.security import hash_password
+    from services.api.accounts import set_password as give_password
     from services.core.db.models import User
     from services.core.errors import ServiceError
 
@@ -90,7 +90,7 @@ def set_password(
         if user is None:
             typer.echo(f"error: no account {email}", err=True)
             raise typer.Exit(1)
-        user.password_hash = hash_password(password)
+        give_password(user, password)
         user.active = True
         db.commit()
         typer.echo(f"password of {user.email} set")

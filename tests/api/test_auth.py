@@ -295,4 +295,41 @@ def test_change_own_password(api: Api) -> None:
         headers=api.as_("viewer"),
     )
     assert changed.status_code == 204
-    login(api.client, "viewer@lab.test", "another-long-password")
+    fresh = login(api.client, "viewer@lab.test", "another-long-password")
+    assert api.client.get("/api/v1/users/me", headers=fresh).status_code == 200
+
+
+def test_a_password_change_ends_the_access_tokens_issued_before(api: Api) -> None:
+    """A password changed because it leaked must also end the sessions opened with it:
+    access tokens issued before the change are refused (on the full and the hot sign-in
+    path), tokens issued after work, and API tokens (revoked one by one) stay."""
+    email, old_password = "viewer@lab.test", PASSWORD
+    second = login(api.client, email, old_password)  # e.g. another browser
+    api_token = api.client.post("/api/v1/tokens", json={"name": "script"}, headers=second).json()[
+        "token"
+    ]
+    changed = api.client.post(
+        "/api/v1/users/me/password",
+        json={"current_password": old_password, "new_password": "another-long-password"},
+        headers=second,
+    )
+    assert changed.status_code == 204
+    for stale in (api.as_("viewer"), second):
+        for route in ("/api/v1/users/me", "/api/v1/jobs"):  # full and hot read paths
+            refused = api.client.get(route, headers=stale)
+            assert refused.status_code == 401, route
+            assert "before the password changed" in refused.json()["detail"]
+    fresh = login(api.client, email, "another-long-password")
+    assert api.client.get("/api/v1/users/me", headers=fresh).status_code == 200
+    scripted = {"Authorization": f"Bearer {api_token}"}
+    assert api.client.get("/api/v1/users/me", headers=scripted).status_code == 200
+
+    # an admin setting the password ends them too
+    reset = api.client.patch(
+        f"/api/v1/users/{api.user_ids['viewer']}",
+        json={"password": "a-third-long-password"},
+        headers=api.as_("admin"),
+    )
+    assert reset.status_code == 200
+    assert api.client.get("/api/v1/users/me", headers=fresh).status_code == 401
+    assert api.client.get("/api/v1/users/me", headers=api.as_("admin")).status_code == 200

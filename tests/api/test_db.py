@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from sqlalchemy import inspect, select, text
+from sqlalchemy import insert, inspect, select, text
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
 
 from services.core.artifacts import ArtifactStore
 from services.core.db.base import Base
@@ -48,11 +49,19 @@ TABLES = {
 }
 
 
+def _add_user_at_an_old_revision(db: Session) -> int:
+    """Insert a user naming only the columns every revision has (an ORM ``User(...)`` would
+    name the later ones too); its id."""
+    return db.scalar(
+        insert(User).values(email="a@lab.test", password_hash="x", role="admin").returning(User.id)
+    )
+
+
 def test_empty_database_upgrades_to_head_matching_the_models(any_db_url: str) -> None:
     upgrade_database(any_db_url)
     engine = make_engine(any_db_url)
     try:
-        assert current_revision(engine) == head_revision() == "0005"
+        assert current_revision(engine) == head_revision() == "0006"
         assert set(inspect(engine).get_table_names()) == TABLES
         with engine.connect() as connection:
             diff = compare_metadata(
@@ -70,15 +79,13 @@ def test_previous_revision_upgrades_and_keeps_its_rows(any_db_url: str) -> None:
         assert current_revision(engine) == "0001"
         sessions = make_session_factory(engine)
         with sessions() as db:
-            user = User(email="a@lab.test", password_hash="x", role="admin")
-            db.add(user)
-            db.flush()
+            user_id = _add_user_at_an_old_revision(db)
             db.add(
-                Job(id="j" * 32, kind="guided_ppo", config={"task": "sssg"}, submitter_id=user.id)
+                Job(id="j" * 32, kind="guided_ppo", config={"task": "sssg"}, submitter_id=user_id)
             )
             db.commit()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0005"
+        assert current_revision(engine) == "0006"
         with sessions() as db:
             job = db.get(Job, "j" * 32)
             assert (job.config, job.status, job.curve, job.attempts) == (
@@ -101,11 +108,11 @@ def test_revision_0003_upgrades_to_the_shared_login_limit_and_back(any_db_url: s
     try:
         sessions = make_session_factory(engine)
         with sessions() as db:
-            db.add(User(email="a@lab.test", password_hash="x", role="admin"))
+            _add_user_at_an_old_revision(db)
             db.commit()
         assert "login_attempts" not in inspect(engine).get_table_names()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0005"
+        assert current_revision(engine) == "0006"
         with sessions() as db:
             assert db.scalar(select(User.email)) == "a@lab.test"
             db.add(LoginAttempt(key="k" * 64, at=datetime(2026, 12, 2, tzinfo=UTC)))

@@ -6,13 +6,13 @@ from fastapi import APIRouter, Depends, status
 from sqlalchemy import select
 
 from services.api import audit
-from services.api.accounts import active_admin_count, create_user
+from services.api.accounts import active_admin_count, create_user, set_password
 from services.api.crud import get_or_404, paginate
 from services.api.deps import AdminUser, CurrentUser, DbDep, PageDep, RowId, get_current_user
 from services.api.errors import UnauthorizedError
 from services.api.schemas.common import Page
 from services.api.schemas.users import PasswordChange, UserCreate, UserPublic, UserUpdate
-from services.api.security import hash_password, verify_password
+from services.api.security import verify_password
 from services.core.db.models import User
 from services.core.errors import ConflictError
 
@@ -30,7 +30,7 @@ def change_my_password(body: PasswordChange, user: CurrentUser, db: DbDep) -> No
     """Change your own password (the current one is required)."""
     if not verify_password(user.password_hash, body.current_password):
         raise UnauthorizedError("current password is wrong", field="current_password")
-    user.password_hash = hash_password(body.new_password)
+    set_password(user, body.new_password)
     audit.record(db, user, "user.password", "user", user.id)
     db.commit()
 
@@ -70,7 +70,7 @@ def update(user_id: RowId, body: UserUpdate, admin: AdminUser, db: DbDep) -> Use
         if value is not None:
             setattr(user, key, value)
     if body.password is not None:
-        user.password_hash = hash_password(body.password)
+        set_password(user, body.password)
         changes["password"] = "changed"
     audit.record(db, admin, "user.update", "user", user.id, **changes)
     db.commit()
