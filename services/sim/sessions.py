@@ -230,15 +230,23 @@ class SimSession:
             return 0.0 if self._paced.running else time.monotonic() - self.last_active
 
     def reset(self, seed: int | None = None) -> tuple[list[float], dict[str, Any]]:
-        """Start a new episode; returns the observation and the reset info."""
+        """Start a new episode; returns the observation and the reset info.
+
+        :class:`PacedModeError` while the paced mode drives the session (checked in the same
+        lock hold as the reset, so a paced mode starting meanwhile cannot be overtaken)."""
         with self._lock:
+            self._refuse_if_paced()
             observation, info = self._reset_locked(seed)
         self._notify()
         return observation, info
 
     def step(self, action: int | Action) -> StepOutcome:
-        """Execute one action, judge it with the oracle and publish its marker."""
+        """Execute one action, judge it with the oracle and publish its marker.
+
+        :class:`PacedModeError` while the paced mode drives the session (checked in the same
+        lock hold as the step)."""
         with self._lock:
+            self._refuse_if_paced()
             outcome = self._step_locked(Action(action))
         self._notify()
         return outcome
@@ -480,13 +488,12 @@ class SimSession:
             self._paced.running = False
         return self.paced_status()
 
-    def ensure_not_paced(self) -> None:
-        """Raise :class:`PacedModeError` while the paced mode drives the session."""
-        with self._lock:
-            if self._paced.running:
-                raise PacedModeError(
-                    f"session {self.id} is in paced mode; stop it before stepping or resetting"
-                )
+    def _refuse_if_paced(self) -> None:
+        """:class:`PacedModeError` while the paced mode drives the session (lock held)."""
+        if self._paced.running:
+            raise PacedModeError(
+                f"session {self.id} is in paced mode; stop it before stepping or resetting"
+            )
 
     def _choose_action(self, policy: PacedPolicy) -> Callable[[], Action | None]:
         if policy is PacedPolicy.RANDOM:

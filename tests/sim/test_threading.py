@@ -10,7 +10,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
+from services.core.actions import Action
 from services.sim.app import create_app
+from services.sim.errors import PacedModeError
 from services.sim.registry import resolve_map
 from services.sim.sessions import PacedPolicy, SimSession
 from services.sim.settings import SimSettings
@@ -99,5 +101,37 @@ def test_notifying_under_the_lock_is_refused() -> None:
     try:
         with session._lock, pytest.raises(RuntimeError, match="outside the session's lock"):
             session._notify()
+    finally:
+        session.close()
+
+
+def test_manual_steps_and_resets_are_refused_in_the_lock_hold_that_would_run_them() -> None:
+    """The refusal while the paced mode runs is part of ``step``/``reset`` (one lock hold),
+    not a separate check a paced mode starting in between could slip past: the session's
+    own methods refuse, and a step blocked on the lock when the paced mode starts is refused."""
+    session = _session()
+    try:
+        session.start_paced(PacedPolicy.QUEUE, period_s=60.0)
+        with pytest.raises(PacedModeError):
+            session.step(Action.FORWARD)
+        with pytest.raises(PacedModeError):
+            session.reset()
+        session.stop_paced()
+        outcomes: list[object] = []
+
+        def manual_step() -> None:
+            try:
+                outcomes.append(session.step(Action.FORWARD))
+            except PacedModeError as exc:
+                outcomes.append(exc)
+
+        with session._lock:  # the step waits for the lock while the paced mode starts
+            stepper = threading.Thread(target=manual_step)
+            stepper.start()
+            time.sleep(0.2)
+            session.start_paced(PacedPolicy.QUEUE, period_s=60.0)
+        stepper.join(5)
+        assert len(outcomes) == 1 and isinstance(outcomes[0], PacedModeError)
+        assert session.step_count == 0
     finally:
         session.close()

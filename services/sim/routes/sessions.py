@@ -52,7 +52,6 @@ def close_session(session: SessionDep, registry: RegistryDep) -> Response:
 @router.post("/{session_id}/reset")
 def reset_session(session: SessionDep, body: ResetRequest | None = None) -> ResetPublic:
     """Start a new episode (refused while the paced mode runs)."""
-    session.ensure_not_paced()
     observation, info = session.reset(body.seed if body is not None else None)
     return ResetPublic(episode=session.episode, observation=observation, info=info)
 
@@ -60,7 +59,6 @@ def reset_session(session: SessionDep, body: ResetRequest | None = None) -> Rese
 @router.post("/{session_id}/step")
 def step_session(body: StepRequest, session: SessionDep) -> StepPublic:
     """Execute one action; the response carries its LSL timestamp and oracle verdict."""
-    session.ensure_not_paced()
     outcome = session.step(Action(body.action))
     return StepPublic(
         observation=outcome.observation,
