@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 from tests.api.conftest import Api
 
 
@@ -19,6 +21,28 @@ def _rig(api: Api, name: str) -> int:
 
 def _schedule(api: Api, **body: object):
     return api.client.post("/api/v1/sessions", json=body, headers=api.as_("staff"))
+
+
+def test_racing_requests_for_one_slot_schedule_one_session(api_any_db: Api) -> None:
+    """Scripts (or a double click) sending the same slot at once: the overlap check and the
+    insert happen under a lock per subject and rig, so exactly one is scheduled and every
+    other gets the 409 naming it, on SQLite and PostgreSQL (a reschedule takes the same
+    lock)."""
+    api = api_any_db
+    subject, other_subject = _subject(api, "S01"), _subject(api, "S02")
+    rig = _rig(api, "Room 1")
+    slot = {"kind": "test", "scheduled_at": "2026-12-07T09:00:00Z", "duration_minutes": 60}
+    bodies = [
+        {**slot, "subject_id": subject},  # the same subject ...
+        {**slot, "subject_id": other_subject, "rig_id": rig},  # ... or the same rig
+    ]
+    for body in bodies:
+        with ThreadPoolExecutor(max_workers=8) as pool:
+            answers = list(pool.map(lambda b: _schedule(api, **b), [body] * 8))
+        statuses = sorted(answer.status_code for answer in answers)
+        assert statuses == [201] + [409] * 7, [a.text for a in answers]
+    listed = api.client.get("/api/v1/sessions", headers=api.as_("staff")).json()
+    assert listed["total"] == 2
 
 
 def test_subject_crud(api_any_db: Api) -> None:

@@ -7,7 +7,8 @@ from typing import Annotated
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from fastapi import APIRouter, Depends, Query
-from sqlalchemy import Select, or_, select
+from sqlalchemy import Select, false, or_, select, text
+from sqlalchemy import update as sql_update
 from sqlalchemy.orm import Session
 
 from services.api import audit
@@ -51,8 +52,36 @@ def _check_refs(
         raise BadRequestError(f"no user with id {operator_id}", field="operator_id")
 
 
+PG_LOCK_SPACE_SUBJECT = 0x62677375
+PG_LOCK_SPACE_RIG = 0x62677269
+"""First keys of the PostgreSQL advisory locks that serialise one subject's, one rig's
+scheduling."""
+
+
+def _lock_schedule(db: Session, session: LabSession) -> None:
+    """Hold, until the transaction ends, the right to schedule the session's subject and rig,
+    so that the overlap check and the write of racing requests cannot interleave.
+
+    PostgreSQL: an advisory lock per subject, then per rig (always in that order: no
+    deadlock). SQLite: the database's write lock, taken by a write that changes nothing
+    before the check reads (a read-then-write transaction would lose the race in WAL mode).
+    """
+    if db.get_bind().dialect.name == "postgresql":
+        keys = [(PG_LOCK_SPACE_SUBJECT, session.subject_id)]
+        if session.rig_id is not None:
+            keys.append((PG_LOCK_SPACE_RIG, session.rig_id))
+        for space, key in keys:
+            db.execute(
+                text("SELECT pg_advisory_xact_lock(:space, :key)"), {"space": space, "key": key}
+            )
+    else:
+        db.execute(sql_update(LabSession).where(false()).values(id=LabSession.id))
+
+
 def _refuse_overlap(db: Session, session: LabSession) -> None:
-    """409 naming the other session if this one overlaps one of its subject or rig."""
+    """409 naming the other session if this one overlaps one of its subject or rig (under
+    :func:`_lock_schedule`, held until the caller commits)."""
+    _lock_schedule(db, session)
     clash = [LabSession.subject_id == session.subject_id]
     if session.rig_id is not None:
         clash.append(LabSession.rig_id == session.rig_id)
