@@ -1,6 +1,7 @@
 // Calls to the platform API (/api/v1) with the signed-in user's bearer token.
 
 const TOKEN_KEY = "bgrl.access_token";
+const SIGNIN_REASON_KEY = "bgrl.signin_reason";
 
 /** An API answer that was not 2xx: status, the API's message and the field it names. */
 export class ApiError extends Error {
@@ -20,10 +21,19 @@ export function signOut() {
   sessionStorage.removeItem(TOKEN_KEY);
 }
 
-/** Send the user to the sign-in page, coming back here afterwards. */
-export function toSignIn() {
+/** Send the user to the sign-in page, coming back here afterwards; ``reason`` (e.g. the
+ *  API's "access token expired; log in again") is shown there. */
+export function toSignIn(reason = "") {
+  if (reason) sessionStorage.setItem(SIGNIN_REASON_KEY, reason);
   const here = location.pathname + location.search;
   location.assign(`/signin?next=${encodeURIComponent(here)}`);
+}
+
+/** Why the user was sent to sign in (once: read and forgotten), or "". */
+export function takeSignInReason() {
+  const reason = sessionStorage.getItem(SIGNIN_REASON_KEY) || "";
+  sessionStorage.removeItem(SIGNIN_REASON_KEY);
+  return reason;
 }
 
 async function errorOf(response) {
@@ -72,8 +82,9 @@ export async function request(path, { method = "GET", json, query } = {}) {
   }
   const response = await fetch(url, init);
   if (response.status === 401) {
+    const { message } = await errorOf(response);
     signOut();
-    toSignIn();
+    toSignIn(`Signed out: ${message}.`);
     throw new ApiError(401, "signed out: sign in again");
   }
   if (!response.ok) throw await errorOf(response);

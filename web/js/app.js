@@ -25,6 +25,27 @@ const ROUTES = [
   [/^\/classifiers\/(\d+)$/, "models", classifierPage],
 ];
 
+const LISTS = {
+  subjects: ["/subjects", "Subjects"],
+  sessions: ["/sessions", "Sessions"],
+  jobs: ["/jobs", "Jobs"],
+  models: ["/models", "Models"],
+};
+const MAX_ROW_ID = 2 ** 31 - 1; // the API's largest id: beyond it nothing can exist
+
+/** A page for a path or an id that does not exist: what is missing and a way back. */
+function notFound(root, text, section = "subjects") {
+  const [href, label] = LISTS[section];
+  document.title = "Not found · Brain-guided RL platform";
+  root.replaceChildren(
+    h("h1", {}, "Not found"),
+    h("p", { class: "message error", role: "alert" }, text),
+    h("p", {}, h("a", { href }, `Back to ${label}`)),
+  );
+}
+
+let section = "subjects"; // the section of the page being shown (for its "not found")
+
 function showAccount(user) {
   const box = document.getElementById("account");
   const button = h("button", { type: "button", class: "btn small" }, "Sign out");
@@ -54,14 +75,20 @@ async function main() {
   showAccount(user);
   const route = ROUTES.find(([pattern]) => pattern.test(path));
   if (!route) {
-    root.replaceChildren(h("h1", {}, "Page not found"), h("p", {}, h("a", { href: "/" }, "Back")));
+    notFound(root, `There is no page ${path} here.`);
     return;
   }
-  const [pattern, section, render] = route;
+  const [pattern, routeSection, render] = route;
+  section = routeSection;
   for (const link of document.querySelectorAll("[data-nav]")) {
     if (link.dataset.nav === section) link.setAttribute("aria-current", "page");
   }
   const params = pattern.exec(path).slice(1);
+  const badId = params.find((p) => /^\d+$/.test(p) && !(Number(p) >= 1 && Number(p) <= MAX_ROW_ID));
+  if (badId !== undefined) {
+    notFound(root, `No ${path.split("/")[1].replace(/s$/, "")} has the id ${badId}.`, section);
+    return;
+  }
   const context = {
     user,
     canEdit: user.role === "staff" || user.role === "admin",
@@ -74,6 +101,11 @@ async function main() {
 main().catch((err) => {
   if (err.status === 401) return; // on the way to the sign-in page
   const root = document.getElementById("main");
+  if (err.status === 404) {
+    notFound(root, err.message, section); // e.g. "no job with id …" (an old or mistyped link)
+    return;
+  }
+  document.title = "Error · Brain-guided RL platform";
   root.replaceChildren(
     h("h1", {}, "Something went wrong"),
     h("p", { class: "message error", role: "alert" }, err.message),

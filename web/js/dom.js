@@ -141,3 +141,25 @@ export function field(label, input, hint = "") {
   wrapper.input = input;
   return wrapper;
 }
+
+/**
+ * One request at a time from a form or a button: ``buttons`` are disabled while ``action``
+ * runs, so a double click or a second Enter sends nothing more. They are enabled again when
+ * it ends, unless it returns ``"leaving"`` (the page is reloading: nothing more to send).
+ */
+export function oneAtATime(buttons, action) {
+  let pending = false;
+  return async (event) => {
+    event?.preventDefault();
+    if (pending) return;
+    pending = true;
+    for (const b of buttons) b.disabled = true;
+    let outcome;
+    try {
+      outcome = await action(event);
+    } finally {
+      pending = false;
+      if (outcome !== "leaving") for (const b of buttons) b.disabled = false;
+    }
+  };
+}

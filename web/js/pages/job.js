@@ -90,10 +90,12 @@ async function reproductionCharts(job) {
     ], { caption: "Runs" })];
 }
 
-async function curveSection(job) {
+/** Jobs that learn a policy: a learning curve (GET /curve) and its PNG (GET /plot.png). */
+const hasCurve = (job) => job.kind === "guided_ppo" || job.kind === "reproduce_run";
+
+async function curveSection(job, curve) {
   if (job.kind === "reproduce") return reproductionCharts(job);
-  if (job.kind === "eeg_calibration") return [];
-  const { curve } = await get(`/api/v1/jobs/${job.id}/curve`);
+  if (!hasCurve(job)) return [h("p", { class: "muted" }, `${job.kind} jobs have no learning curve.`)];
   if (!curve.length) return [h("p", { class: "muted" }, "No evaluation yet.")];
   const series = [{ label: "greedy π_RL", points: curve }];
   if (typeof job.result?.hf_policy_spl === "number") {
@@ -109,7 +111,7 @@ async function downloads(job) {
     items.push(h("li", {}, "Trained policy (TorchScript) ",
       downloadButton("Download model", `/api/v1/jobs/${job.id}/model`, `policy-${job.id}.pt`)));
   }
-  if (job.kind === "guided_ppo" || job.kind === "reproduce_run") {
+  if (hasCurve(job)) {
     items.push(h("li", {}, "Learning curve ",
       downloadButton("CSV", `/api/v1/jobs/${job.id}/curve?format=csv`, `job-${job.id}-curve.csv`), " ",
       downloadButton("JSON", `/api/v1/jobs/${job.id}/curve`, `job-${job.id}-curve.json`)));
@@ -124,8 +126,10 @@ async function downloads(job) {
   return [items.length ? h("ul", { class: "plain" }, items) : null, files];
 }
 
-async function plots(job, artifacts) {
-  if (job.kind === "guided_ppo" || job.kind === "reproduce_run") {
+async function plots(job, artifacts, curve) {
+  if (hasCurve(job)) {
+    // no evaluation yet (or a run that failed first): the API has no figure to draw
+    if (!curve.length) return [h("p", { class: "muted" }, "The learning curve's PNG comes with its first evaluation.")];
     return [await apiImage(`/api/v1/jobs/${job.id}/plot.png`, `Learning curve of job ${job.id} (PNG from the API)`)];
   }
   const pngs = artifacts.filter((a) => a.relpath.endsWith(".png"));
@@ -147,10 +151,11 @@ export async function jobPage(root, { canEdit }, jobId) {
 
   async function refreshResults() {
     const artifacts = await all("/api/v1/artifacts", { job_id: job.id });
-    curves.replaceChildren(h("h2", { id: "curves-title" }, "Learning curves"), ...(await curveSection(job)));
+    const curve = hasCurve(job) ? (await get(`/api/v1/jobs/${job.id}/curve`)).curve : [];
+    curves.replaceChildren(h("h2", { id: "curves-title" }, "Learning curves"), ...(await curveSection(job, curve)));
     files.replaceChildren(h("h2", { id: "files-title" }, "Downloads"),
       ...(await downloads(job)).filter(Boolean));
-    const images = await plots(job, artifacts);
+    const images = await plots(job, artifacts, curve);
     pngs.replaceChildren(h("h2", { id: "png-title" }, "Figures from the API (PNG)"),
       ...(images.length ? images : [h("p", { class: "muted" }, "No figures yet.")]));
   }

@@ -1,14 +1,15 @@
 // Jobs: submit (staff), a list with live progress, cancel and retry.
 
 import { all, get, post } from "../api.js";
-import { fmtShort, h, messageBox, statusBadge } from "../dom.js";
+import { fmtShort, h, messageBox, oneAtATime, statusBadge } from "../dom.js";
 import { FINAL, progressBar, watchJob } from "../live.js";
 import { jobForm } from "./jobform.js";
 
 const PAGE = 50;
 const LIST_REFRESH_MS = 15_000;
 const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
-const KINDS = ["guided_ppo", "reproduce", "reproduce_run", "eeg_calibration"];
+// the kinds the API's job list filters on (JobListKind)
+const KINDS = ["guided_ppo", "reproduce", "reproduce_run", "eeg_calibration", "bids_export", "session_replay"];
 
 /** One line saying what a job runs. */
 export function jobSummary(job) {
@@ -33,25 +34,27 @@ export function jobActions(job, canEdit, message, onChange) {
   const buttons = [];
   if (!FINAL.has(job.status)) {
     const cancel = h("button", { type: "button", class: "btn small danger" }, "Cancel");
-    cancel.addEventListener("click", async () => {
+    cancel.addEventListener("click", oneAtATime([cancel], async () => {
       try {
-        onChange(await post(`/api/v1/jobs/${job.id}/cancel`));
+        const changed = await post(`/api/v1/jobs/${job.id}/cancel`);
         message.show(`Cancel requested for job ${job.id.slice(0, 8)}.`);
+        onChange(changed);
       } catch (err) {
         message.error(err);
       }
-    });
+    }));
     buttons.push(cancel);
   } else if ((job.status === "failed" || job.status === "cancelled") && !job.parent_id) {
     const retry = h("button", { type: "button", class: "btn small" }, "Retry");
-    retry.addEventListener("click", async () => {
+    retry.addEventListener("click", oneAtATime([retry], async () => {
       try {
-        onChange(await post(`/api/v1/jobs/${job.id}/retry`));
+        const changed = await post(`/api/v1/jobs/${job.id}/retry`);
         message.show(`Job ${job.id.slice(0, 8)} queued again.`);
+        onChange(changed);
       } catch (err) {
         message.error(err);
       }
-    });
+    }));
     buttons.push(retry);
   }
   return buttons;
@@ -120,8 +123,16 @@ export async function jobsPage(root, { canEdit, query }) {
     next.addEventListener("click", () => { offset += PAGE; load(); });
     pager.replaceChildren(...(page.total > PAGE ? [prev, " ", next] : []));
   }
-  status.addEventListener("change", () => { offset = 0; load(); });
-  kind.addEventListener("change", () => { offset = 0; load(); });
+  /** The filters in the address, so a reload, a shared link or Back shows the same list. */
+  function remember() {
+    const params = new URLSearchParams();
+    if (status.value) params.set("status", status.value);
+    if (kind.value) params.set("kind", kind.value);
+    const search = params.toString();
+    history.replaceState(null, "", `/jobs${search ? `?${search}` : ""}`);
+  }
+  status.addEventListener("change", () => { offset = 0; remember(); load(); });
+  kind.addEventListener("change", () => { offset = 0; remember(); load(); });
 
   const list = h("section", { class: "wide scroll-x" },
     h("div", { class: "inline" },
@@ -140,6 +151,7 @@ export async function jobsPage(root, { canEdit, query }) {
       offset = 0;
       status.value = "";
       kind.value = "";
+      remember();
       load();
       message.show(`Job ${job.id.slice(0, 8)} submitted.`);
     }));

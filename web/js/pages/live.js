@@ -2,7 +2,7 @@
 // oracle label, running accuracy, labels vs budget, latency per action, start and stop.
 
 import { all, get, post } from "../api.js";
-import { field, fmtNumber, h, messageBox, statusBadge } from "../dom.js";
+import { field, fmtNumber, h, messageBox, oneAtATime, statusBadge } from "../dom.js";
 import { followEvents, followFrames, whenStarted } from "../frames.js";
 import { HF_METHODS } from "./jobform.js";
 
@@ -48,8 +48,7 @@ function startForm(session, classifiers, message, onStarted) {
     h("label", { class: "check" }, accelerated, " Accelerated (virtual subject)"),
     submit,
   );
-  form.addEventListener("submit", async (event) => {
-    event.preventDefault();
+  form.addEventListener("submit", oneAtATime([submit], async () => {
     message.clear();
     for (const f of Object.values(fields)) f?.setError("");
     const body = { accelerated: accelerated.checked };
@@ -60,11 +59,13 @@ function startForm(session, classifiers, message, onStarted) {
     try {
       await post(`/api/v1/sessions/${session.id}/start`, body);
       onStarted();
+      return "leaving"; // started: the form is hidden for good
     } catch (err) {
       for (const [name, text] of Object.entries(err.fields || {})) fields[name]?.setError(text);
       message.error(err);
+      return null;
     }
-  });
+  }));
   return form;
 }
 
@@ -179,7 +180,7 @@ export async function livePage(root, { canEdit }, sessionId) {
   const controls = h("div", { class: "live-controls" });
   if (canEdit) {
     stopButton = h("button", { type: "button", class: "btn", hidden: true }, "Stop");
-    stopButton.addEventListener("click", async () => {
+    stopButton.addEventListener("click", oneAtATime([stopButton], async () => {
       message.clear();
       try {
         await post(`/api/v1/sessions/${sessionId}/stop`);
@@ -187,18 +188,18 @@ export async function livePage(root, { canEdit }, sessionId) {
       } catch (err) {
         message.error(err);
       }
-    });
+    }));
     resumeButton = h("button", { type: "button", class: "btn", hidden: true }, "Resume");
-    resumeButton.addEventListener("click", async () => {
+    resumeButton.addEventListener("click", oneAtATime([resumeButton], async () => {
       message.clear();
       try {
         await post(`/api/v1/sessions/${sessionId}/start`, resumeBody);
         message.show("Session resumed: it carries on from its last recorded action.");
-        refresh();
+        await refresh(); // hides Resume before it can be clicked again
       } catch (err) {
         message.error(err);
       }
-    });
+    }));
     controls.append(stopButton, resumeButton);
     if (session.status === "scheduled") {
       const classifiers = session.kind === "calibration"

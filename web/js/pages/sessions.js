@@ -2,7 +2,7 @@
 // the API (409) and its message is shown in the form the user acted in.
 
 import { all, patch, post, request } from "../api.js";
-import { field, fmtDateTime, fmtTime, h, messageBox, statusBadge } from "../dom.js";
+import { field, fmtDateTime, fmtTime, h, messageBox, oneAtATime, statusBadge } from "../dom.js";
 import { offersLiveView } from "./live.js";
 
 const KINDS = ["calibration", "test", "online", "rl"];
@@ -41,7 +41,12 @@ function timeInput(date) {
 
 /** The start as an ISO timestamp with the browser's zone resolved to UTC. */
 function startOf(dateValue, timeValue) {
-  return new Date(`${dateValue}T${timeValue}`).toISOString();
+  const start = new Date(`${dateValue}T${timeValue}`);
+  if (Number.isNaN(start.getTime())) {
+    throw Object.assign(new Error(`${dateValue} ${timeValue} is not a date and time`),
+      { fields: { scheduled_at: "not a date and time" } });
+  }
+  return start.toISOString();
 }
 
 function rigOptions(rigs, selected) {
@@ -62,15 +67,32 @@ function timingFields(rigs, { start, duration = 60, rig = null }) {
     value: duration,
   });
   const rigSelect = h("select", { name: "rig_id" }, rigOptions(rigs, rig));
+  const fields = {
+    date: field("Date", date),
+    scheduled_at: field("Start", time),
+    duration_minutes: field("Minutes", minutes, "1 to 1440"),
+    rig_id: field("Rig", rigSelect),
+  };
   return {
-    nodes: [field("Date", date), field("Start", time), field("Minutes", minutes, "1 to 1440"),
-      field("Rig", rigSelect)],
+    nodes: Object.values(fields),
+    fields,
     values: () => ({
       scheduled_at: startOf(date.value, time.value),
       duration_minutes: Number(minutes.value),
       rig_id: rigSelect.value ? Number(rigSelect.value) : null,
     }),
   };
+}
+
+/** Show the API's refusal at the fields it names (e.g. scheduled_at: the start) and below. */
+function showRefusal(err, fields, message) {
+  for (const [name, f] of Object.entries(fields)) f.setError(err.fields?.[name] || "");
+  message.error(err);
+}
+
+function clearErrors(fields, message) {
+  for (const f of Object.values(fields)) f.setError("");
+  message.clear();
 }
 
 function scheduleForm(subjects, rigs, monday, onDone) {
@@ -86,20 +108,24 @@ function scheduleForm(subjects, rigs, monday, onDone) {
   const timing = timingFields(rigs, { start });
   const notes = h("input", { name: "notes", maxlength: 10000 });
   const message = messageBox();
+  const submit = h("button", { type: "submit", class: "btn primary" }, "Schedule");
+  const fields = {
+    subject_id: field("Subject", subject),
+    kind: field("Kind", kind),
+    ...timing.fields,
+    notes: field("Notes", notes),
+  };
   const form = h(
     "form",
     { class: "card", id: "schedule-form", "aria-labelledby": "schedule-title" },
     h("h2", { id: "schedule-title" }, "Schedule a session"),
-    field("Subject", subject),
-    field("Kind", kind),
-    ...timing.nodes,
-    field("Notes", notes),
-    h("button", { type: "submit", class: "btn primary" }, "Schedule"),
+    ...Object.values(fields),
+    submit,
     message,
   );
-  form.addEventListener("submit", async (event) => {
-    event.preventDefault();
-    message.clear();
+  // one session per click: a second click while the first is on its way sends nothing
+  form.addEventListener("submit", oneAtATime([submit], async () => {
+    clearErrors(fields, message);
     try {
       const created = await post("/api/v1/sessions", {
         subject_id: Number(subject.value),
@@ -111,10 +137,12 @@ function scheduleForm(subjects, rigs, monday, onDone) {
         `Session ${created.id} scheduled for ${fmtDateTime(created.scheduled_at)}.`,
         isoWeek(new Date(created.scheduled_at)),
       );
+      return "leaving";
     } catch (err) {
-      message.error(err);
+      showRefusal(err, fields, message);
+      return null;
     }
-  });
+  }));
   return form;
 }
 
@@ -141,41 +169,43 @@ function editDialog(session, subjectCode, rigs, canEdit, onDone) {
     start: new Date(session.scheduled_at), duration: session.duration_minutes, rig: session.rig_id,
   });
   const message = messageBox();
-  const form = h(
-    "form",
-    { "aria-label": "Reschedule" },
-    ...timing.nodes,
-    h("button", { type: "submit", class: "btn primary" }, "Reschedule"),
-  );
-  form.addEventListener("submit", async (event) => {
-    event.preventDefault();
-    message.clear();
+  const submit = h("button", { type: "submit", class: "btn primary" }, "Reschedule");
+  const form = h("form", { "aria-label": "Reschedule" }, ...timing.nodes, submit);
+  const cancel = h("button", { type: "button", class: "btn danger" }, "Cancel session");
+  form.addEventListener("submit", oneAtATime([submit, cancel], async () => {
+    clearErrors(timing.fields, message);
     try {
       await patch(`/api/v1/sessions/${session.id}`, timing.values());
       dialog.close();
       onDone(`Session ${session.id} rescheduled.`);
+      return "leaving";
     } catch (err) {
-      message.error(err);
+      showRefusal(err, timing.fields, message);
+      return null;
     }
-  });
-  const cancel = h("button", { type: "button", class: "btn danger" }, "Cancel session");
-  cancel.addEventListener("click", async () => {
-    message.clear();
+  }));
+  cancel.addEventListener("click", oneAtATime([submit, cancel], async () => {
+    clearErrors(timing.fields, message);
     try {
       await request(`/api/v1/sessions/${session.id}/cancel`, { method: "POST" });
       dialog.close();
       onDone(`Session ${session.id} cancelled.`);
+      return "leaving";
     } catch (err) {
       message.error(err);
+      return null;
     }
-  });
+  }));
   dialog.append(...header, form, message, h("div", { class: "actions" }, cancel, " ", close));
   return dialog;
 }
 
 export async function sessionsPage(root, { canEdit, query }) {
   document.title = "Sessions · Brain-guided RL platform";
-  const week = /^\d{4}-W\d{2}$/.test(query.get("week") || "") ? query.get("week") : isoWeek(new Date());
+  const asked = query.get("week");
+  // a week that exists (not 2026-W00, 2026-W99 or 2025-W53): else this week, and say so
+  const valid = /^\d{4}-W\d{2}$/.test(asked || "") && isoWeek(mondayOf(asked)) === asked;
+  const week = valid ? asked : isoWeek(new Date());
   const monday = mondayOf(week);
   const tz = Intl.DateTimeFormat().resolvedOptions().timeZone || "UTC";
   const [rigs, subjects, sessions] = await Promise.all([
@@ -250,5 +280,7 @@ export async function sessionsPage(root, { canEdit, query }) {
   if (flash) {
     sessionStorage.removeItem("bgrl.flash");
     status.show(flash);
+  } else if (asked !== null && !valid) {
+    status.show(`There is no week ${asked}: this is week ${week}.`, "warning");
   }
 }

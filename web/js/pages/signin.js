@@ -1,12 +1,21 @@
 // Sign in: e-mail and password exchanged for an access token (POST /api/v1/auth/token).
 
-import { signIn } from "../api.js";
+import { signIn, takeSignInReason } from "../api.js";
 import { h, messageBox } from "../dom.js";
 
-function nextPath() {
-  const next = new URLSearchParams(location.search).get("next") || "/subjects";
-  // only paths of this site (no "//host" or absolute URLs)
-  return next.startsWith("/") && !next.startsWith("//") ? next : "/subjects";
+/** Where to go after signing in: ``?next=`` if it is a page of this site, else /subjects.
+ *  Resolved as the browser would, so "/\\host", "/\t/host" or "//host" cannot lead away. */
+export function nextPath(search = location.search) {
+  const next = new URLSearchParams(search).get("next") || "";
+  if (!next.startsWith("/")) return "/subjects";
+  let url;
+  try {
+    url = new URL(next, location.origin);
+  } catch {
+    return "/subjects";
+  }
+  if (url.origin !== location.origin || url.pathname.startsWith("//")) return "/subjects";
+  return url.pathname + url.search + url.hash;
 }
 
 export function signinPage(root) {
@@ -43,5 +52,7 @@ export function signinPage(root) {
     }
   });
   root.replaceChildren(form);
+  const reason = takeSignInReason(); // e.g. the access token expired or was revoked
+  if (reason) message.show(reason, "warning");
   email.focus();
 }

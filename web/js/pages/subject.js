@@ -2,7 +2,8 @@
 
 import { all, get, patch, post } from "../api.js";
 import {
-  downloadButton, field, fmtBytes, fmtDateTime, fmtNumber, h, messageBox, statusBadge, table,
+  downloadButton, field, fmtBytes, fmtDateTime, fmtNumber, h, messageBox, oneAtATime, statusBadge,
+  table,
 } from "../dom.js";
 import { offersLiveView } from "./live.js";
 
@@ -12,23 +13,20 @@ function notesForm(subject, canEdit) {
   }
   const notes = h("textarea", { name: "notes", rows: 4, maxlength: 10000, value: subject.notes });
   const message = messageBox();
-  const form = h(
-    "form",
-    { class: "card" },
-    h("h2", {}, "Notes"),
-    field("Notes", notes),
-    h("button", { type: "submit", class: "btn primary" }, "Save notes"),
-    message,
-  );
-  form.addEventListener("submit", async (event) => {
-    event.preventDefault();
+  const save = h("button", { type: "submit", class: "btn primary" }, "Save notes");
+  const notesField = field("Notes", notes);
+  const form = h("form", { class: "card" }, h("h2", {}, "Notes"), notesField, save, message);
+  form.addEventListener("submit", oneAtATime([save], async () => {
+    message.clear();
+    notesField.setError("");
     try {
       await patch(`/api/v1/subjects/${subject.id}`, { notes: notes.value });
       message.show("Notes saved.");
     } catch (err) {
+      if (err.fields?.notes) notesField.setError(err.fields.notes);
       message.error(err);
     }
-  });
+  }));
   return form;
 }
 

@@ -1,7 +1,7 @@
 // Subjects: search by code, register a new one (staff).
 
 import { ApiError, get, post } from "../api.js";
-import { field, fmtDateTime, h, messageBox, table } from "../dom.js";
+import { field, fmtDateTime, h, messageBox, oneAtATime, table } from "../dom.js";
 
 const PAGE = 50;
 const CODE_PATTERN = "[A-Za-z0-9][A-Za-z0-9_.\\-]{0,63}";
@@ -10,6 +10,7 @@ function createForm(onCreated) {
   const code = h("input", { id: "new-subject-code", name: "code", required: true, pattern: CODE_PATTERN, maxlength: 64 });
   const notes = h("textarea", { name: "notes", rows: 3, maxlength: 10000 });
   const codeField = field("Code", code, "Pseudonymous, e.g. S01 (never a name).");
+  const notesField = field("Notes", notes);
   const message = messageBox();
   const submit = h("button", { type: "submit", class: "btn primary" }, "Create subject");
   const form = h(
@@ -17,7 +18,7 @@ function createForm(onCreated) {
     { class: "card", "aria-labelledby": "new-subject" },
     h("h2", { id: "new-subject" }, "New subject"),
     codeField,
-    field("Notes", notes),
+    notesField,
     submit,
     message,
   );
@@ -28,10 +29,10 @@ function createForm(onCreated) {
         : "",
     );
   });
-  form.addEventListener("submit", async (event) => {
-    event.preventDefault();
+  form.addEventListener("submit", oneAtATime([submit], async () => {
     message.clear();
     codeField.setError("");
+    notesField.setError("");
     try {
       const subject = await post("/api/v1/subjects", {
         code: code.value.trim(),
@@ -41,10 +42,13 @@ function createForm(onCreated) {
       form.reset();
       onCreated(subject);
     } catch (err) {
-      if (err instanceof ApiError && err.field === "code") codeField.setError(err.message);
+      if (err instanceof ApiError) {
+        codeField.setError(err.fields.code);
+        notesField.setError(err.fields.notes);
+      }
       message.error(err);
     }
-  });
+  }));
   return form;
 }
 
