@@ -165,9 +165,9 @@ def quality_sweep(
     (see :func:`_sweep_subject`). ``partial_path`` receives the runs so far after every
     task, so a long sweep that is stopped keeps its finished part.
     """
-    import json
-
     from tqdm import tqdm
+
+    from benchmarks.json_out import write_json
 
     # Two tasks per subject (each half of the levels) balance the work over the workers.
     halves = [list(levels[: (len(levels) + 1) // 2]), list(levels[(len(levels) + 1) // 2 :])]
@@ -181,7 +181,7 @@ def quality_sweep(
     def collect(rows: list[dict[str, Any]]) -> None:
         runs.extend(rows)
         if partial_path is not None:
-            partial_path.write_text(json.dumps(runs, indent=1))
+            write_json(partial_path, runs, indent=1)
 
     if jobs == 1:
         for task in tqdm(tasks, desc="quality sweep", unit="task"):
@@ -380,11 +380,12 @@ def write_sweep_outputs(result: dict[str, Any], out: Path) -> list[Path]:
     """``quality_sweep.json``, ``.csv`` (:func:`sweep_csv_rows`) and ``.png``
     (:func:`plot_sweep`) in ``out``; returns their paths."""
     import csv
-    import json
+
+    from benchmarks.json_out import write_json
 
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"quality_sweep.{ext}" for ext in ("json", "csv", "png")]
-    paths[0].write_text(json.dumps(result, indent=2))
+    write_json(paths[0], result)
     rows = sweep_csv_rows(result)
     with paths[1].open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))

@@ -18,7 +18,6 @@ Run: ``bgrl bench learner --out DIR`` (writes ``DIR/learner.json``).
 
 from __future__ import annotations
 
-import json
 import platform
 import time
 from contextlib import closing
@@ -29,6 +28,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from benchmarks.json_out import write_json
 from services.learner.feedback import (
     FeedbackConfig,
     FeedbackLearner,
@@ -183,5 +183,5 @@ def run_benchmark(
             "torch": torch.__version__,
         },
     }
-    (out / "learner.json").write_text(json.dumps(result, indent=1))
+    write_json(out / "learner.json", result, indent=1)
     return result

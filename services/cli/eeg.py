@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from services.cli.paths import output_folder
 from services.eeg.training_config import DECODERS
 
 eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject quality.")
@@ -41,7 +42,9 @@ def calibrate_command(
     marker_stream: Annotated[
         str | None, typer.Option(help="XDF: name of the marker stream.")
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of the split, initialisation and batches.")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, help="Seed of the split, initialisation and batches.")
+    ] = 0,
     max_passes: Annotated[
         int,
         typer.Option(min=1, help="Upper bound on training passes (early stopping may end sooner)."),
@@ -70,6 +73,8 @@ def calibrate_command(
         config = TrainingConfig(max_passes=max_passes, decoders=names)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--decoders") from exc
+    if out.exists() and not out.is_dir():
+        raise typer.BadParameter(f"{out} is a file, not a folder", param_hint="--out")
     mapping = _read_channel_map(channel_map) if channel_map is not None else None
     labels = _event_labels(event_label) if event_label else None
     try:
@@ -184,7 +189,7 @@ def quality_sweep_command(
         TrainingConfig(decoders=names)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--decoders") from exc
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out)
     result = quality_sweep(
         qualities or list(DEFAULT_QUALITIES),
         n_seeds=seeds,
@@ -217,18 +222,17 @@ def bench_eeg(
     """Peak memory of simulate / calibrate / service reading, decision latency (live LSL
     replay), offline preprocessing speed, training time."""
     from benchmarks.bench_eeg import bench_memory, run_benchmark
+    from benchmarks.json_out import finite_or_null, write_json
 
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out)
     if memory_only:
         memory = bench_memory(minutes)
-        path = out / "eeg_memory.json"
-        path.write_text(json.dumps(memory, indent=2))
-        typer.echo(json.dumps(memory, indent=2))
+        path = write_json(out / "eeg_memory.json", memory)
+        typer.echo(json.dumps(finite_or_null(memory), indent=2))
         typer.echo(f"wrote {path}")
         return
     result = run_benchmark(n_actions=actions, speed=speed, offline_minutes=minutes)
-    path = out / "eeg.json"
-    path.write_text(json.dumps(result, indent=2))
+    path = write_json(out / "eeg.json", result)
     typer.echo(json.dumps(result["summary"], indent=2))
     typer.echo(f"wrote {path}")
 

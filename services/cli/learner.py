@@ -4,18 +4,106 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from tqdm import tqdm
 
+from services.cli.paths import output_folder
+
 if TYPE_CHECKING:
     from services.learner.runs import RunFailure, RunRecord
+
+MAX_SEED = 2**31 - 1
+"""Largest seed a run takes (as the platform's jobs): JSON readers and CSV tools keep it exact."""
+EXIT_INTERRUPTED = 130
+
+PPO_BOUNDS: dict[str, tuple[float, float, bool]] = {
+    "total_steps": (1, math.inf, False),
+    "n_steps": (1, math.inf, False),
+    "n_epochs": (1, math.inf, False),
+    "minibatch_size": (1, math.inf, False),
+    "learning_rate": (0, math.inf, True),
+    "adam_eps": (0, math.inf, True),
+    "gamma": (0, 1, False),
+    "gae_lambda": (0, 1, False),
+    "clip_coef": (0, math.inf, True),
+    "ent_coef": (0, math.inf, False),
+    "vf_coef": (0, math.inf, False),
+    "max_grad_norm": (0, math.inf, True),
+    "target_kl": (0, math.inf, True),
+    "reward_scale": (0, math.inf, True),
+    "hidden_sizes": (1, math.inf, False),
+    "eval_every": (1, math.inf, False),
+    "hf_eps_init": (0, 1, False),
+    "hf_t_trans_fraction": (0, 1, True),
+    "hf_warmup_steps": (0, math.inf, False),
+    "is_clip": (0, math.inf, True),
+    "hf_prior_coef": (0, math.inf, False),
+    "hf_withdraw_after": (0, math.inf, False),
+    "explore_coef": (0, math.inf, False),
+    "explore_cell_m": (0, math.inf, True),
+    "sil_coef": (0, math.inf, False),
+    "sil_updates": (0, math.inf, False),
+    "sil_value_coef": (0, math.inf, False),
+    "sil_capacity": (1, math.inf, False),
+}
+"""(low, high, low excluded) of every numeric ``--ppo`` setting (each layer of
+hidden_sizes); values must also be finite."""
 
 
 def _split(value: str) -> list[str]:
     return [item.strip() for item in value.split(",") if item.strip()]
+
+
+def _entries(value: str, option: str) -> list[str]:
+    """A comma-separated option's entries: at least one, each once (a repeated entry would
+    run, and count, the same runs twice)."""
+    entries = _split(value)
+    if not entries:
+        raise typer.BadParameter("give at least one entry", param_hint=option)
+    _each_once(entries, option)
+    return entries
+
+
+def _each_once(entries: list[Any], option: str) -> None:
+    repeated = sorted({f"{e:g}" if isinstance(e, float) else str(e) for e in entries
+                       if entries.count(e) > 1})  # fmt: skip
+    if repeated:
+        raise typer.BadParameter(
+            f"each entry once: {', '.join(repeated)} repeated", param_hint=option
+        )
+
+
+def _accuracies(value: str, option: str = "--accuracies") -> list[float]:
+    """Feedback accuracies C: numbers in [0, 1], each once."""
+    values = []
+    for entry in _entries(value, option):
+        try:
+            accuracy = float(entry)
+        except ValueError:
+            raise typer.BadParameter(f"{entry!r} is not a number", param_hint=option) from None
+        if not 0.0 <= accuracy <= 1.0:  # also refuses nan
+            raise typer.BadParameter(f"{entry!r} is not in [0, 1]", param_hint=option)
+        values.append(accuracy)
+    _each_once(values, option)
+    return values
+
+
+def _check_bounds(key: str, value: Any) -> None:
+    """``--ppo key=value`` within :data:`PPO_BOUNDS` (ValueError naming the setting)."""
+    if key not in PPO_BOUNDS or value is None or isinstance(value, bool):
+        return
+    low, high, low_open = PPO_BOUNDS[key]
+    for number in value if isinstance(value, tuple) else (value,):
+        too_low = number <= low if low_open else number < low
+        if not math.isfinite(number) or too_low or number > high:
+            left = "(" if low_open else "["
+            right = "]" if math.isfinite(high) else ")"
+            upper = f"{high:g}" if math.isfinite(high) else "inf"
+            raise ValueError(f"--ppo {key}: {number!r} is not in {left}{low:g}, {upper}{right}")
 
 
 def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
@@ -51,6 +139,7 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
         except ValueError:
             kind = "number" if default is None else type(default).__name__
             raise ValueError(f"--ppo {key}: {raw!r} is not a valid {kind}") from None
+        _check_bounds(key, value)
         overrides[key] = value
     PPOConfig(**overrides)  # validates combinations (e.g. n_steps vs minibatch_size)
     return overrides
@@ -64,7 +153,7 @@ def reproduce(
     seeds: Annotated[
         int | None, typer.Option(min=1, help="Seeds per configuration (default 10, quick 2).")
     ] = None,
-    first_seed: Annotated[int, typer.Option(min=0, help="First seed.")] = 0,
+    first_seed: Annotated[int, typer.Option(min=0, max=MAX_SEED, help="First seed.")] = 0,
     workers: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 2,
     tasks: Annotated[str, typer.Option(help="Comma-separated: sssg,vssg.")] = "sssg,vssg",
     methods: Annotated[
@@ -127,17 +216,24 @@ def reproduce(
     from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, apply_preset, build_specs
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
+    if first_seed + n_seeds - 1 > MAX_SEED:
+        raise typer.BadParameter(
+            f"the last seed, {first_seed + n_seeds - 1}, is above {MAX_SEED}",
+            param_hint="--first-seed",
+        )
+    task_list, method_list = _entries(tasks, "--tasks"), _entries(methods, "--methods")
+    accuracy_list = _accuracies(accuracies)
     try:
         treatment_list, overrides, preset_method = apply_preset(
-            preset, _split(treatments), parse_ppo_overrides(ppo or [])
+            preset, _entries(treatments, "--treatments"), parse_ppo_overrides(ppo or [])
         )
         hf_method = preset_method if hf_method is None else get_method(hf_method).name
         specs = build_specs(
             seeds=n_seeds,
             first_seed=first_seed,
-            tasks=_split(tasks),
-            methods=_split(methods),
-            accuracies=[float(c) for c in _split(accuracies)],
+            tasks=task_list,
+            methods=method_list,
+            accuracies=accuracy_list,
             treatments=treatment_list,
             map_path=None if map_path is None else str(map_path),
             ppo_overrides=overrides,
@@ -150,6 +246,7 @@ def reproduce(
         validate_maps(specs)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--map") from None
+    output_folder(out)
     with tqdm(total=len(specs), desc="reproduce", unit="run") as bar:
 
         def done(record: RunRecord) -> None:
@@ -181,9 +278,21 @@ def reproduce(
             )
         except ValueError as exc:  # e.g. the folder holds runs with other settings
             raise typer.BadParameter(str(exc), param_hint="--out") from None
+        except KeyboardInterrupt:
+            bar.close()
+            _interrupted(out / "results.json")
     typer.echo((out / "summary.md").read_text())
     typer.echo(f"wrote {out / 'results.json'}, results.csv, summary.md and fig3_*.png")
     _exit_on_failures(results.failed, out / "results.json")
+
+
+def _interrupted(where: Path) -> None:
+    """Ctrl-C: say what was kept and exit 130 (no traceback)."""
+    typer.echo(
+        f"interrupted: the finished runs are kept in {where}; run the same command again to resume",
+        err=True,
+    )
+    raise typer.Exit(EXIT_INTERRUPTED)
 
 
 def _exit_on_failures(failures: list[RunFailure], where: Path) -> None:
@@ -219,28 +328,49 @@ def hf_sweep(
     spl_vs_labels.png.
     """
     from services.learner.hf_methods import get_method
-    from services.learner.pool import hf_policy_sweep
+    from services.learner.pool import hf_policy_sweep, load_sweep
+    from services.learner.specs import TASK_ENV_IDS
     from services.learner.stage2_report import write_report
 
+    task_list, accuracy_list = _entries(tasks, "--tasks"), _accuracies(accuracies)
+    methods = _entries(method, "--method")
     try:
-        budgets = [int(n) for n in _split(labels)]
-        if not budgets or min(budgets) < 1:
-            raise ValueError(f"--labels must be integers >= 1, got {labels!r}")
-        methods = _split(method)
+        budgets = [int(n) for n in _entries(labels, "--labels")]
+        if min(budgets) < 1:
+            raise ValueError
+    except ValueError:
+        raise typer.BadParameter(f"--labels must be integers >= 1, got {labels!r}") from None
+    _each_once(budgets, "--labels")
+    try:
         for name in methods:
             get_method(name)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--method") from None
+    unknown = sorted(set(task_list) - set(TASK_ENV_IDS))
+    if unknown:
+        raise typer.BadParameter(
+            f"unknown task {unknown[0]!r}; expected one of {sorted(TASK_ENV_IDS)}",
+            param_hint="--tasks",
+        )
+    output_folder(out)
+    try:
         rows, failures = hf_policy_sweep(
             out,
-            tasks=_split(tasks),
-            accuracies=[float(c) for c in _split(accuracies)],
+            tasks=task_list,
+            accuracies=accuracy_list,
             seeds=seeds,
             labels=budgets,
             methods=methods,
             workers=workers,
             on_failure=lambda failure: typer.echo(f"run failed: {failure}", err=True),
         )
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
+    except ValueError as exc:  # e.g. the folder's hf_policies.json is not one
+        raise typer.BadParameter(str(exc), param_hint="--out") from None
+    except KeyboardInterrupt:
+        path = out / "hf_policies.json"
+        if path.exists():
+            write_report(out, load_sweep(path)[0])
+        _interrupted(path)
     write_report(out, rows)
     if rows:
         typer.echo((out / "summary.md").read_text())
@@ -263,6 +393,7 @@ def bench_learner(
     """PPO throughput vs Stable-Baselines3, Fhat update rate, HF+sparse time to 0.7 SPL."""
     from benchmarks.bench_learner import run_benchmark
 
+    output_folder(out)
     result = run_benchmark(out, steps=steps, target_steps=target_steps, target_seeds=target_seeds)
     typer.echo(json.dumps(result["figures"], indent=1))
 
@@ -274,10 +405,14 @@ def compare(
     """Factor studies side by side: a table and per-run plots over several reproductions."""
     from services.learner.outputs import compare_studies
 
+    if out.exists() and not out.is_dir():
+        raise typer.BadParameter(f"{out} is a file, not a folder", param_hint="--out")
     try:
         compare_studies(folders, out)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
+    except OSError as exc:  # e.g. --out below a file
+        raise typer.BadParameter(f"{exc.filename}: {exc.strerror}", param_hint="--out") from None
     typer.echo((out / "compare.md").read_text())
     typer.echo(f"wrote {out / 'compare.md'}, compare.json and compare_*.png")
 

@@ -11,6 +11,8 @@ from typing import Annotated
 import typer
 from tqdm import tqdm
 
+from services.cli.paths import output_file, output_folder
+
 sim_app = typer.Typer(help="The navigation simulator: map images, marker stream, checks.")
 
 
@@ -42,6 +44,7 @@ def map_png(
     from services.sim.env import BrainNavEnv
     from services.sim.maps import MapError
 
+    output_file(out, suffixes=(".png",))
     try:
         env = BrainNavEnv(map_path=map_path, oracle_cache_dir=_oracle_cache_dir())
     except MapError as exc:
@@ -57,7 +60,6 @@ def map_png(
         image = env.top_down_image()
     finally:
         env.close()
-    out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(image).save(out)
     detail = f", oracle path {steps} actions" if oracle_path else ""
     typer.echo(f"wrote {out} ({image.shape[1]}x{image.shape[0]} px{detail})")
@@ -67,7 +69,7 @@ def map_png(
 def random_success(
     task: Annotated[str, typer.Option(help="sssg or vssg.")] = "vssg",
     episodes: Annotated[int, typer.Option(min=1, help="120-step episodes to run.")] = 10_000,
-    seed: Annotated[int, typer.Option(help="Seed of the actions and starts.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the actions and starts.")] = 0,
     map_path: Annotated[
         Path | None, typer.Option("--map", help="Map JSON file (default: the shipped map).")
     ] = None,
@@ -76,11 +78,14 @@ def random_success(
     """How often a uniformly random policy reaches the goal (the paper's premise: rarely)."""
     from dataclasses import asdict
 
+    from services.core.files import write_json_atomic
     from services.sim.maps import MapError
     from services.sim.metrics import random_policy_success_rate
 
     if task not in ("sssg", "vssg"):
         raise typer.BadParameter(f"must be sssg or vssg, got {task!r}", param_hint="--task")
+    if out is not None:
+        output_file(out)
     try:
         result = random_policy_success_rate(
             task,
@@ -94,8 +99,7 @@ def random_success(
         raise typer.BadParameter(str(exc), param_hint="--map") from None
     summary = {**asdict(result), "task": task, "seed": seed, "map": str(map_path or "default")}
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(summary, indent=2) + "\n")
+        write_json_atomic(out, summary, indent=2)
     typer.echo(
         f"{task}: {result.successes}/{result.episodes} random episodes reached the goal "
         f"({100 * result.success_rate:.3f} %), {100 * result.collision_rate:.1f} % collided"
@@ -149,7 +153,7 @@ def bench_sim(
     frames: Annotated[int, typer.Option(min=1, help="Frames rendered.")] = 60,
     oracle_queries: Annotated[int, typer.Option(min=1, help="Oracle queries timed.")] = 2_000,
     service_steps: Annotated[int, typer.Option(min=1, help="Steps through the HTTP app.")] = 300,
-    seed: Annotated[int, typer.Option(help="Seed of actions and query poses.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of actions and query poses.")] = 0,
 ) -> None:
     """Sim costs against peers in the same run; writes OUT/sim.json.
 
@@ -157,7 +161,9 @@ def bench_sim(
     query times, HTTP step overhead.
     """
     from benchmarks import bench_sim as bench
+    from benchmarks.json_out import write_json
 
+    output_folder(out)  # before the minutes of measuring
     total = rounds + math.ceil(frames / 10) + 3
     with tqdm(total=total, desc="bench sim", unit="part") as bar:
 
@@ -180,9 +186,7 @@ def bench_sim(
         f"--frames {frames} --oracle-queries {oracle_queries} --service-steps {service_steps} "
         f"--seed {seed}"
     )
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "sim.json"
-    path.write_text(json.dumps(result, indent=2) + "\n")
+    path = write_json(out / "sim.json", result)
     env, render, oracle, service = (
         result["env_step"],
         result["render"],

@@ -9,6 +9,8 @@ import numpy as np
 import typer
 from tqdm import tqdm
 
+from services.cli.paths import output_file
+
 subject_app = typer.Typer(help="Virtual subjects: synthetic ErrP EEG recordings.")
 
 
@@ -54,7 +56,7 @@ def simulate_command(
         float, typer.Option(min=0.0, max=1.0, help="ErrP quality: 0 none, 1 the clearest.")
     ] = 0.6,
     actions: Annotated[int, typer.Option(min=1, help="Number of actions (one per 1.5 s).")] = 600,
-    seed: Annotated[int, typer.Option(help="Seed of the policy and of the subject.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the policy and of the subject.")] = 0,
     task: Annotated[str, typer.Option(help="Task the random policy acts in: sssg or vssg.")] = (
         "sssg"
     ),
@@ -65,8 +67,7 @@ def simulate_command(
 
     if task not in ("sssg", "vssg"):
         raise typer.BadParameter(f"task must be sssg or vssg, got {task!r}", param_hint="--task")
-    if out.suffix.lower() != ".bdf":
-        raise typer.BadParameter(f"the output must be a .bdf file, got {out.name}")
+    output_file(out, suffixes=(".bdf",))
     task_name = cast(Literal["sssg", "vssg"], task)
     labels = random_policy_labels(actions, seed=seed, task=task_name, progress=True)
     with tqdm(total=2, desc="EEG", unit="stage") as bar:
@@ -93,7 +94,7 @@ def stream_command(
     quality: Annotated[
         float, typer.Option(min=0.0, max=1.0, help="Live subject: ErrP quality (0 none, 1 best).")
     ] = 0.6,
-    seed: Annotated[int, typer.Option(help="Live subject: seed of the subject.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Live subject: seed of the subject.")] = 0,
     sfreq: Annotated[float, typer.Option(min=256.0, help="Live subject: sampling rate.")] = 256.0,
     marker_stream: Annotated[
         str, typer.Option(help="Live subject: the sim's LSL marker stream to follow.")

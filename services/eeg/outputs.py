@@ -14,6 +14,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from services.core.files import finite_or_null
 from services.eeg.classifier import CONFIG_FILE, ONNX_FILE, STATE_FILE, TORCHSCRIPT_FILE
 
 if TYPE_CHECKING:
@@ -35,6 +36,11 @@ ARTEFACTS = frozenset(
 """Files a calibration writes besides ``metrics.json`` (report names: services.eeg.report)."""
 
 
+def _strict_json(payload: object, indent: int | None = None) -> str:
+    """JSON other tools read: a figure without a value (NaN) as ``null``."""
+    return json.dumps(finite_or_null(payload), indent=indent, allow_nan=False)
+
+
 def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: bool) -> Path:
     """Write the artefacts to a temporary sibling of ``out`` and move them in.
 
@@ -47,12 +53,12 @@ def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: b
         result.classifier.save(staging)
         if onnx and result.classifier.exports_onnx:
             result.classifier.export_onnx(staging)
-        (staging / HISTORY_FILE).write_text(json.dumps(result.history))
+        (staging / HISTORY_FILE).write_text(_strict_json(result.history))
         if report:
             from services.eeg.report import write_report
 
             write_report(result, staging)
-        (staging / METRICS_FILE).write_text(json.dumps(result.metrics, indent=2))
+        (staging / METRICS_FILE).write_text(_strict_json(result.metrics, indent=2))
         out.mkdir(exist_ok=True)
         names = sorted(p.name for p in staging.iterdir() if p.name != METRICS_FILE)
         # metrics.json marks a finished classifier: the old one goes first, and artefacts

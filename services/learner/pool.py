@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import signal
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import asdict
@@ -52,6 +53,9 @@ def _worker_init() -> None:
     import torch
 
     torch.set_num_threads(1)  # one run per core
+    # Ctrl-C reaches the whole process group: the parent alone handles it (run_isolated
+    # stops the workers), so a run is never recorded as failed with a KeyboardInterrupt.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _guarded(function: Callable[[SpecT], ResultT], spec: SpecT) -> ResultT | RunFailure:
@@ -74,11 +78,16 @@ def run_isolated(
 
     Each finished run calls ``on_result`` (in completion order) or, if it raised or its
     worker died, ``on_failure``: one run's failure never stops or loses the others.
+
+    If the caller is interrupted (Ctrl-C) or a callback raises, the runs not started are
+    dropped and the workers are stopped at once before the exception goes on: what
+    finished has been handed over, the rest is for a rerun.
     """
     if not specs:
         return
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init) as pool:
+    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init)
+    try:
         futures: dict[Future[Any], SpecT] = {
             pool.submit(_guarded, function, spec): spec for spec in specs
         }
@@ -91,6 +100,21 @@ def run_isolated(
                 on_failure(outcome)
             else:
                 on_result(outcome)
+    except BaseException:
+        _stop(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _stop(pool: ProcessPoolExecutor) -> None:
+    """Drop the pool's queued work and end its workers now (shutdown alone would wait for
+    every queued run)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(timeout=10)
 
 
 def validate_maps(specs: Sequence[RunSpec]) -> None:
@@ -168,7 +192,12 @@ def reproduce(
         if on_failure is not None:
             on_failure(failure)
 
-    run_isolated(run_one, pending, workers=workers, on_result=finished, on_failure=failed)
+    try:
+        run_isolated(run_one, pending, workers=workers, on_result=finished, on_failure=failed)
+    except KeyboardInterrupt:  # the CSV, summary and plots cover the runs kept so far
+        if results.runs:
+            write_outputs(out, results.runs)
+        raise
     save_results(results_path, results)
     write_outputs(out, results.runs)
     return results
@@ -188,7 +217,10 @@ def hf_policy_sweep(
     """:func:`~services.learner.runs.hf_policy_run` over tasks x C x labels x methods x seeds.
 
     Writes ``out_dir/hf_policies.json`` (``{"runs": [...], "failed": [...]}``) after every
-    run; runs already there are skipped, failed ones retried. Returns (rows, failures).
+    run; runs already there are skipped, failed ones retried (earlier failures of runs this
+    call does not include are kept). A file there that is not such a document is a
+    ValueError naming it, before anything runs. Returns (rows, failures), the failures
+    of this call and the earlier ones kept.
     """
     specs = [
         HFPolicySpec(task, accuracy, seed, n_labels, method)
@@ -199,17 +231,16 @@ def hf_policy_sweep(
         for accuracy in accuracies
     ]
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     path = out / "hf_policies.json"
-    rows: list[dict[str, Any]] = json.loads(path.read_text())["runs"] if path.exists() else []
-    done = {
-        (r["task"], r["accuracy"], r["seed"], r["n_labels"], r.get("method", PAPER_METHOD))
-        for r in rows
-    }
+    rows, earlier_failures = load_sweep(path) if path.exists() else ([], [])
+    out.mkdir(parents=True, exist_ok=True)
+    done = {sweep_row_key(r) for r in rows}
+    attempted = {s.key for s in specs}
     failures: list[RunFailure] = []
+    kept_failures = [f for f in earlier_failures if _sweep_spec_key(f.spec) not in attempted]
 
     def save() -> None:
-        document = {"runs": rows, "failed": [f.to_dict() for f in failures]}
+        document = {"runs": rows, "failed": [f.to_dict() for f in [*kept_failures, *failures]]}
         write_json_atomic(path, document, indent=None)
 
     def finished(row: dict[str, Any]) -> None:
@@ -225,4 +256,38 @@ def hf_policy_sweep(
     pending = [s for s in specs if s.key not in done]
     run_isolated(hf_policy_run, pending, workers=workers, on_result=finished, on_failure=failed)
     save()
+    return rows, [*kept_failures, *failures]
+
+
+def sweep_row_key(row: dict[str, Any]) -> tuple[Any, ...]:
+    """The ``HFPolicySpec.key`` of a ``hf_policies.json`` row."""
+    method = row.get("method", PAPER_METHOD)
+    return (row["task"], row["accuracy"], row["seed"], row["n_labels"], method)
+
+
+def _sweep_spec_key(spec: dict[str, Any]) -> tuple[Any, ...]:
+    return HFPolicySpec(**spec).key
+
+
+def load_sweep(path: str | Path) -> tuple[list[dict[str, Any]], list[RunFailure]]:
+    """(rows, failures) of a ``hf_policies.json``; a one-line ValueError naming the file if it
+    is not one (the file is left as it is)."""
+    path = Path(path)
+    try:
+        document = json.loads(path.read_text())
+        rows = document["runs"]
+        failures = [RunFailure.from_dict(f) for f in document.get("failed", [])]
+        if not isinstance(rows, list):
+            raise TypeError("runs is not a list")
+        for row in rows:
+            sweep_row_key(row)
+            for name in ("greedy_spl", "sampled_success_rate"):  # what the report reads
+                if not isinstance(row[name], int | float):
+                    raise TypeError(f"{name} is not a number")
+        for failure in failures:
+            _sweep_spec_key(failure.spec)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read it ({exc})") from None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{path}: not a `bgrl hf-sweep` results file ({exc!r})") from None
     return rows, failures

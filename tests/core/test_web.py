@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import stat
 
 import pytest
 from fastapi import APIRouter, Query, WebSocket
@@ -117,6 +119,17 @@ def test_settings_errors_are_one_line_naming_the_variable(monkeypatch) -> None:
     monkeypatch.setenv("BGRL_DEMO_PORT", "70000")
     with pytest.raises(SettingsError, match="BGRL_DEMO_PORT"):
         load_settings(DemoSettings)
+
+
+def test_atomic_writes_get_the_mode_of_a_plain_write(tmp_path) -> None:
+    old = os.umask(0o027)
+    try:
+        plain = tmp_path / "plain.json"
+        plain.write_text("{}")
+        atomic = write_json_atomic(tmp_path / "atomic.json", {})
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(atomic.stat().st_mode) == stat.S_IMODE(plain.stat().st_mode) == 0o640
 
 
 def test_atomic_json_refuses_nan_and_keeps_the_old_file(tmp_path) -> None:

@@ -117,6 +117,25 @@ def test_save_load_round_trip_and_torchscript(tmp_path, decoders, kept, n_params
     assert loaded.predict_proba(epochs.X[0]).shape == (1,)
 
 
+def test_output_json_is_strict_a_figure_without_a_value_is_null(tmp_path) -> None:
+    """A test split of one class has no ROC AUC (NaN): metrics.json says null, which strict
+    JSON readers take, instead of the NaN token they refuse."""
+    from services.eeg.outputs import write_outputs
+
+    result = calibrate(_toy_epochs(), seed=1, config=TrainingConfig(decoders=("lda",)))
+    result.metrics["roc_auc"] = float("nan")
+    result.history["val_loss"] = [float("inf")]
+    write_outputs(result, tmp_path / "out", report=False, onnx=False)
+
+    def refuse(token: str) -> None:
+        raise ValueError(f"not JSON: {token}")
+
+    for name in ("metrics.json", "history.json"):
+        text = (tmp_path / "out" / name).read_text()
+        parsed = json.loads(text, parse_constant=refuse)
+        assert parsed["roc_auc" if name == "metrics.json" else "val_loss"] in (None, [None])
+
+
 def test_onnx_export_matches_torch(tmp_path) -> None:
     ort = pytest.importorskip("onnxruntime", reason="onnxruntime checks the exported graph")
     epochs = _toy_epochs()

@@ -1,0 +1,337 @@
+"""The `bgrl` research commands as a script uses them and as other tools read their files:
+bad arguments are one-line errors that leave ``--out`` alone, Ctrl-C stops at once and
+keeps a consistent, resumable folder, JSON is strict, CSVs have a header, plots are PNGs."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from typer.testing import CliRunner
+
+from services.cli.main import app
+from services.learner import pool
+from services.learner.ppo import PPOConfig
+from services.learner.runs import RunFailure, RunRecord
+from services.learner.specs import RUN_FIXED_PPO_FIELDS, RunSpec
+
+REPO = Path(__file__).resolve().parents[2]
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _strict_json(path: Path) -> Any:
+    """``path`` parsed as strict JSON (NaN / Infinity tokens raise)."""
+
+    def refuse(token: str) -> None:
+        raise ValueError(f"{path.name}: non-JSON constant {token}")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def _csv_rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        assert reader.fieldnames, f"{path.name} has no header"
+        return list(reader)
+
+
+def _one_line_error(result: Any, *needles: str) -> None:
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output, result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.output
+    flat = "".join(result.output.replace("│", "").split())  # the error box wraps lines
+    for needle in needles:
+        assert "".join(needle.split()) in flat, result.output
+
+
+def _no_runs(*args: Any, **kwargs: Any) -> None:
+    raise AssertionError("bad input must be refused before any run starts")
+
+
+def _record(spec: RunSpec) -> RunRecord:
+    """A finished run's record without training (what ``run_one`` returns)."""
+    curve = [[0, 0.0], [1024, 0.5], [2048, 1.0]]
+    return RunRecord(
+        task=spec.task, method=spec.method, accuracy=spec.accuracy, seed=spec.seed,
+        hf_treatment=spec.hf_treatment, curve=curve, final_spl=1.0, hf_policy_spl=None,
+        wall_seconds=0.1, steps_to_0_7=2048, spec=spec.to_dict(), best_step=2048, best_spl=1.0,
+    )  # fmt: skip
+
+
+# ------------------------------------------------------------------ bad arguments
+
+
+REPRODUCE = ["reproduce", "--seeds", "1", "--tasks", "sssg", "--methods", "rl_sparse"]
+
+
+@pytest.mark.parametrize(
+    ("extra", "needles"),
+    [
+        (["--tasks", "sssg,sssg"], ["--tasks", "sssg repeated"]),
+        (["--methods", ""], ["--methods", "at least one"]),
+        (["--methods", "hf_sparse", "--accuracies", "0.7,0.70"], ["--accuracies", "0.7 repeated"]),
+        (["--methods", "hf_sparse", "--accuracies", "nan"], ["--accuracies", "'nan' is not in"]),
+        (["--methods", "hf_sparse", "--accuracies", "1.5"], ["--accuracies", "not in [0, 1]"]),
+        (["--treatments", "authors,authors"], ["--treatments", "authors repeated"]),
+        (["--ppo", "minibatch_size=0"], ["--ppo minibatch_size: 0 is not in [1, inf)"]),
+        (["--ppo", "n_epochs=-1"], ["--ppo n_epochs: -1"]),
+        (["--ppo", "learning_rate=nan"], ["--ppo learning_rate: nan"]),
+        (["--ppo", "gamma=inf"], ["--ppo gamma: inf is not in [0, 1]"]),
+        (["--ppo", "hidden_sizes=64,0"], ["--ppo hidden_sizes: 0"]),
+        (["--first-seed", str(2**31)], ["--first-seed"]),
+        (["--seeds", "2", "--first-seed", str(2**31 - 1)], ["--first-seed", "2147483648"]),
+    ],
+)
+def test_reproduce_refuses_bad_arguments_in_one_line_before_touching_out(
+    tmp_path, monkeypatch, extra, needles
+) -> None:
+    monkeypatch.setattr(pool, "run_isolated", _no_runs)
+    out = tmp_path / "study"
+    result = CliRunner().invoke(app, [*REPRODUCE, "--out", str(out), *extra])
+    _one_line_error(result, *needles)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("extra", "needles"),
+    [
+        (["--labels", "20,20"], ["--labels", "20 repeated"]),
+        (["--accuracies", "0.7,0.7"], ["--accuracies", "0.7 repeated"]),
+        (["--tasks", ""], ["--tasks", "at least one"]),
+        (["--tasks", "sssg,nope"], ["--tasks", "unknown task 'nope'"]),
+        (["--method", "paper,paper"], ["--method", "paper repeated"]),
+    ],
+)
+def test_hf_sweep_refuses_bad_arguments_in_one_line_before_touching_out(
+    tmp_path, monkeypatch, extra, needles
+) -> None:
+    monkeypatch.setattr(pool, "run_isolated", _no_runs)
+    out = tmp_path / "sweep"
+    args = ["hf-sweep", "--out", str(out), "--seeds", "1", "--tasks", "sssg", "--labels", "20"]
+    result = CliRunner().invoke(app, [*args, "--accuracies", "0.7", *extra])
+    _one_line_error(result, *needles)
+    assert not out.exists()
+
+
+def test_every_numeric_ppo_setting_has_bounds() -> None:
+    from services.cli.learner import PPO_BOUNDS, parse_ppo_overrides
+
+    defaults = PPOConfig()
+    numeric = {
+        f.name
+        for f in dataclasses.fields(PPOConfig)
+        if f.name not in RUN_FIXED_PPO_FIELDS
+        and not isinstance(getattr(defaults, f.name), bool)
+        and isinstance(getattr(defaults, f.name), int | float | tuple | type(None))
+    }
+    assert numeric == set(PPO_BOUNDS)
+    assert parse_ppo_overrides(["target_kl=none", "gamma=1", "hidden_sizes=32,32"]) == {
+        "target_kl": None, "gamma": 1.0, "hidden_sizes": (32, 32),
+    }  # fmt: skip
+    with pytest.raises(ValueError, match=r"--ppo hf_t_trans_fraction: 0\.0 is not in \(0, 1\]"):
+        parse_ppo_overrides(["hf_t_trans_fraction=0"])
+
+
+def _bench_never_runs(*args: Any, **kwargs: Any) -> None:
+    raise AssertionError("the output folder must be checked before the benchmark runs")
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        [*REPRODUCE, "--out", "{file}"],
+        ["hf-sweep", "--seeds", "1", "--tasks", "sssg", "--labels", "5", "--out", "{file}"],
+        ["reproduce", "--seeds", "1", "--tasks", "sssg", "--out", "{file}/below"],
+        ["compare", "{study}", "--out", "{file}"],
+        ["compare", "{study}", "--out", "{file}/below"],
+        ["sim", "map-png", "--out", "{file}/map.png"],
+        ["sim", "map-png", "--out", "{dir}/map.txt"],
+        ["sim", "random-success", "--episodes", "1", "--out", "{dir}"],
+        ["subject", "simulate", "--actions", "5", "--out", "{file}/s.bdf"],
+        ["eeg", "calibrate", "{dir}/none.bdf", "--out", "{file}"],
+        ["eeg", "quality-sweep", "--seeds", "1", "--actions", "60", "--out", "{file}"],
+        ["bench", "learner", "--out", "{file}"],
+        ["bench", "sim", "--out", "{file}"],
+        ["bench", "eeg", "--memory-only", "--out", "{file}"],
+    ],
+)
+def test_an_out_that_cannot_be_written_is_a_one_line_error_and_no_work(
+    tmp_path, monkeypatch, command
+) -> None:
+    import benchmarks.bench_eeg
+    import benchmarks.bench_learner
+    import benchmarks.bench_sim
+
+    monkeypatch.setattr(pool, "run_isolated", _no_runs)
+    monkeypatch.setattr(benchmarks.bench_learner, "run_benchmark", _bench_never_runs)
+    monkeypatch.setattr(benchmarks.bench_sim, "run", _bench_never_runs)
+    monkeypatch.setattr(benchmarks.bench_eeg, "bench_memory", _bench_never_runs)
+    monkeypatch.setattr(benchmarks.bench_eeg, "quality_sweep", _bench_never_runs)
+    study = tmp_path / "study"
+    study.mkdir()
+    spec = RunSpec("sssg", "rl_sparse", 0)
+    pool.save_results(study / "results.json", pool.Results(config={}, runs=[_record(spec)]))
+    file = tmp_path / "results.txt"
+    file.write_text("keep me\n")
+    names = {"file": str(file), "dir": str(tmp_path), "study": str(study)}
+    result = CliRunner().invoke(app, [part.format(**names) for part in command])
+    _one_line_error(result, "--out")
+    assert file.read_text() == "keep me\n"
+
+
+@pytest.mark.parametrize("seed_command", [["sim", "random-success"], ["subject", "simulate"]])
+def test_a_negative_seed_is_refused_by_the_option(tmp_path, seed_command) -> None:
+    args = [*seed_command, "--seed", "-1", "--out", str(tmp_path / "x.bdf")]
+    _one_line_error(CliRunner().invoke(app, args), "--seed")
+
+
+@pytest.mark.parametrize(
+    "content", ["[]", '{"runs": [{"task": "sssg"}]}', "not json", '{"runs": [], "failed": [1]}']
+)
+def test_hf_sweep_into_a_folder_with_a_foreign_hf_policies_json_leaves_it_alone(
+    tmp_path, monkeypatch, content
+) -> None:
+    monkeypatch.setattr(pool, "run_isolated", _no_runs)
+    (tmp_path / "hf_policies.json").write_text(content)
+    args = ["hf-sweep", "--out", str(tmp_path), "--seeds", "1", "--tasks", "sssg", "--labels", "5"]
+    result = CliRunner().invoke(app, args)
+    _one_line_error(result, "--out", "hf_policies.json", "not a `bgrl hf-sweep` results file")
+    assert (tmp_path / "hf_policies.json").read_text() == content
+
+
+def test_hf_sweep_keeps_earlier_failures_of_runs_it_does_not_retry(tmp_path, monkeypatch) -> None:
+    def fail_all(function, specs, *, workers, on_result, on_failure) -> None:
+        for spec in specs:
+            on_failure(RunFailure.from_exception(spec, RuntimeError("boom")))
+
+    def succeed(function, specs, *, workers, on_result, on_failure) -> None:
+        for spec in specs:
+            row = {"task": spec.task, "accuracy": spec.accuracy, "seed": spec.seed,
+                   "n_labels": spec.n_labels, "method": spec.method, "greedy_spl": 1.0,
+                   "sampled_success_rate": 1.0}  # fmt: skip
+            on_result(row)
+
+    base = ["hf-sweep", "--out", str(tmp_path), "--seeds", "1", "--labels", "5"]
+    monkeypatch.setattr(pool, "run_isolated", fail_all)
+    assert CliRunner().invoke(app, [*base, "--tasks", "sssg,vssg"]).exit_code == 1
+    monkeypatch.setattr(pool, "run_isolated", succeed)
+    result = CliRunner().invoke(app, [*base, "--tasks", "sssg"])
+    assert result.exit_code == 1, result.output  # the vssg runs still stand failed
+    document = _strict_json(tmp_path / "hf_policies.json")
+    assert {r["task"] for r in document["runs"]} == {"sssg"}
+    assert {f["spec"]["task"] for f in document["failed"]} == {"vssg"}
+
+
+# ------------------------------------------------------------------ interruption
+
+
+def test_interrupting_run_isolated_drops_queued_runs_and_ends_its_workers() -> None:
+    interrupted_at: list[float] = []
+    before = set(multiprocessing.active_children())
+
+    def interrupt(_: Any) -> None:  # as Ctrl-C arriving while the parent waits
+        interrupted_at.append(time.monotonic())
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        pool.run_isolated(
+            time.sleep, [0.0, 3.0, 3.0, 3.0, 3.0], workers=1,
+            on_result=interrupt, on_failure=lambda failure: None,
+        )  # fmt: skip
+    assert time.monotonic() - interrupted_at[0] < 2.0  # not the 12 s of queued runs
+    left = [(c.name, c.pid, c.exitcode) for c in set(multiprocessing.active_children()) - before]
+    assert left == []
+
+
+def test_reproduce_interrupted_keeps_a_consistent_folder_and_resumes(tmp_path, monkeypatch) -> None:
+    def one_then_ctrl_c(function, specs, *, workers, on_result, on_failure) -> None:
+        on_result(_record(specs[0]))
+        raise KeyboardInterrupt
+
+    args = [*REPRODUCE, "--seeds", "3", "--out", str(tmp_path)]
+    monkeypatch.setattr(pool, "run_isolated", one_then_ctrl_c)
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 130, result.output
+    assert "interrupted" in result.output and "run the same command again" in result.output
+    assert len(_strict_json(tmp_path / "results.json")["runs"]) == 1
+    assert [r["seed"] for r in _csv_rows(tmp_path / "results.csv")] == ["0"]  # up to date
+    assert _strict_json(tmp_path / "summary.json")["groups"][0]["n_seeds"] == 1
+    assert (tmp_path / "fig3_sssg.png").read_bytes().startswith(PNG_SIGNATURE)
+
+    resumed: list[int] = []
+
+    def the_rest(function, specs, *, workers, on_result, on_failure) -> None:
+        for spec in specs:
+            resumed.append(spec.seed)
+            on_result(_record(spec))
+
+    monkeypatch.setattr(pool, "run_isolated", the_rest)
+    assert CliRunner().invoke(app, args).exit_code == 0
+    assert resumed == [1, 2]
+    rows = _csv_rows(tmp_path / "results.csv")
+    assert [r["seed"] for r in rows] == ["0", "1", "2"] and rows[0]["curve"].startswith("0:")
+
+
+def test_ctrl_c_stops_a_real_hf_sweep_at_once_and_a_rerun_resumes(tmp_path) -> None:
+    out = tmp_path / "sweep"
+    command = [
+        sys.executable, "-m", "services.cli.main", "hf-sweep", "--out", str(out),
+        "--tasks", "sssg", "--accuracies", "0.7", "--labels", "100", "--workers", "1",
+    ]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    process = subprocess.Popen(
+        [*command, "--seeds", "30"], cwd=REPO, env=env, start_new_session=True,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "hf_policies.json").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert (out / "hf_policies.json").exists(), "no run finished in 60 s"
+        os.killpg(process.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
+        sent = time.monotonic()
+        output = process.communicate(timeout=30)[0].decode()
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert time.monotonic() - sent < 15, "still running the queued runs after Ctrl-C"
+    assert process.returncode == 130, output
+    assert "Traceback" not in output and "interrupted" in output
+    rows = _strict_json(out / "hf_policies.json")["runs"]
+    assert 1 <= len(rows) < 30
+    assert f"| paper | SSSG | 0.7 | 100 | {len(rows)} |" in (out / "summary.md").read_text()
+    assert (out / "spl_vs_labels.png").read_bytes().startswith(PNG_SIGNATURE)
+    rerun = subprocess.run(
+        [*command, "--seeds", "1"], cwd=REPO, env=env, capture_output=True, timeout=60
+    )
+    assert rerun.returncode == 0, rerun.stdout.decode() + rerun.stderr.decode()
+    assert _strict_json(out / "hf_policies.json")["runs"] == rows  # seed 0 is not run again
+
+
+# ------------------------------------------------------------------ files other tools read
+
+
+def test_quality_sweep_files_are_strict_json_a_csv_with_header_and_a_png(tmp_path) -> None:
+    """Few actions with few errors: a test split of one class, whose ROC AUC has no value."""
+    args = [
+        "eeg", "quality-sweep", "--out", str(tmp_path), "--quality", "0.5", "--seeds", "1",
+        "--actions", "60", "--error-rate", "0.05", "--max-passes", "1", "--decoders", "lda",
+    ]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    sweep = _strict_json(tmp_path / "quality_sweep.json")
+    assert sweep["runs"][0]["roc_auc"] is None  # NaN written as null
+    assert _strict_json(tmp_path / "quality_sweep.partial.json")[0]["roc_auc"] is None
+    assert _csv_rows(tmp_path / "quality_sweep.csv")
+    assert (tmp_path / "quality_sweep.png").read_bytes().startswith(PNG_SIGNATURE)
