@@ -59,6 +59,16 @@ class LiveApi:
             return job.id, self.app.state.store.path(stored.relpath)
 
 
+@pytest.fixture
+def credentials(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    """Where the CLI keeps its token in this test (no BGRL_API_URL / BGRL_API_TOKEN)."""
+    path = tmp_path / "config" / "bgrl" / "credentials.json"
+    monkeypatch.setenv("BGRL_CREDENTIALS_FILE", str(path))
+    monkeypatch.delenv("BGRL_API_URL", raising=False)
+    monkeypatch.delenv("BGRL_API_TOKEN", raising=False)
+    return path
+
+
 @pytest.fixture(scope="module")
 def live_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveApi]:
     """The api on 127.0.0.1 (a free port) with an admin, a staff and a viewer account."""

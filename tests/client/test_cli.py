@@ -19,16 +19,6 @@ runner = CliRunner()
 
 
 @pytest.fixture
-def credentials(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
-    """Where the CLI keeps its token in this test (no BGRL_API_URL / BGRL_API_TOKEN)."""
-    path = tmp_path / "config" / "bgrl" / "credentials.json"
-    monkeypatch.setenv("BGRL_CREDENTIALS_FILE", str(path))
-    monkeypatch.delenv("BGRL_API_URL", raising=False)
-    monkeypatch.delenv("BGRL_API_TOKEN", raising=False)
-    return path
-
-
-@pytest.fixture
 def signed_in(live_api: LiveApi, credentials: Path) -> Iterator[Path]:
     """The CLI signed in as staff."""
     result = runner.invoke(

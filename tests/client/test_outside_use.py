@@ -26,16 +26,6 @@ from tests.helpers import serve_in_thread
 runner = CliRunner()
 
 
-@pytest.fixture
-def credentials(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
-    """Where the CLI keeps its token in this test (no BGRL_API_URL / BGRL_API_TOKEN)."""
-    path = tmp_path / "config" / "bgrl" / "credentials.json"
-    monkeypatch.setenv("BGRL_CREDENTIALS_FILE", str(path))
-    monkeypatch.delenv("BGRL_API_URL", raising=False)
-    monkeypatch.delenv("BGRL_API_TOKEN", raising=False)
-    return path
-
-
 def _login(url: str) -> Result:
     return runner.invoke(
         app, ["login", "--url", url, "--email", STAFF_EMAIL, "--password-stdin"], input=PASSWORD
