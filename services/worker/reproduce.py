@@ -30,6 +30,7 @@ from services.learner.specs import (
     build_specs,
 )
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome, JobStoppedError
+from services.worker.training import check_ppo_overrides
 
 REPRODUCE_FIELDS = frozenset(
     {
@@ -66,6 +67,7 @@ def specs_from_config(config: dict[str, Any]) -> list[RunSpec]:
     overrides = config.get("ppo") or {}
     if not isinstance(overrides, dict):
         raise JobConfigError("ppo must be an object of PPO settings")
+    check_ppo_overrides(overrides)
     try:
         treatments, overrides, hf_method = apply_preset(
             config.get("preset", "paper"),

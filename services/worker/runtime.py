@@ -248,17 +248,25 @@ def run_job(runtime: Runtime, job_id: str, handler: Handler) -> str:
         job = session.get(Job, job_id, populate_existing=True)
         assert job is not None
         keeper = LeaseKeeper(runtime, job_id)
+        config = job.config if job.config is not None else {}
         context = JobContext(
             runtime=runtime,
             job_id=job_id,
             kind=job.kind,
-            config=dict(job.config or {}),
+            config=dict(config) if isinstance(config, dict) else {},
             submitter_id=job.submitter_id,
             parent_id=job.parent_id,
             max_attempts=job.max_attempts,
             keeper=keeper,
         )
         logger.info("job %s (%s): attempt %d started", job_id, job.kind, job.attempts)
+    if not isinstance(config, dict):  # written around the api (an old version, by hand)
+        error = f"config must be a JSON object of settings, not {type(config).__name__}"
+        with runtime.sessions() as session:
+            job_rows.finish_job(session, job_id, runtime.owner, "failed", error=error)
+        logger.warning("job %s: invalid config: %s", job_id, error)
+        _notify_parent(runtime, context.parent_id)
+        return "failed"
     keeper.start()
     try:
         outcome = handler(context)

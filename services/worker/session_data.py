@@ -264,7 +264,13 @@ def load_classifier(runtime: Runtime, classifier_id: int) -> ErrPClassifier:
     try:
         for name, relpath in relpaths.items():
             if relpath is not None:
-                shutil.copyfile(runtime.store.path(relpath), folder / name)
+                try:
+                    shutil.copyfile(runtime.store.path(relpath), folder / name)
+                except FileNotFoundError:
+                    raise JobConfigError(
+                        f"classifier_id: file {name} of classifier {classifier_id} is missing "
+                        "from the artifact store"
+                    ) from None
         return ErrPClassifier.load(folder)
     finally:
         shutil.rmtree(folder, ignore_errors=True)

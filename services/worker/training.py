@@ -17,8 +17,10 @@ from __future__ import annotations
 import hashlib
 import tempfile
 import time
+import types
+import typing
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Union
 
 import torch
 from sqlalchemy import select
@@ -26,7 +28,7 @@ from sqlalchemy import select
 from services.core.db.models import Artifact, HFModel
 from services.learner.feedback import HFPolicy
 from services.learner.hf_methods import RECOMMENDED_METHOD
-from services.learner.ppo import Callback
+from services.learner.ppo import Callback, PPOConfig
 from services.learner.runs import RunRecord, run_one
 from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec, apply_preset
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
@@ -82,6 +84,60 @@ class JobProgress(Callback):
         return True
 
 
+PPO_FIELD_TYPES: dict[str, Any] = typing.get_type_hints(PPOConfig)
+"""The type of each PPO setting: a stored config's ``ppo`` values are checked against them
+(PPOConfig itself takes any value, and a string would only fail mid-training, retried)."""
+
+
+def _fits(value: Any, hint: Any) -> bool:
+    """True if ``value`` (from JSON) is of type ``hint``; types not checked here pass."""
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    if hint is type(None):
+        return value is None
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        return any(_fits(value, arg) for arg in args)
+    if origin is Literal:
+        return value in args
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
+        return isinstance(value, list | tuple) and all(_fits(v, args[0]) for v in value)
+    return True
+
+
+def _describe(hint: Any) -> str:
+    names = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+    if hint in names:
+        return names[hint]
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        return " or ".join("null" if a is type(None) else _describe(a) for a in args)
+    if origin is Literal:
+        return f"one of {list(args)}"
+    if origin is tuple:
+        return f"a list of {_describe(args[0])}s".replace("an integers", "integers")
+    return str(hint)
+
+
+def check_ppo_overrides(overrides: dict[str, Any], field: str = "ppo") -> None:
+    """Refuse a PPO setting of the wrong type, naming it (``ppo.n_epochs must be ...``)."""
+    for name, value in overrides.items():
+        hint = PPO_FIELD_TYPES.get(name)
+        if hint is not None and not _fits(value, hint):
+            raise JobConfigError(f"{field}.{name} must be {_describe(hint)}, not {value!r}")
+
+
+def _check_scalar(config: dict[str, Any], name: str, hint: Any) -> None:
+    if name in config and not _fits(config[name], hint):
+        raise JobConfigError(f"{name} must be {_describe(hint)}, not {config[name]!r}")
+
+
 def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
     """The learner's run spec of a ``guided_ppo`` job config (refusing what is wrong)."""
     unknown = set(config) - GUIDED_PPO_FIELDS
@@ -96,6 +152,11 @@ def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
     overrides = config.get("ppo") or {}
     if not isinstance(overrides, dict):
         raise JobConfigError("ppo must be an object of PPO settings")
+    check_ppo_overrides(overrides)
+    _check_scalar(config, "total_steps", int)
+    _check_scalar(config, "accuracy", float | None)
+    _check_scalar(config, "n_labels", int)
+    _check_scalar(config, "checkpoint_every", int)
     if "total_steps" in config:
         overrides = {**overrides, "total_steps": config["total_steps"]}
     seed = config.get("seed", 0)
@@ -175,7 +236,19 @@ def stored_hf_policy(context: JobContext, hf_model_id: Any) -> tuple[HFPolicy, f
         ).first()
     if row is None:
         raise JobConfigError(f"hf_model_id: no HF model {hf_model_id} with a TorchScript file")
-    module = torch.jit.load(str(context.runtime.store.path(row.relpath)), map_location="cpu")
+    path = context.runtime.store.path(row.relpath)
+    if not path.is_file():
+        raise JobConfigError(
+            f"hf_model_id: the TorchScript file of HF model {hf_model_id} is missing from the "
+            "artifact store"
+        )
+    try:
+        module = torch.jit.load(str(path), map_location="cpu")
+    except (RuntimeError, ValueError) as exc:
+        raise JobConfigError(
+            f"hf_model_id: the TorchScript file of HF model {hf_model_id} is not readable: "
+            f"{str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__}"
+        ) from None
     return HFPolicy(module), row.feedback_accuracy
 
 
@@ -241,7 +314,7 @@ def guided_ppo(context: JobContext) -> JobOutcome:
             config["accuracy"] = round(accuracy, 4)
     spec = spec_from_guided_config(config)
     every = config.get("checkpoint_every", context.runtime.settings.checkpoint_every)
-    if not isinstance(every, int) or every < 1:
+    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
         raise JobConfigError("checkpoint_every must be a positive integer")
     return train_spec(context, spec, every, hf_policy)
 

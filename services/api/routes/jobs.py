@@ -15,7 +15,7 @@ from fastapi import APIRouter, Depends, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
-from sqlalchemy import bindparam, update
+from sqlalchemy import bindparam, select, update
 from sqlalchemy.orm import Session
 
 from services.api import audit
@@ -280,29 +280,58 @@ def cancel(job_id: str, user: StaffUser, db: DbDep) -> JobPublic:
     return JobPublic.model_validate(job)
 
 
+RETRYABLE = ("failed", "cancelled")
+"""The statuses a retry starts again from."""
+
+
+def _requeue(job_filter: Any) -> Any:
+    """The update that puts the retryable jobs ``job_filter`` picks back to ``queued``."""
+    return (
+        update(Job)
+        .where(job_filter, Job.status.in_(RETRYABLE))
+        .values(
+            status="queued",
+            error=None,
+            traceback=None,
+            cancel_requested=False,
+            finished_at=None,
+            attempts=0,
+            lease_owner=None,
+            lease_expires_at=None,
+            updated_at=utcnow(),
+        )
+        .execution_options(synchronize_session=False)
+    )
+
+
 @router.post("/{job_id}/retry", dependencies=SIGNED_IN)
 def retry(job_id: str, user: StaffUser, db: DbDep, celery: CeleryDep) -> JobPublic:
-    """Run a failed or cancelled job again (staff); it resumes from its last checkpoint."""
+    """Run a failed or cancelled job again (staff); it resumes from its last checkpoint.
+
+    A reproduce job's failed and cancelled runs are run again with it (its finished runs
+    are kept). The row changes in one conditional update: of two retries at once, one wins
+    (the other gets 409), so the job is sent once.
+    """
     job = get_or_404(db, Job, job_id, "job_id")
-    if job.status not in ("failed", "cancelled"):
-        raise ConflictError(
-            f"job {job_id} is {job.status}; only failed or cancelled jobs can be retried",
-            field="job_id",
-        )
     if job.parent_id is not None:
         raise ConflictError(
             f"job {job_id} is a run of job {job.parent_id}; retry that", field="job_id"
         )
-    job.status = "queued"
-    job.error = None
-    job.traceback = None
-    job.cancel_requested = False
-    job.finished_at = None
-    job.attempts = 0
-    job.lease_owner = None
-    job.lease_expires_at = None
-    audit.record(db, user, "job.retry", "job", job.id)
+    if db.execute(_requeue(Job.id == job_id)).rowcount != 1:
+        db.rollback()
+        db.refresh(job)
+        raise ConflictError(
+            f"job {job_id} is {job.status}; only failed or cancelled jobs can be retried",
+            field="job_id",
+        )
+    runs = list(db.scalars(select(Job).where(Job.parent_id == job_id, Job.status.in_(RETRYABLE))))
+    if runs:
+        db.execute(_requeue(Job.id.in_([run.id for run in runs])))
+    audit.record(db, user, "job.retry", "job", job.id, runs=len(runs))
     db.commit()
+    db.refresh(job)
+    for run in runs:
+        _enqueue(celery, run)
     _enqueue(celery, job)
     return JobPublic.model_validate(job)
 
