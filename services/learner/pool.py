@@ -110,9 +110,14 @@ def _stop(pool: ProcessPoolExecutor) -> None:
     """Drop the pool's queued work and end its workers now (shutdown alone would wait for
     every queued run)."""
     processes = list((getattr(pool, "_processes", None) or {}).values())
+    manager = getattr(pool, "_executor_manager_thread", None)
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         process.terminate()
+    # The pool's manager thread reaps the workers it sees die: let it finish before joining
+    # them here, as two threads reaping one child can leave it listed as alive for good.
+    if manager is not None:
+        manager.join(timeout=10)
     for process in processes:
         process.join(timeout=10)
 
