@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -19,39 +18,6 @@ if TYPE_CHECKING:
 MAX_SEED = 2**31 - 1
 """Largest seed a run takes (as the platform's jobs): JSON readers and CSV tools keep it exact."""
 EXIT_INTERRUPTED = 130
-
-PPO_BOUNDS: dict[str, tuple[float, float, bool]] = {
-    "total_steps": (1, math.inf, False),
-    "n_steps": (1, math.inf, False),
-    "n_epochs": (1, math.inf, False),
-    "minibatch_size": (1, math.inf, False),
-    "learning_rate": (0, math.inf, True),
-    "adam_eps": (0, math.inf, True),
-    "gamma": (0, 1, False),
-    "gae_lambda": (0, 1, False),
-    "clip_coef": (0, math.inf, True),
-    "ent_coef": (0, math.inf, False),
-    "vf_coef": (0, math.inf, False),
-    "max_grad_norm": (0, math.inf, True),
-    "target_kl": (0, math.inf, True),
-    "reward_scale": (0, math.inf, True),
-    "hidden_sizes": (1, math.inf, False),
-    "eval_every": (1, math.inf, False),
-    "hf_eps_init": (0, 1, False),
-    "hf_t_trans_fraction": (0, 1, True),
-    "hf_warmup_steps": (0, math.inf, False),
-    "is_clip": (0, math.inf, True),
-    "hf_prior_coef": (0, math.inf, False),
-    "hf_withdraw_after": (0, math.inf, False),
-    "explore_coef": (0, math.inf, False),
-    "explore_cell_m": (0, math.inf, True),
-    "sil_coef": (0, math.inf, False),
-    "sil_updates": (0, math.inf, False),
-    "sil_value_coef": (0, math.inf, False),
-    "sil_capacity": (1, math.inf, False),
-}
-"""(low, high, low excluded) of every numeric ``--ppo`` setting (each layer of
-hidden_sizes); values must also be finite."""
 
 
 def _split(value: str) -> list[str]:
@@ -92,23 +58,10 @@ def _accuracies(value: str, option: str = "--accuracies") -> list[float]:
     return values
 
 
-def _check_bounds(key: str, value: Any) -> None:
-    """``--ppo key=value`` within :data:`PPO_BOUNDS` (ValueError naming the setting)."""
-    if key not in PPO_BOUNDS or value is None or isinstance(value, bool):
-        return
-    low, high, low_open = PPO_BOUNDS[key]
-    for number in value if isinstance(value, tuple) else (value,):
-        too_low = number <= low if low_open else number < low
-        if not math.isfinite(number) or too_low or number > high:
-            left = "(" if low_open else "["
-            right = "]" if math.isfinite(high) else ")"
-            upper = f"{high:g}" if math.isfinite(high) else "inf"
-            raise ValueError(f"--ppo {key}: {number!r} is not in {left}{low:g}, {upper}{right}")
-
-
 def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
-    """``["n_epochs=10", "reward_scale=1"]`` -> typed PPOConfig overrides (checked)."""
-    from services.learner.ppo import PPOConfig
+    """``["n_epochs=10", "reward_scale=1"]`` -> typed PPOConfig overrides, checked by the
+    learner's rules (ValueError naming the setting)."""
+    from services.learner.ppo import PPOConfig, check_settings
     from services.learner.specs import RUN_FIXED_PPO_FIELDS
 
     fields = {f.name for f in dataclasses.fields(PPOConfig)}
@@ -139,7 +92,10 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
         except ValueError:
             kind = "number" if default is None else type(default).__name__
             raise ValueError(f"--ppo {key}: {raw!r} is not a valid {kind}") from None
-        _check_bounds(key, value)
+        try:
+            check_settings({key: value})
+        except ValueError as exc:
+            raise ValueError(f"--ppo {exc}") from None
         overrides[key] = value
     PPOConfig(**overrides)  # validates combinations (e.g. n_steps vs minibatch_size)
     return overrides

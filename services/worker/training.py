@@ -17,18 +17,17 @@ from __future__ import annotations
 import hashlib
 import tempfile
 import time
-import types
-import typing
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Any
 
 import torch
 from sqlalchemy import select
 
 from services.core.db.models import Artifact, HFModel
+from services.core.json_values import describe_type, fits_type
 from services.learner.feedback import HFPolicy
 from services.learner.hf_methods import RECOMMENDED_METHOD
-from services.learner.ppo import Callback, PPOConfig
+from services.learner.ppo import Callback, check_settings
 from services.learner.runs import RunRecord, run_one
 from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec, apply_preset
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
@@ -84,58 +83,18 @@ class JobProgress(Callback):
         return True
 
 
-PPO_FIELD_TYPES: dict[str, Any] = typing.get_type_hints(PPOConfig)
-"""The type of each PPO setting: a stored config's ``ppo`` values are checked against them
-(PPOConfig itself takes any value, and a string would only fail mid-training, retried)."""
-
-
-def _fits(value: Any, hint: Any) -> bool:
-    """True if ``value`` (from JSON) is of type ``hint``; types not checked here pass."""
-    if hint is bool:
-        return isinstance(value, bool)
-    if hint is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    if hint is float:
-        return isinstance(value, int | float) and not isinstance(value, bool)
-    if hint is str:
-        return isinstance(value, str)
-    if hint is type(None):
-        return value is None
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (Union, types.UnionType):
-        return any(_fits(value, arg) for arg in args)
-    if origin is Literal:
-        return value in args
-    if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
-        return isinstance(value, list | tuple) and all(_fits(v, args[0]) for v in value)
-    return True
-
-
-def _describe(hint: Any) -> str:
-    names = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
-    if hint in names:
-        return names[hint]
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (Union, types.UnionType):
-        return " or ".join("null" if a is type(None) else _describe(a) for a in args)
-    if origin is Literal:
-        return f"one of {list(args)}"
-    if origin is tuple:
-        return f"a list of {_describe(args[0])}s".replace("an integers", "integers")
-    return str(hint)
-
-
 def check_ppo_overrides(overrides: dict[str, Any], field: str = "ppo") -> None:
-    """Refuse a PPO setting of the wrong type, naming it (``ppo.n_epochs must be ...``)."""
-    for name, value in overrides.items():
-        hint = PPO_FIELD_TYPES.get(name)
-        if hint is not None and not _fits(value, hint):
-            raise JobConfigError(f"{field}.{name} must be {_describe(hint)}, not {value!r}")
+    """Refuse a PPO setting of the wrong type or out of its bounds, naming it
+    (``ppo.n_epochs must be an integer, not 'ten'``): the learner's rules, before any work."""
+    try:
+        check_settings(overrides)
+    except ValueError as exc:
+        raise JobConfigError(f"{field}.{exc}") from None
 
 
 def _check_scalar(config: dict[str, Any], name: str, hint: Any) -> None:
-    if name in config and not _fits(config[name], hint):
-        raise JobConfigError(f"{name} must be {_describe(hint)}, not {config[name]!r}")
+    if name in config and not fits_type(config[name], hint):
+        raise JobConfigError(f"{name} must be {describe_type(hint)}, not {config[name]!r}")
 
 
 def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import gymnasium as gym
 import numpy as np
@@ -19,9 +20,11 @@ from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.networks import ObsNormalizer
 from services.learner.optimizer import FlatAdam
 from services.learner.ppo import (
+    SETTING_BOUNDS,
     ActorCritic,
     Callback,
     PPOConfig,
+    check_settings,
     compute_advantages,
     hf_epsilon,
     ppo_loss,
@@ -177,6 +180,43 @@ def test_config_rejects_bad_values() -> None:
         PPOConfig(explore_coef=-1.0)
     with pytest.raises(ValueError, match="explore_cell_m"):
         PPOConfig(explore_cell_m=0.0)
+    with pytest.raises(ValueError, match=r"minibatch_size must be in \[1, inf\), not 0"):
+        PPOConfig(minibatch_size=0)  # was a ZeroDivisionError
+    with pytest.raises(ValueError, match=r"n_epochs must be an integer, not 'ten'"):
+        PPOConfig(n_epochs="ten")
+    with pytest.raises(ValueError, match=r"anneal_lr must be true or false, not 1"):
+        PPOConfig(anneal_lr=1)
+    with pytest.raises(ValueError, match=r"every entry of hidden_sizes must be in \[1, inf\)"):
+        PPOConfig(hidden_sizes=(64, 0))
+    with pytest.raises(ValueError, match=r"learning_rate must be in \(0, inf\), not nan"):
+        PPOConfig(learning_rate=math.nan)
+    with pytest.raises(ValueError, match=r"gamma must be in \[0, 1\], not 10{400}"):
+        PPOConfig(gamma=10**400)  # an int too large for a float: named, no OverflowError
+    with pytest.raises(ValueError, match=r"target_kl must be a number or null, not '0.1'"):
+        PPOConfig(target_kl="0.1")
+
+
+def test_every_numeric_setting_has_bounds_and_the_defaults_are_within_them() -> None:
+    defaults = PPOConfig()
+    numeric = {
+        name
+        for name, value in vars(defaults).items()
+        if not isinstance(value, bool) and isinstance(value, int | float | tuple | type(None))
+    }
+    assert numeric == set(SETTING_BOUNDS)
+    check_settings(vars(defaults))
+
+
+def test_numpy_numbers_and_lists_become_plain_python_values() -> None:
+    config = PPOConfig(
+        seed=np.int64(3), learning_rate=np.float32(0.5), hidden_sizes=[np.int32(8), 8],
+        gamma=1, total_steps=np.uint16(256),
+    )  # fmt: skip
+    assert type(config.seed) is int and type(config.total_steps) is int
+    assert type(config.learning_rate) is float and config.learning_rate == 0.5
+    assert config.hidden_sizes == (8, 8) and all(type(v) is int for v in config.hidden_sizes)
+    assert config.gamma == 1
+    assert PPOConfig.from_dict(json.loads(json.dumps(asdict(config)))) == config
 
 
 def test_training_is_deterministic_under_a_seed(toy_env_id) -> None:

@@ -89,6 +89,7 @@ def stored_file(runtime: Runtime, data: bytes, kind: str, name: str) -> tuple[st
             {**GUIDED, "ppo": {"hidden_sizes": [32, "x"]}},
             "ppo.hidden_sizes must be a list of integers, not [32, 'x']",
         ),
+        ({**GUIDED, "ppo": {"gamma": 5}}, "ppo.gamma must be in [0, 1], not 5"),
         ({**GUIDED, "total_steps": "256"}, "total_steps must be an integer, not '256'"),
         (
             {**GUIDED, "method": "hf_sparse", "accuracy": "0.7"},

@@ -64,13 +64,20 @@ loss (:mod:`~services.learner.ppo.update`). Every name is importable from here.
 
 from services.learner.ppo.advantages import advantages_and_returns, compute_advantages
 from services.learner.ppo.agent import ActorCritic
-from services.learner.ppo.config import HFTreatment, PPOConfig, hf_epsilon
+from services.learner.ppo.config import (
+    SETTING_BOUNDS,
+    HFTreatment,
+    PPOConfig,
+    check_settings,
+    hf_epsilon,
+)
 from services.learner.ppo.loop import train
 from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
 from services.learner.ppo.update import ppo_loss, update_metrics, update_policy
 from services.learner.training import Callback, TrainResult
 
 __all__ = [
+    "SETTING_BOUNDS",
     "ActorCritic",
     "Callback",
     "HFTreatment",
@@ -79,6 +86,7 @@ __all__ = [
     "TrainResult",
     "advantages_and_returns",
     "begin_episode",
+    "check_settings",
     "collect_rollout",
     "compute_advantages",
     "hf_epsilon",

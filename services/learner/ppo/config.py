@@ -2,15 +2,54 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+import numbers
+import typing
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from services.core.json_values import describe_type, fits_type
 from services.learner.seeding import evaluation_reset_seeds
 
 HFTreatment = Literal["authors", "truncated_is"]
 EpisodeRecord = tuple[int, int, bool, bool, bool]
 """A training episode: (end step, length, reached the goal, collided, followed pi_HF)."""
+
+SETTING_BOUNDS: dict[str, tuple[float, float, bool]] = {
+    "seed": (0, math.inf, False),
+    "total_steps": (1, math.inf, False),
+    "n_steps": (1, math.inf, False),
+    "n_epochs": (1, math.inf, False),
+    "minibatch_size": (1, math.inf, False),
+    "learning_rate": (0, math.inf, True),
+    "adam_eps": (0, math.inf, True),
+    "gamma": (0, 1, False),
+    "gae_lambda": (0, 1, False),
+    "clip_coef": (0, math.inf, True),
+    "ent_coef": (0, math.inf, False),
+    "vf_coef": (0, math.inf, False),
+    "max_grad_norm": (0, math.inf, True),
+    "target_kl": (0, math.inf, True),
+    "reward_scale": (0, math.inf, True),
+    "hidden_sizes": (1, math.inf, False),
+    "eval_every": (1, math.inf, False),
+    "eval_seeds": (0, math.inf, False),
+    "hf_eps_init": (0, 1, False),
+    "hf_t_trans_fraction": (0, 1, True),
+    "hf_warmup_steps": (0, math.inf, False),
+    "is_clip": (0, math.inf, True),
+    "hf_prior_coef": (0, math.inf, False),
+    "hf_withdraw_after": (0, math.inf, False),
+    "explore_coef": (0, math.inf, False),
+    "explore_cell_m": (0, math.inf, True),
+    "sil_coef": (0, math.inf, False),
+    "sil_updates": (0, math.inf, False),
+    "sil_value_coef": (0, math.inf, False),
+    "sil_capacity": (1, math.inf, False),
+}
+"""(low, high, low excluded) of every numeric setting of :class:`PPOConfig` (of each entry of
+``hidden_sizes`` and ``eval_seeds``); values must also be finite."""
 
 
 @dataclass
@@ -117,8 +156,9 @@ class PPOConfig:
     """Most transitions of successful episodes kept (the oldest are dropped)."""
 
     def __post_init__(self) -> None:
-        self.hidden_sizes = tuple(self.hidden_sizes)
-        self.eval_seeds = tuple(self.eval_seeds)
+        check_settings(vars(self))
+        for name in _SETTING_TYPES:
+            setattr(self, name, _plain(getattr(self, name)))
         if self.n_steps % self.minibatch_size != 0:
             raise ValueError(
                 f"n_steps ({self.n_steps}) must be a multiple of minibatch_size "
@@ -126,33 +166,54 @@ class PPOConfig:
             )
         if self.total_steps < self.n_steps:
             raise ValueError("total_steps must be at least n_steps")
-        if self.hf_treatment not in ("authors", "truncated_is"):
-            raise ValueError(
-                f"hf_treatment must be 'authors' or 'truncated_is', not {self.hf_treatment!r}"
-            )
-        if not 0.0 <= self.hf_eps_init <= 1.0:
-            raise ValueError(f"hf_eps_init must be in [0, 1], got {self.hf_eps_init}")
-        if not 0.0 < self.hf_t_trans_fraction <= 1.0:
-            raise ValueError("hf_t_trans_fraction must be in (0, 1]")
-        if self.eval_every < 1 or not self.eval_seeds:
-            raise ValueError("eval_every must be >= 1 and eval_seeds non-empty")
-        if self.hf_prior_coef < 0:
-            raise ValueError(f"hf_prior_coef must be >= 0, got {self.hf_prior_coef}")
-        if self.hf_withdraw_after < 0:
-            raise ValueError(f"hf_withdraw_after must be >= 0, got {self.hf_withdraw_after}")
-        if self.explore_coef < 0 or not self.explore_cell_m > 0:
-            raise ValueError("explore_coef must be >= 0 and explore_cell_m > 0")
-        if self.sil_coef < 0 or self.sil_value_coef < 0:
-            raise ValueError("sil_coef and sil_value_coef must be >= 0")
-        if self.sil_updates < 0 or self.sil_capacity < 1:
-            raise ValueError("sil_updates must be >= 0 and sil_capacity >= 1")
-        if self.target_kl is not None and not self.target_kl > 0.0:
-            raise ValueError(f"target_kl must be > 0 or None, got {self.target_kl}")
+        if not self.eval_seeds:
+            raise ValueError("eval_seeds must not be empty")
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PPOConfig:
         """Rebuild from ``asdict`` output (e.g. JSON)."""
         return cls(**data)
+
+
+_SETTING_TYPES: dict[str, Any] = typing.get_type_hints(PPOConfig)
+
+
+def check_settings(settings: Mapping[str, Any]) -> None:
+    """Refuse a PPO setting of the wrong type or outside :data:`SETTING_BOUNDS` with a
+    ValueError naming it (``gamma must be in [0, 1], not 1.5``). Names that are not settings
+    are left to the constructor; rules between settings are :class:`PPOConfig`'s."""
+    for name, value in settings.items():
+        hint = _SETTING_TYPES.get(name)
+        if hint is None:
+            continue
+        if not fits_type(value, hint):
+            raise ValueError(f"{name} must be {describe_type(hint)}, not {value!r}")
+        if name not in SETTING_BOUNDS or value is None:
+            continue
+        low, high, low_open = SETTING_BOUNDS[name]
+        entries = isinstance(value, list | tuple)
+        for number in value if entries else (value,):
+            too_low = number <= low if low_open else number < low
+            finite = isinstance(number, numbers.Integral) or math.isfinite(number)
+            if not finite or too_low or number > high:
+                interval = "({:g}, {}" if low_open else "[{:g}, {}"
+                upper = f"{high:g}]" if math.isfinite(high) else "inf)"
+                what = f"every entry of {name}" if entries else name
+                raise ValueError(f"{what} must be in {interval.format(low, upper)}, not {number!r}")
+
+
+def _plain(value: Any) -> Any:
+    """Python's own numbers and tuples for numpy scalars and lists (what JSON and
+    checkpoints store)."""
+    if isinstance(value, bool | str | dict) or value is None:
+        return value
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real) and not isinstance(value, float):
+        return float(value)
+    if isinstance(value, list | tuple):
+        return tuple(_plain(v) for v in value)
+    return value
 
 
 def hf_epsilon(global_step: int, config: PPOConfig, first_success_step: int | None = None) -> float:
