@@ -122,6 +122,16 @@ def _stop(pool: ProcessPoolExecutor) -> None:
         process.join(timeout=10)
 
 
+def _refuse_the_others_folder(out: Path, record: str, study: str) -> None:
+    """A reproduction and a stage-2 sweep each need a folder of their own (both write
+    summary.md): a one-line ValueError if ``out`` holds the other's ``record``."""
+    if (out / record).exists():
+        raise ValueError(
+            f"{out} holds {study}: its {record} and summary.md are kept; "
+            "give this one a folder of its own"
+        )
+
+
 def validate_maps(specs: Sequence[RunSpec]) -> None:
     """Load every map the specs name and check that its goal can be reached; a one-line
     ValueError for the first bad one."""
@@ -160,6 +170,7 @@ def reproduce(
     """
     validate_maps(specs)
     out = Path(out_dir)
+    _refuse_the_others_folder(out, "hf_policies.json", "a stage-2 sweep (bgrl hf-sweep)")
     results_path = out / "results.json"
     config = {
         "ppo": asdict(PPOConfig()),
@@ -236,6 +247,7 @@ def hf_policy_sweep(
         for accuracy in accuracies
     ]
     out = Path(out_dir)
+    _refuse_the_others_folder(out, "results.json", "a reproduction (bgrl reproduce)")
     path = out / "hf_policies.json"
     rows, earlier_failures = load_sweep(path) if path.exists() else ([], [])
     out.mkdir(parents=True, exist_ok=True)

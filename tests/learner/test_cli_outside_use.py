@@ -198,6 +198,26 @@ def test_hf_sweep_into_a_folder_with_a_foreign_hf_policies_json_leaves_it_alone(
     assert (tmp_path / "hf_policies.json").read_text() == content
 
 
+@pytest.mark.parametrize(
+    ("command", "others"),
+    [
+        (["hf-sweep", "--seeds", "1", "--tasks", "sssg", "--labels", "5"], "results.json"),
+        (REPRODUCE, "hf_policies.json"),
+    ],
+)
+def test_reproduce_and_hf_sweep_keep_out_of_each_others_folder(
+    tmp_path, monkeypatch, command, others
+) -> None:
+    """Both write summary.md: one would overwrite the other's."""
+    monkeypatch.setattr(pool, "run_isolated", _no_runs)
+    (tmp_path / others).write_text('{"runs": []}')
+    (tmp_path / "summary.md").write_text("the other study's summary")
+    result = CliRunner().invoke(app, [*command, "--out", str(tmp_path)])
+    _one_line_error(result, "--out", "holds a", others, "a folder of its own")
+    assert (tmp_path / "summary.md").read_text() == "the other study's summary"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([others, "summary.md"])
+
+
 def test_hf_sweep_keeps_earlier_failures_of_runs_it_does_not_retry(tmp_path, monkeypatch) -> None:
     def fail_all(function, specs, *, workers, on_result, on_failure) -> None:
         for spec in specs:
