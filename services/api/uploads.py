@@ -15,8 +15,9 @@ from starlette.requests import Request
 from services.core.artifacts import ArtifactStore, StoredFile
 from services.core.errors import BadRequestError, UnsupportedMediaError
 
-RECORDING_SUFFIXES = (".bdf", ".edf", ".fif", ".xdf", ".zip")
-"""File types the EEG pipeline reads (``.zip``: a BrainVision .vhdr/.vmrk/.eeg set; checked
+RECORDING_SUFFIXES = (".bdf", ".edf", ".fif", ".set", ".xdf", ".zip")
+"""File types the EEG pipeline reads (``.zip``: a BrainVision .vhdr/.vmrk/.eeg set or an
+EEGLAB .set/.fdt dataset; checked
 again, from the bytes, when it validates)."""
 FILE_FIELD = "file"
 

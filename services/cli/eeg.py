@@ -20,7 +20,8 @@ def calibrate_command(
         Path,
         typer.Argument(
             help="Calibration recording: BDF, EDF, FIF, XDF, BrainVision .vhdr (its .vmrk "
-            "and .eeg beside it) or a zip of those three."
+            "and .eeg beside it) or a zip of those three, EEGLAB .set (its .fdt beside it) "
+            "or a zip of the two."
         ),
     ],
     out: Annotated[Path, typer.Option(help="Folder for the classifier, metrics and report.")],

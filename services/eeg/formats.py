@@ -1,13 +1,16 @@
-"""Recording formats beside BDF/EDF/FIF: BrainVision and XDF; action labels from events.
+"""Recording formats beside BDF/EDF/FIF: BrainVision, EEGLAB and XDF; action labels from events.
 
 * **BrainVision** (BrainAmp, actiCHamp...): a ``.vhdr`` header with its ``.vmrk`` markers and
   ``.eeg`` samples. Read from the ``.vhdr`` path (the two others beside it) or from a zip
   holding the three (how the EEG service takes an upload: one file).
+* **EEGLAB**: a ``.set`` dataset (a MATLAB file) holding its samples or naming the ``.fdt``
+  beside it that does; read from the ``.set`` path or from a zip holding the two. Its events
+  (``EEG.event``, their ``type``) are read as annotations.
 * **XDF** (LabRecorder): the EEG stream is chosen by name (or the only stream of type
   ``EEG``), its channel labels and units from the stream description; actions come from a
   marker stream (by name, or the only ``Markers`` stream) or from a ``Status`` channel.
 
-Whatever the source of the events (``Status`` codes, EDF+/BrainVision annotations, XDF
+Whatever the source of the events (``Status`` codes, EDF+/BrainVision/EEGLAB annotations, XDF
 markers), :class:`EventLabels` says which ones are correct and error actions, and they
 become the ``Status`` codes 1 (correct) and 2 (error) every later step reads.
 """
@@ -36,14 +39,19 @@ __all__ = [
     "EventLabels",
     "FormatError",
     "apply_event_labels",
+    "is_eeglab",
     "read_brainvision",
+    "read_eeglab",
     "read_xdf",
 ]
 
 Label = Literal["correct", "error"]
 BRAINVISION_MAGIC = (b"Brain Vision Data Exchange Header File", b"BrainVision Data Exchange")
+EEGLAB_MAGIC = b"MATLAB "
+"""The text every MATLAB file (``MATLAB 5.0 MAT-file``, ``MATLAB 7.3 MAT-file``) begins with."""
 MAX_UNZIPPED_BYTES = 4 << 30
-"""Largest BrainVision set read out of a zip (4 GiB: 20 minutes of 256 channels at 1 kHz)."""
+"""Largest BrainVision set or EEGLAB dataset read out of a zip (4 GiB: 20 minutes of 256
+channels at 1 kHz)."""
 MAX_RATE_MISMATCH = 0.01
 """Largest relative difference between an XDF EEG stream's nominal rate and the rate its
 timestamps give (clock drift is ppm; a percent is a wrong rate or lost samples)."""
@@ -51,6 +59,8 @@ _TRIGGER = {"correct": TRIGGER_CORRECT, "error": TRIGGER_ERROR}
 _BINARY_FORMAT_BYTES = {"INT_16": 2, "UINT_16": 2, "INT_32": 4, "IEEE_FLOAT_32": 4}
 _MARKER_POSITION = re.compile(r"^Mk\d+=[^,\r\n]*,[^,\r\n]*,\s*(\d+)", re.MULTILINE)
 """The (1-based) sample position of each ``Mk<n>=<type>,<description>,<position>,...``."""
+_SAMPLES_FILE = re.compile(r"([^/\\\s]+\.fdt)", re.IGNORECASE)
+"""The name of the ``.fdt`` file in MNE's "File ... not found" message."""
 _CODE_DESCRIPTION = re.compile(r"^(?:S|R)?\s*(\d+)$")
 """``"S  1"`` (a BrainVision stimulus marker), ``"R  2"`` (response) or a bare ``"1"``."""
 _VOLT_SCALE = {
@@ -71,7 +81,7 @@ _VOLT_SCALE = {
 
 
 class FormatError(ValueError):
-    """A BrainVision/XDF file or its events cannot be used; the message says why."""
+    """A BrainVision/EEGLAB/XDF file or its events cannot be used; the message says why."""
 
 
 class EventLabels(BaseModel):
@@ -295,6 +305,74 @@ def is_brainvision(path: Path, head: bytes) -> bool:
     try:
         with zipfile.ZipFile(path) as archive:
             return any(name.lower().endswith(".vhdr") for name in archive.namelist())
+    except zipfile.BadZipFile:
+        return False
+
+
+# ----------------------------------------------------------------------------- EEGLAB
+
+
+def _read_set(set_path: Path, shown: str) -> mne.io.BaseRaw:
+    """A ``.set`` (its ``.fdt``, if it names one, beside it), loaded."""
+    try:
+        return mne.io.read_raw_eeglab(set_path, preload=True, verbose="error")
+    except FileNotFoundError as exc:
+        named = _SAMPLES_FILE.search(str(exc))
+        raise FormatError(
+            f"{shown}: the dataset keeps its samples in "
+            f"{named.group(1) if named else 'a .fdt file'}, not found beside it "
+            "(keep the .set and .fdt together; upload them as one zip)"
+        ) from exc
+    except Exception as exc:
+        reason = str(exc)
+        if "incorrect number of samples" in reason.lower():
+            raise FormatError(
+                f"{shown}: truncated: the .fdt holds fewer samples than the .set says "
+                "(was the copy cut short?)"
+            ) from exc
+        if "number of trials" in reason.lower():
+            reason = "an epoched dataset; export the continuous recording"
+        raise FormatError(f"{shown}: not a readable EEGLAB dataset ({reason})") from exc
+
+
+def read_eeglab(path: Path, shown: str) -> mne.io.BaseRaw:
+    """Read an EEGLAB dataset from its ``.set`` or from a zip holding the ``.set`` and its
+    ``.fdt`` (one of each at the most: only they are taken out, into a temporary folder,
+    read into memory, then removed). Samples are always loaded."""
+    if not zipfile.is_zipfile(path):
+        return _read_set(path, shown)
+    with zipfile.ZipFile(path) as archive:
+        files = [info for info in archive.infolist() if not info.is_dir()]
+        sets = [info for info in files if info.filename.lower().endswith(".set")]
+        samples = [info for info in files if info.filename.lower().endswith(".fdt")]
+        if len(sets) != 1 or len(samples) > 1:
+            raise FormatError(
+                f"{shown}: an EEGLAB zip holds one .set and at most one .fdt; found "
+                f"{len(sets)} .set and {len(samples)} .fdt files"
+            )
+        chosen = [*sets, *samples]
+        size = sum(info.file_size for info in chosen)
+        if size > MAX_UNZIPPED_BYTES:
+            raise FormatError(
+                f"{shown}: {size} bytes unzipped; at most {MAX_UNZIPPED_BYTES} are read"
+            )
+        names = [Path(info.filename).name for info in chosen]
+        with tempfile.TemporaryDirectory(prefix="bgrl-set-") as folder:
+            for info, name in zip(chosen, names, strict=True):
+                with archive.open(info) as src, (Path(folder) / name).open("wb") as dst:
+                    shutil.copyfileobj(src, dst, 1 << 20)
+            return _read_set(Path(folder) / names[0], shown)
+
+
+def is_eeglab(path: Path, head: bytes) -> bool:
+    """A MATLAB file (an EEGLAB ``.set``), or a zip holding a ``.set``."""
+    if head.startswith(EEGLAB_MAGIC):
+        return True
+    if not head.startswith(b"PK\x03\x04"):
+        return False
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return any(name.lower().endswith(".set") for name in archive.namelist())
     except zipfile.BadZipFile:
         return False
 

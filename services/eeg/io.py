@@ -1,4 +1,4 @@
-"""Recording files: validated reading of BDF/EDF/FIF/BrainVision/XDF, events, sha256.
+"""Recording files: validated reading of BDF/EDF/FIF/BrainVision/EEGLAB/XDF, events, sha256.
 
 The format of a file is read from its header (:func:`detect_format`), never from its name;
 a name that says otherwise is reported (:func:`format_mismatch`). EDF/BDF files whose size
@@ -37,7 +37,9 @@ from services.eeg.formats import (
     _with_status,
     apply_event_labels,
     is_brainvision,
+    is_eeglab,
     read_brainvision,
+    read_eeglab,
     read_xdf,
 )
 from services.eeg.preprocessing import PreprocessingParams
@@ -60,14 +62,18 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-RecordingFormat = Literal["bdf", "edf", "fif", "brainvision", "xdf"]
-SUPPORTED_SUFFIXES = (".bdf", ".edf", ".fif", ".vhdr", ".zip", ".xdf", ".brainvision")
-"""``.zip``: a zipped BrainVision set; ``.brainvision``: the same as the EEG service stores it."""
+RecordingFormat = Literal["bdf", "edf", "fif", "brainvision", "eeglab", "xdf"]
+SUPPORTED_SUFFIXES = (
+    ".bdf", ".edf", ".fif", ".vhdr", ".set", ".zip", ".xdf", ".brainvision", ".eeglab"
+)  # fmt: skip
+"""``.zip``: a zipped BrainVision set or EEGLAB dataset; ``.brainvision`` and ``.eeglab``:
+those as the EEG service stores them."""
 _FORMAT_SUFFIXES = {
     "bdf": (".bdf",),
     "edf": (".edf",),
     "fif": (".fif",),
     "brainvision": (".vhdr", ".zip", ".brainvision"),
+    "eeglab": (".set", ".zip", ".eeglab"),
     "xdf": (".xdf",),
 }
 MIN_SFREQ = 128.0
@@ -116,8 +122,9 @@ def detect_format(path: str | Path, *, name: str | None = None) -> RecordingForm
 
     BDF starts with ``0xFF`` + ``"BIOSEMI"``, EDF with ``"0"`` and seven spaces, FIF
     with the file-id tag (kind 100, type 31, size 20, big-endian), XDF with ``"XDF:"``,
-    a BrainVision header with ``"Brain Vision Data Exchange Header File"``; a zip holding
-    a ``.vhdr`` is a BrainVision set.
+    a BrainVision header with ``"Brain Vision Data Exchange Header File"``, an EEGLAB
+    ``.set`` with ``"MATLAB "``; a zip holding a ``.vhdr`` is a BrainVision set, one
+    holding a ``.set`` an EEGLAB dataset.
 
     Parameters
     ----------
@@ -139,19 +146,22 @@ def detect_format(path: str | Path, *, name: str | None = None) -> RecordingForm
         return "xdf"
     if is_brainvision(path, head):
         return "brainvision"
+    if is_eeglab(path, head):
+        return "eeglab"
     if head.startswith(_BDF_MAGIC):
         return "bdf"
     if head.startswith(_EDF_MAGIC):
         return "edf"
     if len(head) >= 12 and struct.unpack(">iii", head[:12]) == _FIF_FILE_ID:
         return "fif"
-    unreadable = f"{shown}: not a readable BDF, EDF, FIF, BrainVision or XDF file"
+    unreadable = f"{shown}: not a readable BDF, EDF, FIF, BrainVision, EEGLAB or XDF file"
     if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
         if not zipfile.is_zipfile(path):
             raise RecordingError(f"{unreadable}: a damaged or truncated zip (it cannot be opened)")
         raise RecordingError(
-            f"{unreadable}: a zip without a BrainVision .vhdr (a zip is read only as a "
-            "BrainVision set: its .vhdr, .vmrk and .eeg; upload other formats unzipped)"
+            f"{unreadable}: a zip without a BrainVision .vhdr or an EEGLAB .set (a zip is "
+            "read only as a BrainVision set, its .vhdr, .vmrk and .eeg, or as an EEGLAB "
+            "dataset, its .set and .fdt; upload other formats unzipped)"
         )
     raise RecordingError(f"{unreadable} (its first bytes match none of them)")
 
@@ -161,7 +171,7 @@ def format_mismatch(name: str, fmt: RecordingFormat) -> str | None:
     suffix = Path(name).suffix.lower()
     if suffix in _FORMAT_SUFFIXES[fmt] or suffix not in SUPPORTED_SUFFIXES:
         return None
-    shown_fmt = "BrainVision" if fmt == "brainvision" else fmt.upper()
+    shown_fmt = {"brainvision": "BrainVision", "eeglab": "EEGLAB"}.get(fmt, fmt.upper())
     return (
         f"{Path(name).name}: the file's header says {shown_fmt}, not {suffix[1:].upper()}; "
         f"it is read as {shown_fmt}"
@@ -336,12 +346,14 @@ def _read_any(
     labels: EventLabels,
     xdf_streams: tuple[str | None, str | None],
 ) -> mne.io.BaseRaw:
-    if fmt in ("brainvision", "xdf"):
+    if fmt in ("brainvision", "eeglab", "xdf"):
         try:
             if fmt == "xdf":
                 return read_xdf(
                     path, shown, labels, stream=xdf_streams[0], marker_stream=xdf_streams[1]
                 )
+            if fmt == "eeglab":
+                return apply_event_labels(read_eeglab(path, shown), labels)
             return apply_event_labels(read_brainvision(path, shown, preload=preload), labels)
         except FormatError as exc:
             raise RecordingError(_scrub_paths(str(exc), path, shown)) from exc
@@ -391,13 +403,14 @@ def read_recording(
     min_sfreq: float = MIN_SFREQ,
     min_duration_s: float = MIN_DURATION_S,
 ) -> mne.io.BaseRaw:
-    """Read and validate an EEG recording (BDF, EDF, FIF, BrainVision or XDF).
+    """Read and validate an EEG recording (BDF, EDF, FIF, BrainVision, EEGLAB or XDF).
 
     Parameters
     ----------
     path : str | Path
         The file: ``.bdf``, ``.edf``, ``.fif``, ``.xdf``, a BrainVision ``.vhdr`` (its
-        ``.vmrk`` and ``.eeg`` beside it) or a ``.zip`` of those three. The format is read
+        ``.vmrk`` and ``.eeg`` beside it) or a ``.zip`` of those three, an EEGLAB ``.set``
+        (its ``.fdt``, if any, beside it) or a ``.zip`` of the two. The format is read
         from the content, and a suffix naming another format is logged as a warning (see
         :func:`format_mismatch`).
     name : str | None
@@ -406,7 +419,7 @@ def read_recording(
     preload : bool
         Load all samples into memory (float64: 1.3 GB for 20 minutes of 64 channels at
         2048 Hz). By default BDF/EDF/FIF samples are read from the file when asked for,
-        and validation reads the file in chunks (BrainVision zips, XDF files and files
+        and validation reads the file in chunks (BrainVision zips, EEGLAB and XDF files and files
         whose events come from annotations are loaded).
     ch_names : list of str | None
         EEG channels (standard names) that must be present, e.g. a classifier's; by

@@ -29,9 +29,10 @@ class RecordingPublic(BaseModel):
 
     id: str = Field(description="The file's sha256 (hex).")
     filename: str = Field(description="Name the file was uploaded under (a label only).")
-    format: Literal["bdf", "edf", "fif", "brainvision", "xdf"] = Field(
+    format: Literal["bdf", "edf", "fif", "brainvision", "eeglab", "xdf"] = Field(
         description="Format detected from the file's content (not from its name); "
-        "brainvision: a zip of the .vhdr, .vmrk and .eeg."
+        "brainvision: a zip of the .vhdr, .vmrk and .eeg; eeglab: a .set, or a zip of the "
+        ".set and its .fdt."
     )
     sha256: str
     size_bytes: int

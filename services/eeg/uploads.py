@@ -28,8 +28,9 @@ INCOMING_KIND = "incoming"
 UPLOAD_OPENAPI = {
     "requestBody": {
         "required": True,
-        "description": "The recording (BDF, EDF, FIF, XDF, or a zip of a BrainVision "
-        ".vhdr/.vmrk/.eeg set): either a multipart form with the "
+        "description": "The recording (BDF, EDF, FIF, XDF, an EEGLAB .set, or a zip of a "
+        "BrainVision .vhdr/.vmrk/.eeg set or of an EEGLAB .set and its .fdt): either a "
+        "multipart form with the "
         "file in the field `file`, or the file's bytes as the body (any other content type; "
         "name it with `?filename=`).",
         "content": {

@@ -139,7 +139,7 @@ def test_upload_limits_and_bad_requests(api: Api) -> None:
     wrong_type = api.client.post(f"{url}?filename=notes.txt", content=b"hello", headers=staff)
     assert wrong_type.status_code == 415
     assert wrong_type.json() == {
-        "detail": "'notes.txt' is not a recording; send one of .bdf, .edf, .fif, .xdf, .zip",
+        "detail": "'notes.txt' is not a recording; send one of .bdf, .edf, .fif, .set, .xdf, .zip",
         "field": "filename",
     }
     no_name = api.client.post(url, content=b"hello", headers=staff)

@@ -92,8 +92,8 @@ def test_bad_uploads_are_refused_and_leave_nothing(client, recording, tmp_path):
     junk = client.post("/recordings", params={"filename": "junk.bdf"}, content=b"\x00" * 4096)
     assert junk.status_code == 415
     assert junk.json() == {
-        "detail": "junk.bdf: not a readable BDF, EDF, FIF, BrainVision or XDF file (its first "
-        "bytes match none of them)",
+        "detail": "junk.bdf: not a readable BDF, EDF, FIF, BrainVision, EEGLAB or XDF file "
+        "(its first bytes match none of them)",
         "field": "file",
     }
     truncated = path.read_bytes()[: path.stat().st_size // 2]

@@ -56,7 +56,9 @@ def test_cli_calibrate_rejects_bad_file(tmp_path) -> None:
     result = runner.invoke(app, ["eeg", "calibrate", str(bad), "--out", str(out)])
     assert result.exit_code != 0
     shown = " ".join(line.strip("│ ") for line in result.output.splitlines())
-    assert "bad.bdf: not a readable BDF, EDF, FIF, BrainVision or XDF" in " ".join(shown.split())
+    assert "bad.bdf: not a readable BDF, EDF, FIF, BrainVision, EEGLAB or XDF" in " ".join(
+        shown.split()
+    )
     assert str(tmp_path) not in result.output
     assert not (out / "metrics.json").exists()
 

@@ -106,8 +106,85 @@ def test_brainvision_sets_missing_files_are_refused(raw, tmp_path):
     empty = tmp_path / "other.zip"
     with zipfile.ZipFile(empty, "w") as archive:
         archive.writestr("notes.txt", "hello")
-    with pytest.raises(RecordingError, match="not a readable BDF, EDF, FIF, BrainVision or XDF"):
+    with pytest.raises(
+        RecordingError, match="not a readable BDF, EDF, FIF, BrainVision, EEGLAB or XDF"
+    ):
         read_recording(empty)
+
+
+def _write_set(raw, path: Path, *, fdt: bool = False) -> Path:
+    """An EEGLAB dataset as ``mne.export`` (eeglabio) writes it: samples inside the .set; with
+    ``fdt``, as EEGLAB saves by default: the samples (float32, channels x samples,
+    column-major) in a .fdt the .set names."""
+    import scipy.io
+
+    plain = raw.copy().pick(CAP_8)
+    onsets = _onsets(raw)
+    plain.set_annotations(mne.Annotations(onsets / SFREQ, 0.0, [str(c) for c in CODES]))
+    mne.export.export_raw(path, plain, fmt="eeglab", overwrite=True, verbose="error")
+    if fdt:
+        fields = {k: v for k, v in scipy.io.loadmat(path).items() if not k.startswith("__")}
+        samples = path.with_suffix(".fdt")
+        np.asarray(fields["data"], dtype="<f4").T.tofile(samples)
+        fields["data"] = fields["datfile"] = samples.name
+        scipy.io.savemat(path, fields)
+    return path
+
+
+def test_eeglab_datasets_with_and_without_fdt_and_zipped(raw, tmp_path):
+    inside = _write_set(raw, tmp_path / "inside.set")
+    assert inside.read_bytes().startswith(b"MATLAB 5.0 MAT-file")
+    assert detect_format(inside) == "eeglab"
+    back = read_recording(inside)
+    np.testing.assert_array_equal(_onsets(back), _onsets(raw))
+    np.testing.assert_array_equal(action_events(back)[:, 2], CODES)
+    assert back.ch_names == [*CAP_8, STIM_CHANNEL]
+    np.testing.assert_allclose(back.get_data(picks=CAP_8), raw.get_data(picks=CAP_8), atol=1e-9)
+
+    (tmp_path / "split").mkdir()
+    split = _write_set(raw, tmp_path / "split" / "sub02.set", fdt=True)
+    assert len(split.read_bytes()) < 10_000  # the samples are in the .fdt
+    np.testing.assert_array_equal(read_recording(split).get_data(), back.get_data())
+    archive = _zip([split, split.with_suffix(".fdt")], tmp_path / "sub02.zip")
+    assert detect_format(archive) == "eeglab"
+    np.testing.assert_array_equal(read_recording(archive).get_data(), back.get_data())
+
+
+def test_eeglab_datasets_that_cannot_be_used_are_refused_by_name(raw, tmp_path):
+    split = _write_set(raw, tmp_path / "sub03.set", fdt=True)
+    samples = split.with_suffix(".fdt")
+    lone = _zip([split], tmp_path / "lone.zip")
+    with pytest.raises(
+        RecordingError,
+        match=r"^lone\.zip: the dataset keeps its samples in "
+        r"sub03\.fdt, not found beside it \(keep the \.set and \.fdt together",
+    ):
+        read_recording(lone)
+    two = _zip([split, samples, _write_set(raw, tmp_path / "other.set")], tmp_path / "two.zip")
+    with pytest.raises(RecordingError, match=r"^two\.zip: an EEGLAB zip holds one \.set"):
+        read_recording(two)
+    samples.write_bytes(samples.read_bytes()[:-100])
+    with pytest.raises(RecordingError, match=r"^sub03\.set: truncated: the \.fdt holds fewer"):
+        read_recording(split)
+
+    plain = raw.copy().pick(CAP_8)
+    events = np.column_stack([_onsets(raw)[:5], np.zeros(5, int), np.ones(5, int)])
+    epochs = mne.Epochs(plain, events, tmin=0, tmax=0.5, baseline=None, verbose="error")
+    epoched = tmp_path / "epochs.set"
+    epochs.export(epoched, fmt="eeglab", verbose="error")
+    with pytest.raises(
+        RecordingError,
+        match=r"^epochs\.set: not a readable EEGLAB dataset "
+        r"\(an epoched dataset; export the continuous recording\)",
+    ):
+        read_recording(epoched)
+
+    import scipy.io
+
+    other = tmp_path / "weights.set"
+    scipy.io.savemat(other, {"weights": np.ones((3, 3))})
+    with pytest.raises(RecordingError, match=r"^weights\.set: not a readable EEGLAB dataset"):
+        read_recording(other)
 
 
 def test_edf_plus_annotations_become_actions(raw, tmp_path):
@@ -224,3 +301,26 @@ def test_upload_route_takes_brainvision_zips_and_xdf(raw, tmp_path, client):
     stored = sorted((tmp_path / "data").rglob("*.brainvision"))
     assert len(stored) == 1
     assert len(action_events(read_recording(stored[0]))) == len(LABELS)
+
+
+def test_upload_route_takes_eeglab_sets_and_zips(raw, tmp_path, client):
+    inside = _write_set(raw, tmp_path / "inside.set")
+    response = client.post("/recordings", files={"file": ("inside.set", inside.read_bytes())})
+    assert response.status_code == 201, response.text
+    body = response.json()
+    assert (body["format"], body["n_channels"], body["sfreq"]) == ("eeglab", 9, SFREQ)
+    assert (body["n_actions"], body["n_errors"]) == (len(LABELS), CODES.count(2))
+
+    (tmp_path / "split").mkdir()
+    split = _write_set(raw, tmp_path / "split" / "sub04.set", fdt=True)
+    lone = client.post("/recordings", files={"file": ("sub04.set", split.read_bytes())})
+    assert lone.status_code == 422
+    assert "keeps its samples in sub04.fdt" in lone.json()["detail"]
+    archive = _zip([split, split.with_suffix(".fdt")], tmp_path / "sub04.zip")
+    response = client.post("/recordings", files={"file": ("sub04.zip", archive.read_bytes())})
+    assert response.status_code == 201, response.text
+    assert (response.json()["format"], response.json()["n_actions"]) == ("eeglab", len(LABELS))
+    stored = sorted((tmp_path / "data").rglob("*.eeglab"))
+    assert len(stored) == 2
+    for path in stored:
+        assert len(action_events(read_recording(path))) == len(LABELS)

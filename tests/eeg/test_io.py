@@ -93,7 +93,8 @@ def test_validation_errors_name_the_problem(raw, tmp_path):
         read_recording(tmp_path / "notes.txt")
     (tmp_path / "junk.bdf").write_bytes(b"not a bdf file at all" * 20)
     with pytest.raises(
-        RecordingError, match=r"junk\.bdf: not a readable BDF, EDF, FIF, BrainVision or XDF file"
+        RecordingError,
+        match=r"junk\.bdf: not a readable BDF, EDF, FIF, BrainVision, EEGLAB or XDF file",
     ):
         read_recording(tmp_path / "junk.bdf")
 

@@ -148,7 +148,9 @@ def test_zip_without_a_brainvision_set_says_what_it_is(raw, tmp_path):
     fif = tmp_path / "rec_raw.fif"
     raw.save(fif, verbose="error")
     zipped = _zip(tmp_path / "rec.zip", [("rec_raw.fif", fif.read_bytes())])
-    not_brainvision = r"^rec\.zip: not a readable .* file: a zip without a BrainVision \.vhdr"
+    not_brainvision = (
+        r"^rec\.zip: not a readable .* file: a zip without a BrainVision \.vhdr or an EEGLAB \.set"
+    )
     with pytest.raises(RecordingError, match=not_brainvision):
         read_recording(zipped)
     cut = tmp_path / "cut.zip"

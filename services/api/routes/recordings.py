@@ -123,7 +123,8 @@ async def upload(
         str | None,
         Query(
             max_length=255,
-            description="File name (.bdf, .edf, .fif, .xdf, or .zip for a BrainVision set); "
+            description="File name (.bdf, .edf, .fif, .set, .xdf, or .zip for a BrainVision "
+            "set or an EEGLAB .set with its .fdt); "
             "needed with a raw body.",
         ),
     ] = None,
