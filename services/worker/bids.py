@@ -32,7 +32,7 @@ from sqlalchemy import select
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR, Action
 from services.core.db.models import Subject
 from services.eeg.bdf import write_bdf
-from services.eeg.io import action_events
+from services.eeg.io import action_events, detect_format
 from services.eeg.virtual_subject import LINE_FREQ_HZ, STIM_CHANNEL
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome, Runtime
 from services.worker.session_data import (
@@ -82,6 +82,13 @@ def bids_label(text: str) -> str:
     if not label:
         raise ValueError(f"{text!r} has no letters or digits to make a BIDS label of")
     return label
+
+
+def _is_bdf(path: Path) -> bool:
+    """A BDF file named ``.bdf`` (mne-bids copies it as it is); recordings of every other
+    format the platform reads (EDF, FIF, BrainVision and EEGLAB zips, XDF), and a BDF under
+    another name, are read by the EEG pipeline and written as BDF."""
+    return path.suffix.lower() == ".bdf" and detect_format(path) == "bdf"
 
 
 def _raw_for(stream: SessionStream, folder: Path, name: str) -> mne.io.BaseRaw:
@@ -153,9 +160,10 @@ def _export_session(
     stored = load_session(runtime, session_id)
     stream = session_stream(runtime, stored)
     task = bids_label(stored.session.kind)
-    if stored.recording is not None and stored.recording_relpath is not None:
-        raw = mne.io.read_raw(runtime.store.path(stored.recording_relpath), verbose="error")
-    else:
+    path = runtime.store.path(stored.recording_relpath) if stored.recording_relpath else None
+    if stored.recording is not None and path is not None and _is_bdf(path):
+        raw = mne.io.read_raw_bdf(path, stim_channel=STIM_CHANNEL, verbose="error")
+    else:  # the virtual subject's stream, or a recording of another format: written as BDF
         raw = _raw_for(stream, scratch, f"session-{session_id}")
     if stream.synthetic:
         raw.info["line_freq"] = LINE_FREQ_HZ

@@ -8,15 +8,28 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
+import mne
+import mne_bids
+import numpy as np
 import pytest
 
-from services.core.db.models import Artifact, Classifier, HFModel, Job
+from services.core.db.models import (
+    Artifact,
+    Classifier,
+    HFModel,
+    Job,
+    LabSession,
+    Recording,
+    Subject,
+)
 from services.core.files import write_bytes_atomic
 from services.core.queue import make_celery
 from services.worker.app import load_handler
+from services.worker.bids import export_subject
 from services.worker.runtime import JobConfigError, Runtime, run_job
 from services.worker.session_data import load_classifier
 from services.worker.settings import WorkerSettings
@@ -266,3 +279,64 @@ def test_job_model_removed_from_the_store_is_410(lab: tuple[Api, Runtime]) -> No
     path.unlink()
     response = api.client.get(f"/api/v1/jobs/{job_id}/model", headers=api.as_("viewer"))
     assert response.status_code == 410
+
+
+@pytest.mark.parametrize("fmt", ["xdf", "brainvision", "eeglab", "edf"])
+def test_bids_export_of_a_session_whose_recording_came_from_other_software(
+    lab: tuple[Api, Runtime], tmp_path: Path, fmt: str
+) -> None:
+    """A session's uploaded recording in any format the platform reads is exported as BDF
+    with its actions (mne.io.read_raw read it by name: no zip, no XDF, and an EDF's copy)."""
+    from tests.eeg.caps import CAP_8, LABELS, virtual_recording
+    from tests.eeg.test_formats import CODES, SFREQ, _onsets, _write_set, _write_vhdr, _xdf, _zip
+
+    _, runtime = lab
+    raw = virtual_recording(SFREQ, CAP_8, seed=4)
+    if fmt == "xdf":
+        path = _xdf(raw, tmp_path / "session.xdf", ["correct" if ok else "error" for ok in LABELS])
+    elif fmt == "brainvision":
+        events = [
+            {"onset": int(s), "description": c} for s, c in zip(_onsets(raw), CODES, strict=True)
+        ]
+        _write_vhdr(raw, tmp_path, events)
+        path = _zip(sorted(tmp_path.glob("sub01.*")), tmp_path / "sub01.zip")
+    elif fmt == "eeglab":
+        path = _write_set(raw, tmp_path / "session.set")
+    else:
+        path, plain = tmp_path / "session.edf", raw.copy().pick(CAP_8)
+        texts = ["correct" if ok else "error" for ok in LABELS]
+        plain.set_annotations(mne.Annotations(_onsets(raw) / SFREQ, 0.0, texts))
+        mne.export.export_raw(path, plain, fmt="edf", verbose="error")
+    artifact_id, stored = stored_file(runtime, path.read_bytes(), "recording", path.name)
+    start = datetime(2026, 12, 1, 9, tzinfo=UTC)
+    with runtime.sessions() as db:
+        subject = Subject(code=f"R-{fmt}")
+        db.add(subject)
+        db.flush()
+        session = LabSession(
+            subject_id=subject.id, kind="calibration", scheduled_at=start, duration_minutes=30,
+            ends_at=start + timedelta(minutes=30), status="completed",
+        )  # fmt: skip
+        db.add(session)
+        db.flush()
+        db.add(
+            Recording(
+                session_id=session.id, artifact_id=artifact_id, filename=path.name,
+                sha256=hashlib.sha256(stored.read_bytes()).hexdigest(),
+                size_bytes=stored.stat().st_size, validation_status="valid",
+            )
+        )  # fmt: skip
+        db.commit()
+        subject_id, session_id = subject.id, session.id
+
+    summary = export_subject(runtime, subject_id, tmp_path / "bids")
+    assert [s["session_id"] for s in summary["sessions"]] == [session_id]
+    bids_path = mne_bids.BIDSPath(
+        subject=f"R{fmt}", session=str(session_id), task="calibration", datatype="eeg",
+        root=tmp_path / "bids",
+    )  # fmt: skip
+    assert bids_path.fpath.suffix == ".bdf"
+    back = mne_bids.read_raw_bids(bids_path, verbose="error")
+    assert list(back.annotations.description) == ["correct" if ok else "error" for ok in LABELS]
+    np.testing.assert_allclose(back.annotations.onset, _onsets(raw) / SFREQ, atol=1.5 / SFREQ)
+    np.testing.assert_allclose(back.get_data(picks=CAP_8), raw.get_data(picks=CAP_8), atol=2e-7)
