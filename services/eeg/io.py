@@ -81,6 +81,10 @@ MAX_SFREQ = 20000.0
 MIN_DURATION_S = 5.0
 FLAT_STD_V = 1e-9
 """A channel whose standard deviation is below 1 nV is flat (disconnected or saturated)."""
+CLIPPED_MAX_LEVELS = 4
+"""A channel whose samples take at most this many values over its first 10 s is clipped: a
+physical range far narrower than the signal (e.g. an export's range given in volts where the
+writer expects microvolts) leaves the digital extremes; real EEG takes thousands of values."""
 MAX_STD_V = 1.0
 """A channel whose standard deviation exceeds 1 V is not EEG in volts (no EEG amplifier's
 input range reaches it): typically microvolts stored as volts, or a unit the file misstates."""
@@ -489,14 +493,21 @@ def read_recording(
     return raw
 
 
-def _channel_checks(raw: mne.io.BaseRaw, picks: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Per channel of ``picks``: all samples finite, and the standard deviation (chunked)."""
+def _channel_checks(
+    raw: mne.io.BaseRaw, picks: list[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per channel of ``picks``: all samples finite, the standard deviation (chunked), and the
+    number of distinct sample values over the first 10 s."""
     finite = np.ones(len(picks), dtype=bool)
     count, mean, m2 = 0, np.zeros(len(picks)), np.zeros(len(picks))
     step = max(1, CHUNK_VALUES // len(picks))
+    levels = np.zeros(len(picks), dtype=int)
     for start in range(0, raw.n_times, step):
         block = raw.get_data(picks=picks, start=start, stop=min(start + step, raw.n_times))
         finite &= np.isfinite(block).all(axis=1)
+        if start == 0:
+            window = block[:, : max(1, round(10.0 * raw.info["sfreq"]))]
+            levels = np.array([len(np.unique(row)) for row in window])
         # Chan et al.'s pairwise update: exact for large DC offsets, unlike sum of squares.
         n = block.shape[1]
         block_mean = block.mean(axis=1)
@@ -506,7 +517,7 @@ def _channel_checks(raw: mne.io.BaseRaw, picks: list[str]) -> tuple[np.ndarray, 
         mean = mean + delta * (n / total)
         m2 = m2 + block_m2 + np.square(delta) * (count * n / total)
         count = total
-    return finite, np.sqrt(m2 / max(count, 1))
+    return finite, np.sqrt(m2 / max(count, 1)), levels
 
 
 def validate_recording(
@@ -570,7 +581,7 @@ def validate_recording(
         raise RecordingError(
             f"{name}: only {duration:.2f} s long; at least {min_duration_s:g} s needed"
         )
-    finite, std = _channel_checks(raw, list(required))
+    finite, std, levels = _channel_checks(raw, list(required))
     bad_nan = [ch for ch, ok in zip(required, finite, strict=True) if not ok]
     if bad_nan:
         raise RecordingError(f"{name}: NaN or infinite samples in channels {', '.join(bad_nan)}")
@@ -583,6 +594,14 @@ def validate_recording(
             else ""
         )
         raise RecordingError(f"{name}: flat channels (std < 1 nV): {', '.join(flat)}{hint}")
+    clipped = [ch for ch, n in zip(required, levels, strict=True) if n <= CLIPPED_MAX_LEVELS]
+    if clipped:
+        raise RecordingError(
+            f"{name}: clipped channels, at most {CLIPPED_MAX_LEVELS} distinct sample values in "
+            f"their first 10 s: {', '.join(clipped[:8])}{' ...' if len(clipped) > 8 else ''} "
+            "(a physical range far narrower than the signal: was the file exported with its "
+            "range in the wrong unit?)"
+        )
     huge = [f"{ch} ({sd:.3g} V)" for ch, sd in zip(required, std, strict=True) if sd > MAX_STD_V]
     if huge:
         raise RecordingError(

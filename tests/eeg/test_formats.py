@@ -196,10 +196,25 @@ def test_edf_plus_annotations_become_actions(raw, tmp_path):
         )
     )
     path = tmp_path / "annotated.edf"
-    mne.export.export_raw(path, plain, fmt="edf", physical_range=(-2e-3, 2e-3), verbose="error")
+    mne.export.export_raw(path, plain, fmt="edf", verbose="error")
     back = read_recording(path)
     np.testing.assert_array_equal(_onsets(back), onsets)
     np.testing.assert_array_equal(action_events(back)[:, 2], CODES)
+
+
+def test_an_edf_clipped_by_a_physical_range_in_the_wrong_unit_is_refused(raw, tmp_path):
+    """mne.export takes the range in the data's unit (µV): (-2e-3, 2e-3) meant as volts leaves
+    every sample at a digital extreme, +-2 nV, which passed as EEG before."""
+    plain = raw.copy().pick(CAP_8)
+    plain.set_annotations(mne.Annotations(_onsets(raw) / SFREQ, 0.0, [str(c) for c in CODES]))
+    path = tmp_path / "clipped.edf"
+    mne.export.export_raw(path, plain, fmt="edf", physical_range=(-2e-3, 2e-3), verbose="error")
+    with pytest.raises(
+        RecordingError,
+        match=r"^clipped\.edf: clipped channels, at most 4 "
+        r"distinct sample values in their first 10 s: Fz, FC1, .* wrong unit\?\)",
+    ):
+        read_recording(path)
 
 
 def test_status_codes_by_a_lab_mapping(raw, tmp_path):
