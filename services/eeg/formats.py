@@ -296,17 +296,20 @@ def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io
             return _read_vhdr(Path(folder) / header_name, shown, preload=True)
 
 
-def is_brainvision(path: Path, head: bytes) -> bool:
-    """A BrainVision header, or a zip holding a ``.vhdr``."""
-    if head.startswith(BRAINVISION_MAGIC):
-        return True
+def _zip_holds(path: Path, head: bytes, suffix: str) -> bool:
+    """Whether ``path`` (starting with ``head``) is a zip with a member ending in ``suffix``."""
     if not head.startswith(b"PK\x03\x04"):
         return False
     try:
         with zipfile.ZipFile(path) as archive:
-            return any(name.lower().endswith(".vhdr") for name in archive.namelist())
+            return any(name.lower().endswith(suffix) for name in archive.namelist())
     except zipfile.BadZipFile:
         return False
+
+
+def is_brainvision(path: Path, head: bytes) -> bool:
+    """A BrainVision header, or a zip holding a ``.vhdr``."""
+    return head.startswith(BRAINVISION_MAGIC) or _zip_holds(path, head, ".vhdr")
 
 
 # ----------------------------------------------------------------------------- EEGLAB
@@ -366,15 +369,7 @@ def read_eeglab(path: Path, shown: str) -> mne.io.BaseRaw:
 
 def is_eeglab(path: Path, head: bytes) -> bool:
     """A MATLAB file (an EEGLAB ``.set``), or a zip holding a ``.set``."""
-    if head.startswith(EEGLAB_MAGIC):
-        return True
-    if not head.startswith(b"PK\x03\x04"):
-        return False
-    try:
-        with zipfile.ZipFile(path) as archive:
-            return any(name.lower().endswith(".set") for name in archive.namelist())
-    except zipfile.BadZipFile:
-        return False
+    return head.startswith(EEGLAB_MAGIC) or _zip_holds(path, head, ".set")
 
 
 # ----------------------------------------------------------------------------- XDF
