@@ -165,6 +165,9 @@ def _export_session(
         raw = mne.io.read_raw_bdf(path, stim_channel=STIM_CHANNEL, verbose="error")
     else:  # the virtual subject's stream, or a recording of another format: written as BDF
         raw = _raw_for(stream, scratch, f"session-{session_id}")
+    misc = [ch for ch in stream.misc_channels if ch in raw.ch_names]
+    if misc:  # a BDF types every channel but Status as EEG: channels.tsv says MISC for these
+        raw.set_channel_types(dict.fromkeys(misc, "misc"), verbose="error")
     if stream.synthetic:
         raw.info["line_freq"] = LINE_FREQ_HZ
     events, event_id, rows = _events(stored, stream, raw)

@@ -147,6 +147,8 @@ class SessionStream:
     description: str
     source: str
     """``recording <id>`` or ``virtual subject (regenerated)``."""
+    misc_channels: tuple[str, ...] = ()
+    """Channels that are neither EEG nor ``Status`` (a recording's EXG, AUX...)."""
 
 
 def virtual_source(stored: StoredSession) -> VirtualEEGSource:
@@ -225,7 +227,11 @@ def session_stream(runtime: Runtime, stored: StoredSession) -> SessionStream:
             synthetic=is_synthetic(raw),
             description=str(raw.info.get("description") or ""),
             source=f"recording {stored.recording.id}",
-        )
+            misc_channels=tuple(
+                ch for ch, kind in zip(raw.ch_names, raw.get_channel_types(), strict=True)
+                if kind == "misc"
+            ),
+        )  # fmt: skip
     if stored.run is None or not stored.markers:
         raise JobConfigError(f"session {stored.session.id} has neither a recording nor markers")
     if stored.run.options.get("eeg_source", "virtual") != "virtual":

@@ -304,6 +304,11 @@ def test_bids_export_of_a_session_whose_recording_came_from_other_software(
         path = _write_set(raw, tmp_path / "session.set")
     else:
         path, plain = tmp_path / "session.edf", raw.copy().pick(CAP_8)
+        exg = mne.io.RawArray(  # recorded beside the cap
+            plain.get_data(picks=["Cz"]) * 3, mne.create_info(["EXG1"], SFREQ, "misc")
+        )
+        exg.info["description"] = plain.info["description"]
+        plain.add_channels([exg])
         texts = ["correct" if ok else "error" for ok in LABELS]
         plain.set_annotations(mne.Annotations(_onsets(raw) / SFREQ, 0.0, texts))
         mne.export.export_raw(path, plain, fmt="edf", verbose="error")
@@ -340,3 +345,8 @@ def test_bids_export_of_a_session_whose_recording_came_from_other_software(
     assert list(back.annotations.description) == ["correct" if ok else "error" for ok in LABELS]
     np.testing.assert_allclose(back.annotations.onset, _onsets(raw) / SFREQ, atol=1.5 / SFREQ)
     np.testing.assert_allclose(back.get_data(picks=CAP_8), raw.get_data(picks=CAP_8), atol=2e-7)
+    channels = bids_path.copy().update(suffix="channels", extension=".tsv").fpath.read_text()
+    types = dict(line.split("\t")[:2] for line in channels.splitlines()[1:])
+    assert {types[ch] for ch in CAP_8} == {"EEG"}
+    assert types.get("EXG1", "MISC") == "MISC"  # the EDF's EXG channel: MISC, not EEG
+    assert ("EXG1" in types) == (fmt == "edf")
