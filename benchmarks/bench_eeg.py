@@ -167,7 +167,7 @@ def quality_sweep(
     """
     from tqdm import tqdm
 
-    from benchmarks.json_out import write_json
+    from services.core.files import write_results_json
 
     # Two tasks per subject (each half of the levels) balance the work over the workers.
     halves = [list(levels[: (len(levels) + 1) // 2]), list(levels[(len(levels) + 1) // 2 :])]
@@ -181,7 +181,7 @@ def quality_sweep(
     def collect(rows: list[dict[str, Any]]) -> None:
         runs.extend(rows)
         if partial_path is not None:
-            write_json(partial_path, runs, indent=1)
+            write_results_json(partial_path, runs, indent=1)
 
     if jobs == 1:
         for task in tqdm(tasks, desc="quality sweep", unit="task"):
@@ -381,11 +381,11 @@ def write_sweep_outputs(result: dict[str, Any], out: Path) -> list[Path]:
     (:func:`plot_sweep`) in ``out``; returns their paths."""
     import csv
 
-    from benchmarks.json_out import write_json
+    from services.core.files import write_results_json
 
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"quality_sweep.{ext}" for ext in ("json", "csv", "png")]
-    write_json(paths[0], result)
+    write_results_json(paths[0], result)
     rows = sweep_csv_rows(result)
     with paths[1].open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))

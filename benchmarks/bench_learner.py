@@ -28,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from benchmarks.json_out import write_json
+from services.core.files import write_results_json
 from services.learner.feedback import (
     FeedbackConfig,
     FeedbackLearner,
@@ -183,5 +183,5 @@ def run_benchmark(
             "torch": torch.__version__,
         },
     }
-    write_json(out / "learner.json", result, indent=1)
+    write_results_json(out / "learner.json", result, indent=1)
     return result

@@ -223,17 +223,17 @@ def bench_eeg(
     """Peak memory of simulate / calibrate / service reading, decision latency (live LSL
     replay), offline preprocessing speed, training time."""
     from benchmarks.bench_eeg import bench_memory, run_benchmark
-    from benchmarks.json_out import finite_or_null, write_json
+    from services.core.files import finite_or_null, write_results_json
 
     output_folder(out)
     if memory_only:
         memory = bench_memory(minutes)
-        path = write_json(out / "eeg_memory.json", memory)
+        path = write_results_json(out / "eeg_memory.json", memory)
         typer.echo(json.dumps(finite_or_null(memory), indent=2))
         typer.echo(f"wrote {path}")
         return
     result = run_benchmark(n_actions=actions, speed=speed, offline_minutes=minutes)
-    path = write_json(out / "eeg.json", result)
+    path = write_results_json(out / "eeg.json", result)
     typer.echo(json.dumps(result["summary"], indent=2))
     typer.echo(f"wrote {path}")
 

@@ -161,7 +161,7 @@ def bench_sim(
     query times, HTTP step overhead.
     """
     from benchmarks import bench_sim as bench
-    from benchmarks.json_out import write_json
+    from services.core.files import write_results_json
 
     output_folder(out)  # before the minutes of measuring
     total = rounds + math.ceil(frames / 10) + 3
@@ -186,7 +186,7 @@ def bench_sim(
         f"--frames {frames} --oracle-queries {oracle_queries} --service-steps {service_steps} "
         f"--seed {seed}"
     )
-    path = write_json(out / "sim.json", result)
+    path = write_results_json(out / "sim.json", result)
     env, render, oracle, service = (
         result["env_step"],
         result["render"],

@@ -60,3 +60,10 @@ def write_json_atomic(path: str | Path, payload: Any, *, indent: int | None = 2)
     """Write ``payload`` as JSON (strict: NaN and infinities are refused) atomically."""
     text = json.dumps(payload, indent=indent, allow_nan=False)
     return write_bytes_atomic(path, (text + "\n").encode())
+
+
+def write_results_json(path: str | Path, payload: Any, *, indent: int | None = 2) -> Path:
+    """Write result figures as strict JSON that other tools read, atomically: a figure
+    without a value (NaN, infinite) as ``null`` (Python's ``json`` would write ``NaN``, which
+    strict parsers, ``jq`` and browsers refuse, and the whole file with it)."""
+    return write_json_atomic(path, finite_or_null(payload), indent=indent)

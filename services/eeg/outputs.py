@@ -7,14 +7,13 @@ removed and the output folder is left as it was.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from services.core.files import finite_or_null
+from services.core.files import write_results_json
 from services.eeg.classifier import CONFIG_FILE, ONNX_FILE, STATE_FILE, TORCHSCRIPT_FILE
 
 if TYPE_CHECKING:
@@ -36,11 +35,6 @@ ARTEFACTS = frozenset(
 """Files a calibration writes besides ``metrics.json`` (report names: services.eeg.report)."""
 
 
-def _strict_json(payload: object, indent: int | None = None) -> str:
-    """JSON other tools read: a figure without a value (NaN) as ``null``."""
-    return json.dumps(finite_or_null(payload), indent=indent, allow_nan=False)
-
-
 def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: bool) -> Path:
     """Write the artefacts to a temporary sibling of ``out`` and move them in.
 
@@ -53,12 +47,12 @@ def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: b
         result.classifier.save(staging)
         if onnx and result.classifier.exports_onnx:
             result.classifier.export_onnx(staging)
-        (staging / HISTORY_FILE).write_text(_strict_json(result.history))
+        write_results_json(staging / HISTORY_FILE, result.history, indent=None)
         if report:
             from services.eeg.report import write_report
 
             write_report(result, staging)
-        (staging / METRICS_FILE).write_text(_strict_json(result.metrics, indent=2))
+        write_results_json(staging / METRICS_FILE, result.metrics)
         out.mkdir(exist_ok=True)
         names = sorted(p.name for p in staging.iterdir() if p.name != METRICS_FILE)
         # metrics.json marks a finished classifier: the old one goes first, and artefacts
