@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from services.cli.paths import output_folder
+from services.cli.paths import output_folder, refuse_file
 from services.eeg.training_config import DECODERS
 
 eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject quality.")
@@ -74,8 +74,7 @@ def calibrate_command(
         config = TrainingConfig(max_passes=max_passes, decoders=names)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--decoders") from exc
-    if out.exists() and not out.is_dir():
-        raise typer.BadParameter(f"{out} is a file, not a folder", param_hint="--out")
+    refuse_file(out)
     mapping = _read_channel_map(channel_map) if channel_map is not None else None
     labels = _event_labels(event_label) if event_label else None
     try:

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 from tqdm import tqdm
 
-from services.cli.paths import output_folder
+from services.cli.paths import output_folder, refuse_file
 
 if TYPE_CHECKING:
     from services.learner.runs import RunFailure, RunRecord
@@ -361,8 +361,7 @@ def compare(
     """Factor studies side by side: a table and per-run plots over several reproductions."""
     from services.learner.outputs import compare_studies
 
-    if out.exists() and not out.is_dir():
-        raise typer.BadParameter(f"{out} is a file, not a folder", param_hint="--out")
+    refuse_file(out)
     try:
         compare_studies(folders, out)
     except ValueError as exc:

@@ -8,11 +8,17 @@ from pathlib import Path
 import typer
 
 
+def refuse_file(path: Path, option: str = "--out") -> None:
+    """``BadParameter`` naming ``option`` if the output folder ``path`` is a file (for
+    commands that create the folder only once their input has been read)."""
+    if path.exists() and not path.is_dir():
+        raise typer.BadParameter(f"{path} is a file, not a folder", param_hint=option)
+
+
 def output_folder(path: Path, option: str = "--out") -> Path:
     """Create the folder ``path`` (and its parents) if needed; ``BadParameter`` naming
     ``option`` if it is a file, lies below one, or cannot be created or written."""
-    if path.exists() and not path.is_dir():
-        raise typer.BadParameter(f"{path} is a file, not a folder", param_hint=option)
+    refuse_file(path, option)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
