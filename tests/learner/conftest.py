@@ -10,6 +10,7 @@ a breadth-first search, like the real env's oracle.
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import replace
 from typing import Any
 
 import gymnasium as gym
@@ -17,6 +18,8 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
+
+from services.learner.ppo import PPOConfig
 
 torch.set_num_threads(1)  # tiny networks: threads only add contention
 
@@ -105,6 +108,20 @@ class ToyGridEnv(gym.Env):
 
 if TOY_ENV_ID not in gym.registry:
     gym.register(TOY_ENV_ID, entry_point=ToyGridEnv, max_episode_steps=30)
+
+
+def toy_config(env_id: str = TOY_ENV_ID, **overrides: Any) -> PPOConfig:
+    """A short sparse-reward PPO run on ``env_id`` (the toy grid by default): 1024 steps,
+    4 epochs, an evaluation every 256 steps from one start; ``overrides`` change it."""
+    base = PPOConfig(
+        env_id=env_id,
+        env_kwargs={"reward_mode": "sparse"},
+        total_steps=1024,
+        n_epochs=4,
+        eval_every=256,
+        eval_seeds=(0,),
+    )
+    return replace(base, **overrides)
 
 
 @pytest.fixture

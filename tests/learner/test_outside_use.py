@@ -163,16 +163,9 @@ def test_exported_pi_hf_takes_float64_single_and_batched_observations(client, tm
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[PPOConfig, Any, Path]:
     """A tiny PPO run on the toy grid with a checkpoint after every update."""
-    from tests.learner.conftest import TOY_ENV_ID
+    from tests.learner.conftest import toy_config
 
-    config = PPOConfig(
-        env_id=TOY_ENV_ID,
-        env_kwargs={"reward_mode": "sparse"},
-        total_steps=256,
-        n_epochs=1,
-        eval_every=256,
-        eval_seeds=(0,),
-    )
+    config = toy_config(total_steps=256, n_epochs=1)
     checkpoint = tmp_path_factory.mktemp("run") / "checkpoint.pt"
     return config, train(config, checkpoint_path=checkpoint, checkpoint_every=1), checkpoint
 

@@ -33,19 +33,7 @@ from services.learner.ppo import (
 from services.learner.ppo.config import episode_epsilon, guidance_withdrawn, prior_weight
 from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
 from services.learner.seeding import RunSeeds, Stream
-from tests.learner.conftest import ToyGridEnv
-
-
-def _toy_config(env_id: str, **overrides) -> PPOConfig:
-    base = PPOConfig(
-        env_id=env_id,
-        env_kwargs={"reward_mode": "sparse"},
-        total_steps=1024,
-        n_epochs=4,
-        eval_every=256,
-        eval_seeds=(0,),
-    )
-    return replace(base, **overrides)
+from tests.learner.conftest import ToyGridEnv, toy_config
 
 
 def test_gae_matches_hand_computed_values() -> None:
@@ -220,7 +208,7 @@ def test_numpy_numbers_and_lists_become_plain_python_values() -> None:
 
 
 def test_training_is_deterministic_under_a_seed(toy_env_id) -> None:
-    config = _toy_config(toy_env_id, total_steps=512)
+    config = toy_config(toy_env_id, total_steps=512)
     a, b = train(config), train(config)
     assert a.curve == b.curve
     assert [m["losses/value_loss"] for m in a.metrics] == [
@@ -260,7 +248,7 @@ def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path, guidance) -
     hf = collect_feedback(
         env, OracleFeedbackSource(0.9, seed=0), 150, config=FeedbackConfig(replay_updates=2)
     )
-    config = _toy_config(toy_env_id, hf_treatment="truncated_is", **guidance)
+    config = toy_config(toy_env_id, hf_treatment="truncated_is", **guidance)
     full = train(config, hf_policy=hf.policy)
     with_prior = ["losses/hf_prior_cross_entropy" in m for m in full.metrics]
     assert with_prior[0] == ("hf_prior_coef" in guidance) and not with_prior[-1]  # it fades
@@ -279,7 +267,7 @@ def test_checkpoint_resumes_to_the_same_result(toy_env_id, tmp_path, guidance) -
 def test_a_checkpoint_from_before_a_setting_existed_resumes_at_its_default(
     toy_env_id, tmp_path
 ) -> None:
-    config = _toy_config(toy_env_id, total_steps=768)
+    config = toy_config(toy_env_id, total_steps=768)
     full = train(config)
     checkpoint = tmp_path / "run.pt"
     train(config, _StopAfterUpdates(2), checkpoint_path=checkpoint)
@@ -324,7 +312,7 @@ def _first_rollout(config: PPOConfig) -> tuple[Rollout, _StepRecorder, RunState]
 
 
 def test_exploration_bonus_is_coef_over_sqrt_visits_of_the_cell_reached(toy_env_id) -> None:
-    config = _toy_config(toy_env_id, explore_coef=2.0, explore_cell_m=2.0)
+    config = toy_config(toy_env_id, explore_coef=2.0, explore_cell_m=2.0)
     with_bonus, recorder, state = _first_rollout(config)
     plain, _, _ = _first_rollout(replace(config, explore_coef=0.0))
     assert np.array_equal(with_bonus.actions, plain.actions)  # same draws, same agent
@@ -348,7 +336,7 @@ def test_exploration_bonus_needs_an_env_that_names_its_cells() -> None:
 
 
 def test_rich_reward_run_improves(toy_env_id) -> None:
-    config = _toy_config(
+    config = toy_config(
         toy_env_id, env_kwargs={"reward_mode": "rich"}, total_steps=4096, n_epochs=10,
         eval_every=512,
     )  # fmt: skip
@@ -363,7 +351,7 @@ def test_guided_training_uses_the_hf_policy_then_stops(toy_env_id, sampling) -> 
     hf = collect_feedback(
         env, OracleFeedbackSource(1.0, seed=0), 150, config=FeedbackConfig(replay_updates=2)
     )
-    config = _toy_config(
+    config = toy_config(
         toy_env_id,
         total_steps=2048,
         hf_warmup_steps=256,
@@ -389,7 +377,7 @@ class _Spinner:
 
 @pytest.mark.parametrize("handover", [False, True])
 def test_a_looping_pi_hf_hands_its_episode_over_to_pi_rl(toy_env_id, handover) -> None:
-    config = _toy_config(
+    config = toy_config(
         toy_env_id, total_steps=256, n_steps=128, minibatch_size=64, hf_warmup_steps=256,
         hf_treatment="truncated_is", hf_handover_on_revisit=handover,
     )  # fmt: skip
@@ -405,7 +393,7 @@ def test_a_looping_pi_hf_hands_its_episode_over_to_pi_rl(toy_env_id, handover) -
 
 
 def test_torchscript_export_loads_without_the_project(toy_env_id, tmp_path) -> None:
-    result = train(_toy_config(toy_env_id, total_steps=256))
+    result = train(toy_config(toy_env_id, total_steps=256))
     path = result.export_torchscript(tmp_path / "policy.pt")
     obs = np.array([1, 2, 1, 0, 1], dtype=np.float32)
     code = (
@@ -482,7 +470,7 @@ def test_train_closes_its_envs_when_it_fails() -> None:
         gym.register(env_id, entry_point=_ClosingGrid, max_episode_steps=30)
     _ClosingGrid.opened = _ClosingGrid.closed = 0
     with pytest.raises(RuntimeError, match="boom"):
-        train(_toy_config(env_id), _FailAt())
+        train(toy_config(env_id), _FailAt())
     assert (_ClosingGrid.opened, _ClosingGrid.closed) == (2, 2)
-    train(_toy_config(env_id, total_steps=128))
+    train(toy_config(env_id, total_steps=128))
     assert (_ClosingGrid.opened, _ClosingGrid.closed) == (4, 4)

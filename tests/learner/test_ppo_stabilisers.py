@@ -12,12 +12,12 @@ import torch
 from services.cli.learner import parse_ppo_overrides
 from services.learner.evaluation import evaluate_spl
 from services.learner.ppo import Callback, PPOConfig, train
-from tests.learner.test_ppo import _toy_config
+from tests.learner.conftest import toy_config
 
 
 def _learning_config(toy_env_id: str, **overrides) -> PPOConfig:
     """A toy run whose SPL goes from 0 to 1 (the rich toy reward)."""
-    return _toy_config(
+    return toy_config(
         toy_env_id, env_kwargs={"reward_mode": "rich"}, total_steps=4096, n_epochs=10,
         eval_every=256, **overrides,
     )  # fmt: skip
@@ -77,7 +77,7 @@ def test_resume_keeps_the_best_checkpoint(toy_env_id, tmp_path) -> None:
 
 
 def test_target_kl_stops_the_epoch_loop_and_none_changes_nothing(toy_env_id) -> None:
-    config = _toy_config(toy_env_id, total_steps=512, n_epochs=8)
+    config = toy_config(toy_env_id, total_steps=512, n_epochs=8)
     plain = train(config)
     assert all(m["losses/update_epochs"] == 8.0 for m in plain.metrics)
     loose = train(replace(config, target_kl=1e9))  # checked every minibatch, never hit
@@ -94,7 +94,7 @@ def test_target_kl_stops_the_epoch_loop_and_none_changes_nothing(toy_env_id) -> 
 
 
 def test_learning_rate_annealing(toy_env_id) -> None:
-    config = _toy_config(toy_env_id, total_steps=640, learning_rate=1e-3)
+    config = toy_config(toy_env_id, total_steps=640, learning_rate=1e-3)
     constant = [m["charts/learning_rate"] for m in train(config).metrics]
     assert constant == [1e-3] * 5
     annealed = [m["charts/learning_rate"] for m in train(replace(config, anneal_lr=True)).metrics]
