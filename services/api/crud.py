@@ -41,11 +41,15 @@ TOTAL_COLUMN = "total_matching"
 """Name of the count column :func:`paginate` adds to a list query."""
 
 
+def get_row(db: Session, model: type[RowT], row_id: object) -> RowT | None:
+    """The row of ``model`` with primary key ``row_id``, or None (also for a text id no row
+    can have: one with a NUL character, which PostgreSQL cannot even compare)."""
+    return None if isinstance(row_id, str) and "\x00" in row_id else db.get(model, row_id)
+
+
 def get_or_404(db: Session, model: type[RowT], row_id: object, field: str) -> RowT:
-    """The row of ``model`` with primary key ``row_id``; 404 naming ``field`` otherwise
-    (also for a text id no row can have: one with a NUL character, which PostgreSQL
-    cannot even compare)."""
-    row = None if isinstance(row_id, str) and "\x00" in row_id else db.get(model, row_id)
+    """The row of ``model`` with primary key ``row_id``; 404 naming ``field`` otherwise."""
+    row = get_row(db, model, row_id)
     if row is None:
         name = getattr(model, "__tablename__", model.__name__).rstrip("s").replace("_", " ")
         raise NotFoundError(f"no {name} with id {row_id}", field=field)

@@ -8,6 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 
+from services.api.crud import get_row
 from services.api.deps import websocket_sign_in_refusal, websocket_token
 from services.api.schemas.jobs import JobPublic
 from services.core.db.models import JOB_FINAL_STATUSES, Job
@@ -28,7 +29,7 @@ def _check(websocket: WebSocket, token: str | None, job_id: str) -> tuple[int, s
     with websocket.app.state.sessions() as db:
         if (refused := websocket_sign_in_refusal(db, websocket, token)) is not None:
             return refused
-        if "\x00" in job_id or db.get(Job, job_id) is None:  # PostgreSQL cannot compare NUL
+        if get_row(db, Job, job_id) is None:
             return CLOSE_NOT_FOUND, f"no job with id {job_id}"
     return None
 
