@@ -16,7 +16,7 @@ from services.learner.ppo.self_imitation import (
     replay_episode,
     self_imitation_update,
 )
-from tests.learner.test_ppo import _toy_config
+from tests.learner.conftest import toy_config
 from tests.learner.test_ppo_stabilisers import _params_equal, _StopAfterUpdates
 
 
@@ -86,7 +86,7 @@ def test_an_episode_is_read_back_from_its_seed_and_actions(toy_env_id) -> None:
 
 
 def test_off_changes_nothing_and_on_resumes_bit_for_bit(toy_env_id, tmp_path) -> None:
-    config = _toy_config(toy_env_id, total_steps=1536, n_epochs=4, eval_every=256)
+    config = toy_config(toy_env_id, total_steps=1536, n_epochs=4, eval_every=256)
     plain = train(config)
     assert not any("charts/sil_transitions" in m for m in plain.metrics)
     sil = replace(config, sil_coef=1.0, sil_updates=4)
