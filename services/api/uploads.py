@@ -12,7 +12,7 @@ from pathlib import PurePosixPath
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import Request
 
-from services.core.artifacts import ArtifactStore, StoredFile
+from services.core.artifacts import ArtifactStore, DiskReserve, StoredFile
 from services.core.errors import BadRequestError, UnsupportedMediaError
 
 RECORDING_SUFFIXES = (".bdf", ".edf", ".fif", ".set", ".xdf", ".zip")
@@ -125,12 +125,18 @@ class _MultipartFile:
 
 
 async def receive_recording(
-    request: Request, store: ArtifactStore, *, filename: str | None, max_bytes: int
+    request: Request,
+    store: ArtifactStore,
+    *,
+    filename: str | None,
+    max_bytes: int,
+    min_free_mb: int,
 ) -> tuple[StoredFile, str]:
     """Store the uploaded recording; the stored file and its (checked) name.
 
     ``multipart/form-data`` with a ``file`` part, or the raw file as the body with
-    ``?filename=``.
+    ``?filename=``. A disk that would keep less than ``min_free_mb`` free is a 507 (the
+    partial file removed).
     """
     content_type, options = parse_options_header(request.headers.get("content-type", ""))
     if content_type == b"multipart/form-data":
@@ -149,7 +155,10 @@ async def receive_recording(
             )
         name = check_recording_name(filename)
         stream = request.stream()
-    stored = await store.put_async_stream(stream, kind="recording", name=name, max_bytes=max_bytes)
+    reserve = DiskReserve.for_upload(min_free_mb, request.headers.get("content-length"))
+    stored = await store.put_async_stream(
+        stream, kind="recording", name=name, max_bytes=max_bytes, reserve=reserve
+    )
     if stored.size_bytes == 0:
         store.delete(stored.relpath)
         raise BadRequestError("the recording is empty", field=FILE_FIELD)

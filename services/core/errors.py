@@ -52,3 +52,9 @@ class UnsupportedMediaError(ServiceError):
     """The body's format is not one the endpoint accepts."""
 
     status_code = 415
+
+
+class InsufficientStorageError(ServiceError):
+    """The data disk is (nearly) full: nothing was stored (see :mod:`services.core.disk`)."""
+
+    status_code = 507

@@ -56,6 +56,14 @@ class BaseServiceSettings(BaseSettings):
     max_upload_bytes: int = Field(
         512 * 1024 * 1024, gt=0, description="Largest request body accepted, in bytes."
     )
+    min_free_mb: int = Field(
+        1024,
+        ge=0,
+        validation_alias=AliasChoices("BGRL_MIN_FREE_MB", "min_free_mb"),
+        description="Free space (MB) kept on the data disk: below it, recording uploads and "
+        "new jobs are refused with HTTP 507 (platform-wide BGRL_MIN_FREE_MB; 0 turns the "
+        "check off). Running jobs, checkpoints and the database still write into it.",
+    )
     service_token: str | None = Field(
         None,
         min_length=16,

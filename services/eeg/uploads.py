@@ -14,7 +14,7 @@ from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
 
-from services.core.artifacts import ArtifactStore, StoredFile
+from services.core.artifacts import ArtifactStore, DiskReserve, StoredFile
 from services.core.errors import BadRequestError
 from services.eeg.errors import UploadAbortedError
 
@@ -140,11 +140,17 @@ class _MultipartFile:
 
 
 async def receive_upload(
-    request: Request, store: ArtifactStore, *, filename: str | None, max_bytes: int
+    request: Request,
+    store: ArtifactStore,
+    *,
+    filename: str | None,
+    max_bytes: int,
+    min_free_mb: int,
 ) -> Upload:
     """Stream the uploaded recording into ``store`` (kind ``incoming``).
 
-    Raises a 422 for an empty or malformed body, a 413 over ``max_bytes`` and
+    Raises a 422 for an empty or malformed body, a 413 over ``max_bytes``, a 507 when the
+    disk would keep less than ``min_free_mb`` free (nothing kept) and
     :class:`UploadAbortedError` when the client goes away mid-upload (logged as one
     warning line).
     """
@@ -155,7 +161,11 @@ async def receive_upload(
     chunks = multipart.file_chunks(request.stream()) if multipart else request.stream()
     try:
         stored = await store.put_async_stream(
-            chunks, kind=INCOMING_KIND, name="upload", max_bytes=max_bytes
+            chunks,
+            kind=INCOMING_KIND,
+            name="upload",
+            max_bytes=max_bytes,
+            reserve=DiskReserve.for_upload(min_free_mb, request.headers.get("content-length")),
         )
     except ClientDisconnect:
         logger.warning(

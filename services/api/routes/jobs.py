@@ -48,6 +48,7 @@ from services.api.schemas.jobs import (
     JobPublic,
     JobStatus,
 )
+from services.api.settings import ApiSettings
 from services.core.db.base import utcnow
 from services.core.db.models import (
     JOB_FINAL_STATUSES,
@@ -59,6 +60,7 @@ from services.core.db.models import (
     Recording,
     Subject,
 )
+from services.core.disk import require_free_space
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.queue import enqueue_job
 
@@ -113,6 +115,13 @@ def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[st
     return values
 
 
+def require_job_space(settings: ApiSettings, refusing: str) -> None:
+    """507 unless the artifact store's disk (where jobs write) keeps its reserve free."""
+    require_free_space(
+        settings.resolved_artifact_dir, min_free_mb=settings.min_free_mb, refusing=refusing
+    )
+
+
 def _enqueue(celery: Celery, job: Job) -> None:
     """Send the job to the workers; a broker outage leaves it queued for the reaper."""
     try:
@@ -125,7 +134,11 @@ def _enqueue(celery: Celery, job: Job) -> None:
 def submit(
     body: JobCreate, user: StaffUser, db: DbDep, celery: CeleryDep, settings: SettingsDep
 ) -> JobPublic:
-    """Submit a job (staff): the row is committed as ``queued``, then sent to the workers."""
+    """Submit a job (staff): the row is committed as ``queued``, then sent to the workers.
+
+    Refused with 507 while the data disk keeps less than ``BGRL_MIN_FREE_MB`` free.
+    """
+    require_job_space(settings, "a new job")
     config = _validated_config(db, body.kind, body.config)
     job = Job(
         kind=body.kind,
@@ -305,13 +318,17 @@ def _requeue(job_filter: Any) -> Any:
 
 
 @router.post("/{job_id}/retry", dependencies=SIGNED_IN)
-def retry(job_id: str, user: StaffUser, db: DbDep, celery: CeleryDep) -> JobPublic:
+def retry(
+    job_id: str, user: StaffUser, db: DbDep, celery: CeleryDep, settings: SettingsDep
+) -> JobPublic:
     """Run a failed or cancelled job again (staff); it resumes from its last checkpoint.
 
     A reproduce job's failed and cancelled runs are run again with it (its finished runs
     are kept). The row changes in one conditional update: of two retries at once, one wins
-    (the other gets 409), so the job is sent once.
+    (the other gets 409), so the job is sent once. Refused with 507 while the data disk
+    keeps less than ``BGRL_MIN_FREE_MB`` free.
     """
+    require_job_space(settings, "retrying a job")
     job = get_or_404(db, Job, job_id, "job_id")
     if job.parent_id is not None:
         raise ConflictError(

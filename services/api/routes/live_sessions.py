@@ -24,7 +24,7 @@ from services.api.deps import (
     StaffUser,
     get_current_user,
 )
-from services.api.routes.jobs import _enqueue
+from services.api.routes.jobs import _enqueue, require_job_space
 from services.api.schemas.common import MAX_ROW_ID, NUL_MESSAGE, ApiRequest, UtcDatetime, has_nul
 from services.core.db.live import (
     LiveDecision,
@@ -116,7 +116,12 @@ def start(
     celery: CeleryDep,
     settings: SettingsDep,
 ) -> LiveRunPublic:
-    """Start (or resume, after a failure) the session's live loop as a ``live_session`` job."""
+    """Start (or resume, after a failure) the session's live loop as a ``live_session`` job.
+
+    Refused with 507 while the data disk keeps less than ``BGRL_MIN_FREE_MB`` free (the
+    session records EEG and labels as it runs).
+    """
+    require_job_space(settings, "starting a live session")
     lab = get_or_404(db, LabSession, session_id, "session_id")
     for name, value in body:
         if has_nul(value):

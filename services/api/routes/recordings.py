@@ -142,7 +142,11 @@ async def upload(
     if not await run_in_threadpool(session_exists):
         raise NotFoundError(f"no session with id {session_id}", field="session_id")
     stored, name = await receive_recording(
-        request, store, filename=filename, max_bytes=settings.max_upload_bytes
+        request,
+        store,
+        filename=filename,
+        max_bytes=settings.max_upload_bytes,
+        min_free_mb=settings.min_free_mb,
     )
     try:
         return await run_in_threadpool(_register, request, store, session_id, stored, name, user)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, status
 
+from services.core.disk import require_free_space
 from services.core.errors import BadRequestError
 from services.eeg.deps import JobsDep, RunnerDep, SettingsDep
 from services.eeg.schemas import JobCreate, JobPublic
@@ -13,7 +14,13 @@ router = APIRouter(prefix="/jobs", tags=["jobs"])
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED)
 def start_job(body: JobCreate, runner: RunnerDep, settings: SettingsDep) -> JobPublic:
-    """Start calibration training on a stored recording, in the background."""
+    """Start calibration training on a stored recording, in the background.
+
+    Refused with 507 while the data disk keeps less than ``BGRL_MIN_FREE_MB`` free.
+    """
+    require_free_space(
+        settings.eeg_dir, min_free_mb=settings.min_free_mb, refusing="a new calibration job"
+    )
     if body.max_passes > settings.max_training_passes:
         raise BadRequestError(
             f"max_passes may be at most {settings.max_training_passes}", field="max_passes"

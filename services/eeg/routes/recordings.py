@@ -24,6 +24,7 @@ router = APIRouter(prefix="/recordings", tags=["recordings"])
         413: {"description": "Larger than BGRL_EEG_MAX_UPLOAD_BYTES."},
         415: {"description": "Not a BDF, EDF, FIF, BrainVision (zip) or XDF file (by content)."},
         422: {"description": "Not a usable recording; the detail names the problem."},
+        507: {"description": "The data disk would keep less than BGRL_MIN_FREE_MB free."},
     },
 )
 async def upload_recording(
@@ -46,7 +47,11 @@ async def upload_recording(
     body. 201 when stored, 200 when the same file is already stored.
     """
     upload = await receive_upload(
-        request, recordings.incoming, filename=filename, max_bytes=settings.max_upload_bytes
+        request,
+        recordings.incoming,
+        filename=filename,
+        max_bytes=settings.max_upload_bytes,
+        min_free_mb=settings.min_free_mb,
     )
     meta, created = await recordings.add(upload)
     if not created:
