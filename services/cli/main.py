@@ -13,7 +13,19 @@ from typing import Annotated
 
 import typer
 
-from services.cli import bids, demo, eeg, learner, platform, serve, sim, subject, users, worker
+from services.cli import (
+    backup,
+    bids,
+    demo,
+    eeg,
+    learner,
+    platform,
+    serve,
+    sim,
+    subject,
+    users,
+    worker,
+)
 
 app = typer.Typer(
     name="bgrl",
@@ -24,7 +36,7 @@ app = typer.Typer(
 bench_app = typer.Typer(help="Performance benchmarks; each writes JSON.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 
-for module in (serve, worker, learner, sim, eeg, subject, platform, users, demo, bids):
+for module in (serve, worker, learner, sim, eeg, subject, platform, users, demo, bids, backup):
     module.register(app, bench_app)
 
 
