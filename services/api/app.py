@@ -44,7 +44,7 @@ from services.api.settings import ApiSettings
 from services.core.artifacts import ArtifactStore
 from services.core.db.migrate import upgrade_database
 from services.core.db.session import make_engine, make_session_factory, pool_capacity
-from services.core.logging import configure_logging
+from services.core.logging import configure_log_file, configure_logging
 from services.core.queue import make_celery
 from services.core.settings import load_settings
 from services.core.web import create_service_app
@@ -80,6 +80,7 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
     """Build the api; ``settings`` default to the environment's ``BGRL_*`` variables."""
     settings = settings if settings is not None else load_settings(ApiSettings)
     configure_logging(settings.log_level, json_lines=settings.log_json)
+    configure_log_file(settings, "api")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -152,7 +152,7 @@ def up(
     ] = True,
 ) -> None:
     """Start the platform: api, sim, EEG, learner services and job workers; Ctrl-C stops all."""
-    from services.core.logging import configure_logging
+    from services.core.logging import configure_log_file, configure_logging
     from services.core.platform import PlatformSettings
 
     known = {s.name for s in SERVICES} | {"worker"}
@@ -170,6 +170,7 @@ def up(
     except SettingsError as exc:
         raise _fail(str(exc)) from None
     configure_logging(platform.log_level, json_lines=platform.log_json)
+    configure_log_file(platform, "up")
 
     data_dir = platform.ensure_data_dir().resolve()
     typer.echo(f"data folder {data_dir}")

@@ -22,7 +22,7 @@ def worker(
     BGRL_ARTIFACT_DIR...); it runs one job at a time. Start several for more."""
     from kombu.utils.url import maybe_sanitize_url
 
-    from services.core.logging import configure_logging
+    from services.core.logging import configure_log_file, configure_logging
     from services.core.queue import JOB_QUEUE, broker_url
     from services.core.settings import SettingsError, load_settings
     from services.worker.settings import WorkerSettings
@@ -35,6 +35,7 @@ def worker(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     configure_logging(settings.log_level, json_lines=settings.log_json)
+    configure_log_file(settings, "worker")
     if migrate:
         from services.core.db.migrate import upgrade_database
 

@@ -2,7 +2,8 @@
 
 :func:`configure_logging` is called once per process (by the app factory or a CLI command);
 :data:`request_id` carries the id of the HTTP request being handled, so every log line
-written while handling it names it.
+written while handling it names it. :func:`configure_log_file` adds a size-rotated file in
+``BGRL_LOG_DIR`` when that is set.
 """
 
 from __future__ import annotations
@@ -10,8 +11,13 @@ from __future__ import annotations
 import contextvars
 import json
 import logging
+import os
 import sys
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from services.core.settings import BaseServiceSettings
 
 request_id: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", default="-")
 """Id of the request being handled in this context (``-`` outside requests)."""
@@ -61,3 +67,41 @@ def configure_logging(level: str = "INFO", *, json_lines: bool = False) -> None:
         logging.getLogger(name).handlers.clear()
         logging.getLogger(name).propagate = True
     _configured = True
+
+
+LOG_FILE_MODE = 0o600
+"""Log files name users and subjects: readable by the platform's user only (folder 700)."""
+
+
+def configure_log_file(settings: BaseServiceSettings, name: str) -> Path | None:
+    """Also write every record to ``<BGRL_LOG_DIR>/<name>.log``, rotated by size; its path.
+
+    Nothing when ``settings.log_dir`` is unset. At ``log_max_mb`` the file becomes
+    ``<name>.log.1`` (and so on up to ``log_backups``; older ones are deleted). Several
+    processes may write one file (the api's uvicorn workers, the job workers): the
+    handler of ``concurrent-log-handler`` takes a lock file beside it for each write and
+    rotation, so no line is lost or written into a file being rotated. Idempotent.
+    """
+    from concurrent_log_handler import ConcurrentRotatingFileHandler
+
+    if settings.log_dir is None:
+        return None
+    folder = settings.log_dir.resolve()
+    path = folder / f"{name}.log"
+    root = logging.getLogger()
+    for handler in root.handlers:
+        if isinstance(handler, ConcurrentRotatingFileHandler) and handler.baseFilename == str(path):
+            return path
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    handler = ConcurrentRotatingFileHandler(
+        os.fspath(path),
+        maxBytes=settings.log_max_mb * 1024 * 1024,
+        backupCount=settings.log_backups,
+        chmod=LOG_FILE_MODE,
+        encoding="utf-8",
+    )
+    handler.addFilter(_RequestIdFilter())
+    formatter = JsonFormatter() if settings.log_json else logging.Formatter(TEXT_FORMAT)
+    handler.setFormatter(formatter)
+    root.addHandler(handler)
+    return path

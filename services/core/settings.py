@@ -83,6 +83,28 @@ class BaseServiceSettings(BaseSettings):
         validation_alias=AliasChoices("BGRL_LOG_JSON", "log_json"),
         description="Log one JSON object per line instead of text (platform-wide BGRL_LOG_JSON).",
     )
+    log_dir: Path | None = Field(
+        None,
+        validation_alias=AliasChoices("BGRL_LOG_DIR", "log_dir"),
+        description="Folder for log files besides stderr: <name>.log per service (api, sim, "
+        "eeg, learner, worker, up), rotated by size (platform-wide BGRL_LOG_DIR). Unset: "
+        "stderr only (under systemd, journald keeps and rotates it).",
+    )
+    log_max_mb: int = Field(
+        50,
+        ge=1,
+        le=100_000,
+        validation_alias=AliasChoices("BGRL_LOG_MAX_MB", "log_max_mb"),
+        description="Size (MB) at which a log file in BGRL_LOG_DIR is rotated.",
+    )
+    log_backups: int = Field(
+        5,
+        ge=1,
+        le=1000,
+        validation_alias=AliasChoices("BGRL_LOG_BACKUPS", "log_backups"),
+        description="Rotated log files kept per service (<name>.log.1 ... .N; older ones "
+        "are deleted).",
+    )
 
     def ensure_data_dir(self) -> Path:
         """Create ``data_dir`` if needed and return it."""

@@ -18,7 +18,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services.core.logging import configure_logging
+from services.core.logging import configure_log_file, configure_logging
 from services.core.settings import load_settings
 from services.core.web import create_service_app
 from services.eeg.routes import classifiers, jobs, live, recordings
@@ -30,6 +30,7 @@ def create_app(settings: EEGSettings | None = None) -> FastAPI:
     """Build the EEG service; ``settings`` default to the environment's ``BGRL_EEG_*``."""
     settings = settings if settings is not None else load_settings(EEGSettings)
     configure_logging(settings.log_level, json_lines=settings.log_json)
+    configure_log_file(settings, "eeg")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

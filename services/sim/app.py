@@ -15,7 +15,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services.core.logging import configure_logging
+from services.core.logging import configure_log_file, configure_logging
 from services.core.settings import load_settings
 from services.core.web import create_service_app
 from services.sim.lsl_markers import MarkerPublisher
@@ -28,6 +28,7 @@ def create_app(settings: SimSettings | None = None) -> FastAPI:
     """Build the sim service; ``settings`` default to the environment's ``BGRL_SIM_*``."""
     settings = settings if settings is not None else load_settings(SimSettings)
     configure_logging(settings.log_level, json_lines=settings.log_json)
+    configure_log_file(settings, "sim")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

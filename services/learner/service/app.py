@@ -21,7 +21,7 @@ import torch
 from fastapi import FastAPI, Request
 
 from services.core.artifacts import ArtifactStore
-from services.core.logging import configure_logging
+from services.core.logging import configure_log_file, configure_logging
 from services.core.platform import PlatformSettings
 from services.core.settings import load_settings
 from services.core.web import create_service_app
@@ -42,6 +42,7 @@ def create_app(
     settings = settings if settings is not None else load_settings(LearnerSettings)
     platform = platform if platform is not None else load_settings(PlatformSettings)
     configure_logging(settings.log_level, json_lines=settings.log_json)
+    configure_log_file(settings, "learner")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
