@@ -49,7 +49,7 @@ SQLITE_MEMBER = "database/bgrl.db"
 POSTGRES_MEMBER = "database/postgresql.dump"
 DATA_PREFIX = "data/"
 ARTIFACTS_PREFIX = "artifacts/"
-SKIPPED_DATA_PARTS = frozenset({"broker", ".tmp", "incoming"})
+SKIPPED_DATA_FOLDERS = ("broker", "eeg/incoming")
 """Folders of the data folder not backed up: the embedded broker's messages (the jobs'
 rows are the truth: the reaper sends queued jobs again) and uploads still arriving."""
 CHUNK_BYTES = 1024 * 1024
@@ -68,6 +68,8 @@ class Target:
     database_url: str
     data_dir: Path
     artifact_dir: Path
+    log_dir: Path | None = None
+    """``BGRL_LOG_DIR``: not backed up when it lies in the data folder."""
 
     @classmethod
     def from_settings(cls, settings: PlatformSettings) -> Target:
@@ -75,6 +77,7 @@ class Target:
             settings.resolved_database_url,
             settings.data_dir.resolve(),
             settings.resolved_artifact_dir,
+            settings.log_dir.resolve() if settings.log_dir is not None else None,
         )
 
     @property
@@ -133,26 +136,27 @@ def _add_file(tar: tarfile.TarFile, path: Path, name: str, members: dict[str, An
     return True
 
 
+def _in_progress(name: str) -> bool:
+    """True for what an atomic write is still building (``.tmp`` folders, ``.x.part``,
+    ``.x.tmp``) and for a restore's staging folder: never backed up."""
+    hidden_work = name.startswith(".") and name.endswith((".tmp", ".part"))
+    return name == ".tmp" or hidden_work or name.startswith(".restore-")
+
+
 def _files_below(root: Path, skip: set[Path]) -> Iterator[tuple[Path, str]]:
-    """Regular files below ``root`` (sorted; no symlinks), with their POSIX relative path."""
+    """Regular files below ``root`` (sorted; no symlinks, nothing in ``skip`` or in
+    progress), with their POSIX path relative to ``root``."""
     if not root.is_dir():
         return
     for folder, subfolders, files in os.walk(root):
         here = Path(folder)
         subfolders[:] = sorted(
-            d
-            for d in subfolders
-            if here / d not in skip
-            and not (here == root and d in SKIPPED_DATA_PARTS)
-            and d not in (".tmp",)
-            and not d.startswith(".restore-")
+            d for d in subfolders if here / d not in skip and not _in_progress(d)
         )
         for name in sorted(files):
             path = here / name
-            if path in skip or path.is_symlink() or not path.is_file():
+            if path in skip or _in_progress(name) or path.is_symlink() or not path.is_file():
                 continue
-            if name.startswith(".") and name.endswith((".tmp", ".part")):
-                continue  # an atomic write in progress
             yield path, path.relative_to(root).as_posix()
 
 
@@ -160,7 +164,7 @@ def _snapshot_sqlite(path: Path, out: Path) -> None:
     """A consistent copy of the live SQLite database at ``path`` (WAL checkpointed first)."""
     if not path.is_file():
         raise BackupError(f"no SQLite database at {path} (has the platform ever started?)")
-    source = sqlite3.connect(f"file:{path}?mode=rw", uri=True, timeout=30)
+    source = sqlite3.connect(f"{path.as_uri()}?mode=rw", uri=True, timeout=30)
     copy = sqlite3.connect(out)
     try:
         # fold the write-ahead log back into the file (PASSIVE: never waits for writers)
@@ -284,7 +288,9 @@ def write_backup(target: Target, archive: Path) -> dict[str, Any]:
             _private_file(part) as handle,
             tarfile.open(fileobj=handle, mode="w", format=tarfile.PAX_FORMAT) as tar,
         ):
-            skip: set[Path] = {target.artifact_dir}
+            skip = {target.artifact_dir, *(target.data_dir / f for f in SKIPPED_DATA_FOLDERS)}
+            if target.log_dir is not None:
+                skip.add(target.log_dir)
             if target.is_sqlite:
                 db_path = target.sqlite_path
                 skip |= {Path(f"{db_path}{end}") for end in ("", "-wal", "-shm", "-journal")}

@@ -133,6 +133,22 @@ def start_api(settings: ApiSettings, **app_kwargs: Any) -> Iterator[Api]:
         yield Api(client, settings, headers, user_ids)
 
 
+def calibration_session(api: Api) -> int:
+    """Id of a new calibration session of a new subject ``S01`` (created by staff)."""
+    staff = api.as_("staff")
+    subject = api.client.post("/api/v1/subjects", json={"code": "S01"}, headers=staff)
+    session = api.client.post(
+        "/api/v1/sessions",
+        json={
+            "subject_id": subject.json()["id"],
+            "kind": "calibration",
+            "scheduled_at": "2026-12-07T10:00:00Z",
+        },
+        headers=staff,
+    )
+    return session.json()["id"]
+
+
 @pytest.fixture
 def api(tmp_path: Path) -> Iterator[Api]:
     """The app on a SQLite database."""

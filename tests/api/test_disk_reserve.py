@@ -11,7 +11,7 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 
 from services.core.db.models import Job
-from tests.api.conftest import Api
+from tests.api.conftest import Api, calibration_session
 from tests.api.test_jobs import GUIDED, broker_messages, submit
 
 ABOVE_FREE_MB = 10**9
@@ -24,23 +24,14 @@ def _files_below(root: Path) -> list[Path]:
 
 def test_api_refuses_uploads_jobs_retries_and_live_starts_below_the_reserve(api: Api) -> None:
     staff = api.as_("staff")
-    subject = api.client.post("/api/v1/subjects", json={"code": "S01"}, headers=staff).json()
-    session = api.client.post(
-        "/api/v1/sessions",
-        json={
-            "subject_id": subject["id"],
-            "kind": "calibration",
-            "scheduled_at": "2026-12-07T10:00:00Z",
-        },
-        headers=staff,
-    ).json()
+    session_id = calibration_session(api)
     failed = submit(api, "guided_ppo", GUIDED).json()
     broker_messages(api)
     store_root = api.client.app.state.store.root
     files_before = _files_below(store_root)
 
     api.settings.min_free_mb = ABOVE_FREE_MB
-    url = f"/api/v1/sessions/{session['id']}/recordings"
+    url = f"/api/v1/sessions/{session_id}/recordings"
     raw = api.client.post(
         f"{url}?filename=s01.bdf",
         content=b"x" * 1000,
@@ -52,7 +43,7 @@ def test_api_refuses_uploads_jobs_retries_and_live_starts_below_the_reserve(api:
         db.get(Job, failed["id"]).status = "failed"
         db.commit()
     retry = api.client.post(f"/api/v1/jobs/{failed['id']}/retry", headers=staff)
-    live = api.client.post(f"/api/v1/sessions/{session['id']}/start", json={}, headers=staff)
+    live = api.client.post(f"/api/v1/sessions/{session_id}/start", json={}, headers=staff)
     for response in (raw, multipart, job, retry, live):
         assert response.status_code == 507, response.text
         assert "BGRL_MIN_FREE_MB" in response.json()["detail"]

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from services.core.db.models import Artifact, Recording
-from tests.api.conftest import Api, make_settings, start_api
+from tests.api.conftest import Api, calibration_session, make_settings, start_api
 from tests.helpers import serve_in_thread
 
 
@@ -47,25 +47,11 @@ def api_with_eeg(tmp_path: Path, eeg_url: str) -> Iterator[Api]:
     yield from start_api(settings)
 
 
-def _session(api: Api) -> int:
-    subject = api.client.post("/api/v1/subjects", json={"code": "S01"}, headers=api.as_("staff"))
-    session = api.client.post(
-        "/api/v1/sessions",
-        json={
-            "subject_id": subject.json()["id"],
-            "kind": "calibration",
-            "scheduled_at": "2026-12-07T10:00:00Z",
-        },
-        headers=api.as_("staff"),
-    )
-    return session.json()["id"]
-
-
 def test_multipart_upload_is_validated_by_the_eeg_service(
     api_with_eeg: Api, synthetic_bdf: bytes
 ) -> None:
     api = api_with_eeg
-    session_id = _session(api)
+    session_id = calibration_session(api)
     response = api.client.post(
         f"/api/v1/sessions/{session_id}/recordings",
         files={"file": ("s01.bdf", synthetic_bdf, "application/octet-stream")},
@@ -92,7 +78,7 @@ def test_multipart_upload_is_validated_by_the_eeg_service(
 
 def test_raw_upload_of_a_bad_file_is_stored_as_invalid_with_the_reason(api_with_eeg: Api) -> None:
     api = api_with_eeg
-    session_id = _session(api)
+    session_id = calibration_session(api)
     garbage = b"0       " + b"not really an EDF header" * 20
     response = api.client.post(
         f"/api/v1/sessions/{session_id}/recordings?filename=broken.edf",
@@ -108,7 +94,7 @@ def test_raw_upload_of_a_bad_file_is_stored_as_invalid_with_the_reason(api_with_
 
 
 def test_upload_limits_and_bad_requests(api: Api) -> None:
-    session_id = _session(api)
+    session_id = calibration_session(api)
     url = f"/api/v1/sessions/{session_id}/recordings"
     staff = {**api.as_("staff"), "content-type": "application/octet-stream"}
     too_big = api.client.post(
@@ -165,7 +151,7 @@ def test_upload_limits_and_bad_requests(api: Api) -> None:
 
 
 def test_without_an_eeg_service_the_recording_stays_pending(api: Api) -> None:
-    session_id = _session(api)
+    session_id = calibration_session(api)
     response = api.client.post(
         f"/api/v1/sessions/{session_id}/recordings?filename=s.bdf",
         content=b"abc",
@@ -187,7 +173,7 @@ def test_without_an_eeg_service_the_recording_stays_pending(api: Api) -> None:
 
 
 def test_subject_with_recordings_needs_an_admin_purge(api: Api) -> None:
-    session_id = _session(api)
+    session_id = calibration_session(api)
     subject_id = api.client.get(f"/api/v1/sessions/{session_id}", headers=api.as_("staff")).json()[
         "subject_id"
     ]
