@@ -403,8 +403,8 @@ def _check_target(target: Target, kind: str, force: bool) -> None:
         occupied.append(f"the database {target.url.render_as_string()}")
     if occupied:
         raise BackupError(
-            f"{', '.join(dict.fromkeys(occupied))} not empty: restore into a fresh data folder "
-            "and database, or give --force to write over them"
+            f"already holding data: {', '.join(dict.fromkeys(occupied))}; restore into a fresh "
+            "data folder and database, or give --force to write over them"
         )
 
 

@@ -162,7 +162,11 @@ def test_online_backup_restores_rows_and_files_into_a_fresh_folder(
         assert stat.S_IMODE(path.stat().st_mode) == (0o700 if path.is_dir() else 0o600), path
 
     again = runner.invoke(app, ["restore", str(archive)], env=_env(restored, restore_url))
-    assert again.exit_code == 1 and "not empty" in again.output and "--force" in again.output
+    assert (
+        again.exit_code == 1
+        and "already holding data" in again.output
+        and "--force" in again.output
+    )
     forced = runner.invoke(
         app, ["restore", "--force", str(archive)], env=_env(restored, restore_url)
     )
