@@ -12,6 +12,9 @@ import services.core
 LSL_LOOPBACK_CFG = Path(services.core.__file__).with_name("lsl_loopback.cfg")
 os.environ.setdefault("LSLAPICFG", str(LSL_LOOPBACK_CFG))
 os.environ.setdefault("MPLBACKEND", "Agg")
+# The free-space reserve (1024 MB by default) would refuse uploads and jobs on a CI machine
+# with a nearly full disk; the reserve's own tests set it explicitly.
+os.environ.setdefault("BGRL_MIN_FREE_MB", "1")
 
 
 @pytest.fixture(autouse=True)
