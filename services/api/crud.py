@@ -34,7 +34,7 @@ from sqlalchemy.sql.functions import FunctionElement
 from services.api.deps import PageParams
 from services.core.db.base import UtcDateTime
 from services.core.db.models import Job
-from services.core.errors import NotFoundError
+from services.core.errors import ConflictError, NotFoundError
 
 RowT = TypeVar("RowT")
 TOTAL_COLUMN = "total_matching"
@@ -54,6 +54,47 @@ def get_or_404(db: Session, model: type[RowT], row_id: object, field: str) -> Ro
         name = getattr(model, "__tablename__", model.__name__).rstrip("s").replace("_", " ")
         raise NotFoundError(f"no {name} with id {row_id}", field=field)
     return row
+
+
+MIN_ID_PREFIX = 6
+"""The fewest leading characters of a text id (a job's, an artifact's: 32 hex digits) that
+:func:`get_by_id_or_prefix` takes for the whole id."""
+NAMED_CANDIDATES = 5
+"""How many matching ids a 409 for an ambiguous prefix names."""
+HEX_DIGITS = frozenset("0123456789abcdef")
+
+
+def get_by_id_or_prefix(db: Session, model: type[RowT], row_id: str, field: str) -> RowT:
+    """The row of ``model`` (a text primary key of hex digits) whose id is ``row_id``, or
+    starts with it: any unique prefix of at least :data:`MIN_ID_PREFIX` characters, as the
+    dashboard shows ids and people type them. 404 naming ``field`` when none matches, 409
+    naming the candidates when several do."""
+    row = get_row(db, model, row_id)
+    if row is not None:
+        return row
+    name = getattr(model, "__tablename__", model.__name__).rstrip("s").replace("_", " ")
+    prefix = row_id.lower()
+    if len(prefix) < MIN_ID_PREFIX or not set(prefix) <= HEX_DIGITS:
+        hint = f" (give at least {MIN_ID_PREFIX} characters of it)" if prefix else ""
+        raise NotFoundError(f"no {name} with id {row_id}{hint}", field=field)
+    key = model.id  # type: ignore[attr-defined]
+    ids = list(
+        db.scalars(
+            select(key).where(key.startswith(prefix)).order_by(key).limit(NAMED_CANDIDATES + 1)
+        )
+    )
+    if not ids:
+        raise NotFoundError(f"no {name} with an id starting {row_id}", field=field)
+    if len(ids) > 1:
+        named = ", ".join(ids[:NAMED_CANDIDATES])
+        more = " and more" if len(ids) > NAMED_CANDIDATES else ""
+        raise ConflictError(
+            f"{row_id} starts the ids of several {name}s: {named}{more}; give more characters",
+            field=field,
+        )
+    found = db.get(model, ids[0])
+    assert found is not None
+    return found
 
 
 ACTIVE_JOB_STATUSES = ("queued", "running")

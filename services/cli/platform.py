@@ -27,7 +27,9 @@ from services.client.config import (
 from services.client.schemas import JobKind, JobStatus
 from services.core.settings import SettingsError, load_settings
 
-jobs_app = typer.Typer(help="Submit, follow and cancel jobs on the platform.", no_args_is_help=True)
+jobs_app = typer.Typer(
+    help="Submit, follow, inspect, cancel and retry jobs on the platform.", no_args_is_help=True
+)
 models_app = typer.Typer(help="Download trained models.", no_args_is_help=True)
 
 UrlOption = Annotated[
@@ -38,6 +40,12 @@ UrlOption = Annotated[
         f"`bgrl login`, else {DEFAULT_API_URL}).",
     ),
 ]
+JobIdArgument = Annotated[
+    str, typer.Argument(help="The job's id, or a unique prefix of it (6 characters or more).")
+]
+JsonOption = Annotated[bool, typer.Option("--json", help="Print the answer as JSON.")]
+
+
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 
@@ -245,7 +253,7 @@ def list_jobs(
     ] = None,
     kind: Annotated[str | None, typer.Option(help="Only jobs of this kind.")] = None,
     limit: Annotated[int, typer.Option(min=1, max=500, help="Jobs shown (newest first).")] = 20,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the page as JSON.")] = False,
+    as_json: JsonOption = False,
     url: UrlOption = None,
 ) -> None:
     """The newest jobs: id, kind, status, progress, created."""
@@ -271,6 +279,66 @@ def list_jobs(
     typer.echo(f"{len(page.items)} of {page.total} job(s)", err=True)
 
 
+def show(job_id: JobIdArgument, as_json: JsonOption = False, url: UrlOption = None) -> None:
+    """A job: status, progress, attempts, error, config and its stored files."""
+    with _client(url) as client:
+        job = client.get_job(job_id)
+        files = client.list_artifacts(job_id=job.id, limit=500)
+    if as_json:
+        typer.echo(
+            json.dumps(
+                {
+                    "job": job.model_dump(mode="json"),
+                    "files": [f.model_dump(mode="json") for f in files.items],
+                },
+                indent=2,
+            )
+        )
+        return
+    lines = [
+        f"job       {job.id} ({job.kind})",
+        f"status    {job.status}, {job.progress:.0%}, {job.steps_done} steps, attempt "
+        f"{job.attempts} of {job.max_attempts}"
+        + ("" if job.resumed_from_step is None else f", resumed from step {job.resumed_from_step}"),
+        f"submitted {_age(job.created_at)} UTC; started {_age(job.started_at)}; "
+        f"finished {_age(job.finished_at)}",
+    ]
+    if job.parent_id:
+        lines.append(f"run of    {job.parent_id}")
+    if job.error:
+        lines.append(f"error     {job.error}")
+    lines.append("config    " + json.dumps(job.config, sort_keys=True))
+    lines.append(f"files     {files.total}" + ("" if files.items else " (none yet)"))
+    for stored in files.items:
+        best = " (the job's model)" if stored.id == job.model_artifact_id else ""
+        lines.append(
+            f"  {stored.id}  {stored.kind:<10} {stored.size_bytes:>10} B  "
+            f"{stored.relpath.rsplit('/', 1)[-1]}{best}"
+        )
+    typer.echo("\n".join(lines))
+
+
+def logs(job_id: JobIdArgument, as_json: JsonOption = False, url: UrlOption = None) -> None:
+    """A job's events, oldest first: who submitted, cancelled or retried it, when it started
+    (attempt, resumed step) and how it ended (the error)."""
+    with _client(url) as client:
+        log = client.job_log(job_id)
+    if as_json:
+        typer.echo(log.model_dump_json(indent=2))
+        return
+    for entry in log.items:
+        who = f" by {entry.actor_email}" if entry.actor_email else ""
+        detail = f": {entry.detail}" if entry.detail else ""
+        typer.echo(f"{_age(entry.at)} UTC  {entry.event}{who}{detail}")
+
+
+def retry(job_id: JobIdArgument, url: UrlOption = None) -> None:
+    """Run a failed or cancelled job again (it resumes from its last checkpoint)."""
+    with _client(url) as client:
+        job = client.retry_job(job_id)
+    typer.echo(f"job {job.id}: {job.status} again")
+
+
 def _describe(job: Job) -> str:
     text = f"job {job.id} {job.status}"
     if job.status == "failed" and job.error:
@@ -281,40 +349,42 @@ def _describe(job: Job) -> str:
 
 
 def wait(
-    job_id: Annotated[str, typer.Argument(help="The job's id.")],
+    job_id: JobIdArgument,
     timeout: Annotated[
         float | None, typer.Option(min=0, help="Give up after this many seconds.")
     ] = None,
     poll: Annotated[float, typer.Option(min=0.1, help="Seconds between checks.")] = 1.0,
     url: UrlOption = None,
 ) -> None:
-    """Follow a job with a progress bar until it ends; exit 0 only if it succeeded."""
+    """Follow a job with a progress bar until it ends, then print one line saying how it
+    ended; exit 0 only if it succeeded. An unknown id is refused before any bar is drawn."""
     from tqdm import tqdm
 
-    with (
-        _client(url) as client,
-        tqdm(
-            total=100,
-            desc=job_id[:8],
-            unit="%",
-            bar_format="{l_bar}{bar}| {n:.0f}% [{elapsed}{postfix}]",
-        ) as bar,
-    ):
+    with _client(url) as client:
+        job = client.get_job(job_id)  # a 404 here: no bar
+        if not job.finished:
+            with tqdm(
+                total=100,
+                desc=job.id[:8],
+                unit="%",
+                leave=False,  # the line below says how it ended
+                bar_format="{l_bar}{bar}| {n:.0f}% [{elapsed}{postfix}]",
+            ) as bar:
 
-        def on_progress(job: Job) -> None:
-            bar.n = round(100 * job.progress, 1)
-            bar.set_postfix_str(f"{job.status}, {job.steps_done} steps", refresh=False)
-            bar.refresh()
+                def on_progress(job: Job) -> None:
+                    bar.n = round(100 * job.progress, 1)
+                    bar.set_postfix_str(f"{job.status}, {job.steps_done} steps", refresh=False)
+                    bar.refresh()
 
-        job = client.wait_job(job_id, timeout_s=timeout, on_progress=on_progress, poll_s=poll)
+                job = client.wait_job(
+                    job.id, timeout_s=timeout, on_progress=on_progress, poll_s=poll
+                )
     typer.echo(_describe(job), err=job.status != "succeeded")
     if job.status != "succeeded":
         raise typer.Exit(EXIT_FAILED)
 
 
-def cancel(
-    job_id: Annotated[str, typer.Argument(help="The job's id.")], url: UrlOption = None
-) -> None:
+def cancel(job_id: JobIdArgument, url: UrlOption = None) -> None:
     """Cancel a job: a queued one at once, a running one within seconds."""
     with _client(url) as client:
         job = client.cancel_job(job_id)
@@ -323,15 +393,19 @@ def cancel(
 
 
 def pull(
-    job_id: Annotated[str, typer.Argument(help="A finished guided_ppo job's id.")],
+    job_id: Annotated[
+        str,
+        typer.Argument(help="A finished guided_ppo job's id, or a unique prefix (6 or more)."),
+    ],
     out: Annotated[Path, typer.Option(help="Where to save the TorchScript policy (.pt).")],
     url: UrlOption = None,
 ) -> None:
     """Download a job's trained policy, verifying its SHA-256 (a corrupt file is not kept)."""
-    if out.is_dir():
-        out = out / f"policy-{job_id}.pt"
     with _client(url) as client:
-        saved = client.download_model(job_id, out)
+        job = client.get_job(job_id)
+        if out.is_dir():
+            out = out / f"policy-{job.id}.pt"
+        saved = client.download_model(job.id, out)
     typer.echo(f"saved {saved.path} ({saved.size_bytes} bytes, sha256 {saved.sha256})")
 
 
@@ -443,6 +517,9 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     app.command("login")(login)
     jobs_app.command("submit")(submit)
     jobs_app.command("list")(list_jobs)
+    jobs_app.command("show")(show)
+    jobs_app.command("logs")(logs)
+    jobs_app.command("retry")(retry)
     jobs_app.command("wait")(wait)
     jobs_app.command("cancel")(cancel)
     models_app.command("pull")(pull)

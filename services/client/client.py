@@ -46,6 +46,7 @@ from services.client.schemas import (
     HFModel,
     Job,
     JobKind,
+    JobLog,
     JobStatus,
     LabSession,
     Page,
@@ -309,7 +310,7 @@ class PlatformClient:
         )
 
     def get_job(self, job_id: str) -> Job:
-        """One job."""
+        """One job (``job_id``: the id, or a unique prefix of 6 or more characters)."""
         return self._get(f"{API}/jobs/{_segment(job_id, 'job_id')}", Job)
 
     def cancel_job(self, job_id: str) -> Job:
@@ -319,6 +320,11 @@ class PlatformClient:
     def retry_job(self, job_id: str) -> Job:
         """Run a failed or cancelled job again (it resumes from its last checkpoint)."""
         return self._post(f"{API}/jobs/{_segment(job_id, 'job_id')}/retry", Job)
+
+    def job_log(self, job_id: str) -> JobLog:
+        """The job's events, oldest first: who submitted, cancelled or retried it, when it
+        started and how it ended."""
+        return self._get(f"{API}/jobs/{_segment(job_id, 'job_id')}/log", JobLog)
 
     def job_curve(self, job_id: str) -> Curve:
         """The job's learning curve so far."""

@@ -124,6 +124,22 @@ class Job(ApiObject):
         return self.status in FINAL_JOB_STATUSES
 
 
+class JobLogEntry(ApiObject):
+    """One event of a job (submitted, cancel requested, retried, started, how it ended)."""
+
+    at: datetime
+    event: str
+    detail: str = ""
+    actor_email: str | None = None
+
+
+class JobLog(ApiObject):
+    """A job's events, oldest first."""
+
+    job_id: str
+    items: list[JobLogEntry]
+
+
 class Curve(ApiObject):
     """A job's learning curve: ``(step, SPL)`` pairs of its greedy evaluations so far."""
 

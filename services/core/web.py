@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 from contextlib import AbstractAsyncContextManager
 from typing import Any
 
-from fastapi import APIRouter, FastAPI, Request
+from fastapi import APIRouter, FastAPI, Request, params
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
 from fastapi.responses import JSONResponse, Response
@@ -71,6 +71,8 @@ def validation_error_body(errors: Sequence[Any]) -> dict[str, Any]:
             err["loc"] = ("body",)
             err["msg"] = f"the body is not valid JSON: {reason} (at character {position})"
             err.pop("input", None)
+        if isinstance(err.get("msg"), str) and err["msg"].startswith(VALUE_ERROR_PREFIX):
+            err["msg"] = err["msg"][len(VALUE_ERROR_PREFIX) :]
         entry = {k: jsonable(v) for k, v in err.items() if k in ("loc", "msg", "type")}
         entry["field"] = _field_name(err.get("loc", ()))
         if "input" in err:
@@ -79,6 +81,46 @@ def validation_error_body(errors: Sequence[Any]) -> dict[str, Any]:
         entries.append(entry)
     message = "; ".join(f"{e['field']}: {e.get('msg', 'invalid')}" for e in entries)
     return {"detail": entries, "message": message}
+
+
+VALUE_ERROR_PREFIX = "Value error, "
+"""What pydantic puts before the message of a validator's ValueError (dropped: the message
+is written for people)."""
+
+
+def _is_json(content_type: str) -> bool:
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == "application/json" or media.endswith("+json")
+
+
+def _body_format_message(request: Request, errors: Sequence[Any]) -> str | None:
+    """A plain sentence for a body sent in the wrong format, else None: JSON to a route that
+    takes a form (the sign-in), or a JSON route's body sent without ``Content-Type:
+    application/json`` (``curl -d`` sends a form's type, and the body is then not read as
+    JSON, nor is a body without a Content-Type: pydantic's "Input should be a valid
+    dictionary" says nothing of that)."""
+    route = request.scope.get("route")
+    body_field = getattr(route, "body_field", None)
+    if body_field is None:
+        return None
+    content_type = request.headers.get("content-type", "")
+    at_body = [e for e in errors if tuple(e.get("loc", ()))[:1] == ("body",)]
+    if not at_body:
+        return None
+    if isinstance(body_field.field_info, params.Form):
+        if _is_json(content_type):
+            return (
+                "this route takes a form body (application/x-www-form-urlencoded), not JSON: "
+                "e.g. curl -d username=EMAIL -d password=PASSWORD"
+            )
+        return None
+    if not _is_json(content_type) and any(tuple(e.get("loc", ())) == ("body",) for e in at_body):
+        came = f"as {content_type.split(';', 1)[0]}" if content_type else "without a Content-Type"
+        return (
+            f"the body must be JSON sent with Content-Type: application/json (this one came "
+            f"{came}); with curl: -H 'Content-Type: application/json'"
+        )
+    return None
 
 
 def _too_large_body(limit: int | None) -> dict[str, Any]:
@@ -239,7 +281,13 @@ def create_service_app(
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-        return JSONResponse(status_code=422, content=validation_error_body(exc.errors()))
+        body = validation_error_body(exc.errors())
+        plain = _body_format_message(request, exc.errors())
+        if plain is not None:
+            body["message"] = plain
+            for entry in body["detail"]:
+                entry["msg"] = plain
+        return JSONResponse(status_code=422, content=body)
 
     @app.exception_handler(WebSocketRequestValidationError)
     async def ws_validation_error(request: Any, exc: WebSocketRequestValidationError) -> None:

@@ -96,8 +96,30 @@ def test_submit_list_wait_cancel(live_api: LiveApi, signed_in: Path, tmp_path: P
 
     assert bgrl("jobs", "cancel", job_id)[:2] == (0, f"job {job_id}: cancelled\n")
     code, out, err = bgrl("jobs", "wait", job_id, "--poll", "0.1")
-    assert code == 1
-    assert err.endswith(f"job {job_id} cancelled\n")
+    assert (code, out, err) == (1, "", f"job {job_id} cancelled\n")  # one line, no bar
+
+    code, out, _ = bgrl("jobs", "show", job_id[:6])
+    assert code == 0
+    assert out.splitlines()[:2] == [
+        f"job       {job_id} (guided_ppo)",
+        "status    cancelled, 0%, 0 steps, attempt 0 of 3",
+    ]
+    assert '"total_steps": 2000' in out and "files     0 (none yet)" in out
+    code, out, _ = bgrl("jobs", "show", job_id, "--json")
+    assert (code, json.loads(out)["job"]["id"], json.loads(out)["files"]) == (0, job_id, [])
+    code, out, _ = bgrl("jobs", "logs", job_id[:7])
+    assert code == 0
+    events = [line.split("  ", 1)[1] for line in out.splitlines()]
+    assert events[0] == "submitted by staff@lab.test: kind guided_ppo"
+    assert sorted(events[1:]) == ["cancel requested by staff@lab.test", "cancelled"]
+    code, out, _ = bgrl("jobs", "logs", job_id, "--json")
+    assert json.loads(out)["items"][0]["actor_email"] == "staff@lab.test"
+    assert bgrl("jobs", "retry", job_id[:8])[:2] == (0, f"job {job_id}: queued again\n")
+    assert bgrl("jobs", "cancel", job_id[:8])[0] == 0
+
+    code, out, err = bgrl("jobs", "wait", "0123456789")
+    assert (code, out) == (1, "")  # refused before any bar is drawn
+    assert err == ("error: HTTP 404: no job with an id starting 0123456789 (field job_id)\n")
     code, _, err = bgrl("jobs", "cancel", job_id)
     assert (code, err) == (
         1,
@@ -129,7 +151,7 @@ def test_submit_sets_the_stage2_method_and_the_preset(live_api: LiveApi, signed_
     )  # fmt: skip
     assert (code, err) == (
         2,
-        "error: HTTP 422: config.hf_method: Value error, hf_method applies to hf_sparse only, "
+        "error: HTTP 422: config.hf_method: hf_method applies to hf_sparse only, "
         "not rl_rich (field config.hf_method)\n",
     )
 
@@ -164,11 +186,10 @@ def test_bad_input_is_one_line_and_exit_2(signed_in: Path, args: list[str], mess
 
 def test_wait_and_pull_a_finished_job(live_api: LiveApi, signed_in: Path, tmp_path: Path) -> None:
     job_id, stored = live_api.finished_job_with_model()
-    code, out, err = bgrl("jobs", "wait", job_id)
-    assert (code, out) == (0, f"job {job_id} succeeded\n")
-    assert "100%" in err
+    code, out, err = bgrl("jobs", "wait", job_id[:8])
+    assert (code, out, err) == (0, f"job {job_id} succeeded\n", "")  # ended: no bar
 
-    code, out, _ = bgrl("models", "pull", job_id, "--out", str(tmp_path))
+    code, out, _ = bgrl("models", "pull", job_id[:8], "--out", str(tmp_path))
     target = tmp_path / f"policy-{job_id}.pt"
     assert code == 0
     assert target.read_bytes() == MODEL_BYTES

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, Query, Response
 from fastapi.responses import FileResponse
 from sqlalchemy import select
 
-from services.api.crud import get_or_404, paginate
+from services.api.crud import get_by_id_or_prefix, paginate
 from services.api.deps import DbDep, PageDep, StoreDep, get_current_user
 from services.api.downloads import CHECKSUM_HEADER, CHECKSUM_RESPONSE, artifact_response
 from services.api.schemas.artifacts import ArtifactPublic
@@ -42,7 +42,9 @@ def list_artifacts(
 @router.get("/{artifact_id}")
 def read(artifact_id: str, db: DbDep) -> ArtifactPublic:
     """One stored file's record."""
-    return ArtifactPublic.model_validate(get_or_404(db, Artifact, artifact_id, "artifact_id"))
+    return ArtifactPublic.model_validate(
+        get_by_id_or_prefix(db, Artifact, artifact_id, "artifact_id")
+    )
 
 
 REWRITTEN_KINDS = frozenset({"checkpoint"})
@@ -54,7 +56,7 @@ checksum of the very bytes sent."""
 @router.get("/{artifact_id}/download", response_class=FileResponse, responses=CHECKSUM_RESPONSE)
 def download(artifact_id: str, db: DbDep, store: StoreDep) -> Response:
     """The file, with its SHA-256 in ``X-Checksum-Sha256``; 410 if the file is gone."""
-    artifact = get_or_404(db, Artifact, artifact_id, "artifact_id")
+    artifact = get_by_id_or_prefix(db, Artifact, artifact_id, "artifact_id")
     filename = artifact.relpath.rsplit("/", 1)[-1]
     if artifact.kind in REWRITTEN_KINDS:
         return _current_file(store, artifact, filename)

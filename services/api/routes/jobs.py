@@ -6,6 +6,7 @@ import csv
 import functools
 import io
 import logging
+import math
 import typing
 from collections.abc import Callable, Iterable
 from typing import Annotated, Any, Literal
@@ -15,11 +16,11 @@ from fastapi import APIRouter, Depends, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
-from sqlalchemy import bindparam, select, update
+from sqlalchemy import bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from services.api import audit
-from services.api.crud import JsonPage, PageQuery, get_or_404
+from services.api.crud import JsonPage, PageQuery, get_by_id_or_prefix, get_or_404
 from services.api.deps import (
     DEFAULT_PAGE_LIMIT,
     MAX_PAGE_LIMIT,
@@ -45,6 +46,8 @@ from services.api.schemas.jobs import (
     CurvePublic,
     JobCreate,
     JobListKind,
+    JobLogEntry,
+    JobLogPublic,
     JobPublic,
     JobStatus,
 )
@@ -53,6 +56,7 @@ from services.core.db.base import utcnow
 from services.core.db.models import (
     JOB_FINAL_STATUSES,
     Artifact,
+    AuditEntry,
     Classifier,
     HFModel,
     Job,
@@ -265,18 +269,68 @@ async def hot_list_jobs(request: Request) -> Response | None:
 @router.get("/{job_id}", dependencies=SIGNED_IN)
 def read(job_id: str, db: DbDep) -> JobPublic:
     """One job: status, progress, attempts, resumed_from_step, error."""
-    return JobPublic.model_validate(get_or_404(db, Job, job_id, "job_id"))
+    return JobPublic.model_validate(get_by_id_or_prefix(db, Job, job_id, "job_id"))
+
+
+AUDIT_EVENTS = {"job.submit": "submitted", "job.cancel": "cancel requested", "job.retry": "retried"}
+"""The audit log's actions on a job, as its log names them."""
+
+
+@router.get("/{job_id}/log", dependencies=SIGNED_IN)
+def log_entries(job_id: str, db: DbDep) -> JobLogPublic:
+    """The job's events, oldest first: submitted, cancelled and retried (by whom, from the
+    audit log), started (with the attempt and the step it resumed from), and how it ended
+    (with the error); a reproduction's runs by status."""
+    job = get_by_id_or_prefix(db, Job, job_id, "job_id")
+    entries = [
+        JobLogEntry(
+            at=entry.at,
+            event=AUDIT_EVENTS.get(entry.action, entry.action),
+            detail=", ".join(f"{key} {value}" for key, value in sorted(entry.detail.items())),
+            actor_email=entry.actor_email,
+        )
+        for entry in db.scalars(
+            select(AuditEntry).where(
+                AuditEntry.target_type == "job", AuditEntry.target_id == job.id
+            )
+        )
+    ]
+    if not any(entry.event == "submitted" for entry in entries):
+        entries.append(JobLogEntry(at=job.created_at, event="submitted", detail=f"kind {job.kind}"))
+    if job.started_at is not None:
+        resumed = (
+            f", resumed from step {job.resumed_from_step}"
+            if job.resumed_from_step is not None
+            else ""
+        )
+        entries.append(
+            JobLogEntry(
+                at=job.started_at,
+                event="started",
+                detail=f"attempt {job.attempts} of {job.max_attempts}{resumed}",
+            )
+        )
+    if job.finished_at is not None:
+        entries.append(JobLogEntry(at=job.finished_at, event=job.status, detail=job.error or ""))
+    runs = db.execute(
+        select(Job.status, func.count()).where(Job.parent_id == job.id).group_by(Job.status)
+    ).all()
+    if runs:
+        counts = ", ".join(f"{n} {status}" for status, n in sorted(runs))
+        entries.append(JobLogEntry(at=job.updated_at, event="runs", detail=counts))
+    entries.sort(key=lambda entry: entry.at)
+    return JobLogPublic(job_id=job.id, items=entries)
 
 
 @router.post("/{job_id}/cancel", dependencies=SIGNED_IN)
 def cancel(job_id: str, user: StaffUser, db: DbDep) -> JobPublic:
     """Cancel a job (staff): a queued one at once, a running one within seconds (its worker
     checks on every heartbeat). A reproduce job's runs are cancelled with it."""
-    job = get_or_404(db, Job, job_id, "job_id")
+    job = get_by_id_or_prefix(db, Job, job_id, "job_id")
     if job.status in JOB_FINAL_STATUSES:
-        raise ConflictError(f"job {job_id} is already {job.status}", field="job_id")
+        raise ConflictError(f"job {job.id} is already {job.status}", field="job_id")
     now = utcnow()
-    for query in (Job.id == job_id, Job.parent_id == job_id):
+    for query in (Job.id == job.id, Job.parent_id == job.id):
         db.execute(
             update(Job)
             .where(query, Job.status == "queued")
@@ -287,7 +341,7 @@ def cancel(job_id: str, user: StaffUser, db: DbDep) -> JobPublic:
             .where(query, Job.status == "running")
             .values(cancel_requested=True, updated_at=now)
         )
-    audit.record(db, user, "job.cancel", "job", job_id)
+    audit.record(db, user, "job.cancel", "job", job.id)
     db.commit()
     db.refresh(job)
     return JobPublic.model_validate(job)
@@ -329,19 +383,19 @@ def retry(
     keeps less than ``BGRL_MIN_FREE_MB`` free.
     """
     require_job_space(settings, "retrying a job")
-    job = get_or_404(db, Job, job_id, "job_id")
+    job = get_by_id_or_prefix(db, Job, job_id, "job_id")
     if job.parent_id is not None:
         raise ConflictError(
-            f"job {job_id} is a run of job {job.parent_id}; retry that", field="job_id"
+            f"job {job.id} is a run of job {job.parent_id}; retry that", field="job_id"
         )
-    if db.execute(_requeue(Job.id == job_id)).rowcount != 1:
+    if db.execute(_requeue(Job.id == job.id)).rowcount != 1:
         db.rollback()
         db.refresh(job)
         raise ConflictError(
-            f"job {job_id} is {job.status}; only failed or cancelled jobs can be retried",
+            f"job {job.id} is {job.status}; only failed or cancelled jobs can be retried",
             field="job_id",
         )
-    runs = list(db.scalars(select(Job).where(Job.parent_id == job_id, Job.status.in_(RETRYABLE))))
+    runs = list(db.scalars(select(Job).where(Job.parent_id == job.id, Job.status.in_(RETRYABLE))))
     if runs:
         db.execute(_requeue(Job.id.in_([run.id for run in runs])))
     audit.record(db, user, "job.retry", "job", job.id, runs=len(runs))
@@ -364,7 +418,7 @@ def curve(
     curve_format: Annotated[Literal["json", "csv"], Query(alias="format")] = "json",
 ) -> Any:
     """The learning curve so far: ``[step, SPL]`` pairs (JSON, or CSV with ``format=csv``)."""
-    job = get_or_404(db, Job, job_id, "job_id")
+    job = get_by_id_or_prefix(db, Job, job_id, "job_id")
     points = [(int(step), float(spl)) for step, spl in job.curve]
     if curve_format == "csv":
         buffer = io.StringIO()
@@ -374,7 +428,7 @@ def curve(
         return Response(
             buffer.getvalue(),
             media_type="text/csv",
-            headers={"Content-Disposition": f'attachment; filename="job-{job_id}-curve.csv"'},
+            headers={"Content-Disposition": f'attachment; filename="job-{job.id}-curve.csv"'},
         )
     return CurvePublic(job_id=job.id, curve=points)
 
@@ -387,11 +441,13 @@ def curve(
 )
 def plot(job_id: str, db: DbDep) -> Response:
     """The learning curve as a PNG."""
-    job = get_or_404(db, Job, job_id, "job_id")
+    job = get_by_id_or_prefix(db, Job, job_id, "job_id")
     if not job.curve:
-        raise NotFoundError(f"job {job_id} has no learning-curve points yet", field="job_id")
+        raise NotFoundError(f"job {job.id} has no learning-curve points yet", field="job_id")
     title = f"{job.kind} {job.config.get('task', '')} {job.config.get('method', '')}".strip()
-    return Response(curve_png(job.curve, title), media_type="image/png")
+    hf_spl = (job.result or {}).get("hf_policy_spl")
+    hf_line = float(hf_spl) if isinstance(hf_spl, int | float) and math.isfinite(hf_spl) else None
+    return Response(curve_png(job.curve, title, hf_policy_spl=hf_line), media_type="image/png")
 
 
 @router.get(
@@ -402,8 +458,8 @@ def plot(job_id: str, db: DbDep) -> Response:
 )
 def model(job_id: str, db: DbDep, store: StoreDep) -> FileResponse:
     """The trained policy (TorchScript, with its observation normalisation) and its checksum."""
-    job = get_or_404(db, Job, job_id, "job_id")
+    job = get_by_id_or_prefix(db, Job, job_id, "job_id")
     if job.model_artifact_id is None:
-        raise NotFoundError(f"job {job_id} ({job.status}) has no model yet", field="job_id")
+        raise NotFoundError(f"job {job.id} ({job.status}) has no model yet", field="job_id")
     artifact = get_or_404(db, Artifact, job.model_artifact_id, "job_id")
-    return artifact_response(store, artifact, f"policy-{job_id}.pt")
+    return artifact_response(store, artifact, f"policy-{job.id}.pt")

@@ -3,10 +3,19 @@ the bounds of ids and timestamps."""
 
 from __future__ import annotations
 
+import re
 from datetime import UTC, datetime
 from typing import Annotated, Any, Generic, TypeVar
 
-from pydantic import AfterValidator, AwareDatetime, BaseModel, ConfigDict, Field, field_validator
+from pydantic import (
+    AfterValidator,
+    AwareDatetime,
+    BaseModel,
+    ConfigDict,
+    Field,
+    WithJsonSchema,
+    field_validator,
+)
 
 from services.core.schemas import StrictRequest
 
@@ -56,6 +65,20 @@ def _utc_in_range(value: datetime) -> datetime:
             f"must be between {EARLIEST:%Y-%m-%d} and {LATEST:%Y-%m-%d} (UTC), not {value}"
         )
     return utc
+
+
+def described_pattern(pattern: str, words: str) -> Any:
+    """A text field that must match ``pattern``, refused with ``words`` (what a person
+    reads: "letters, digits, ...") rather than the regex; the schema still shows the
+    pattern."""
+    compiled = re.compile(pattern)
+
+    def check(value: str) -> str:
+        if not compiled.match(value):
+            raise ValueError(f"{value!r} is not {words}"[:300])
+        return value
+
+    return [AfterValidator(check), WithJsonSchema({"type": "string", "pattern": pattern})]
 
 
 UtcDatetime = Annotated[AwareDatetime, AfterValidator(_utc_in_range)]

@@ -13,7 +13,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, Field, ValidationInfo, field_validator, model_validator
 
 from services.api.schemas.common import MAX_ROW_ID, ApiRequest, PublicModel
 from services.core.db.models import JOB_STATUSES
@@ -322,3 +322,20 @@ class CurvePublic(PublicModel):
 
     job_id: str
     curve: list[tuple[int, float]]
+
+
+class JobLogEntry(BaseModel):
+    """One event of a job: who submitted, cancelled or retried it, when it started, resumed,
+    and how it ended."""
+
+    at: datetime
+    event: str = Field(description="submitted, cancel requested, retried, started, finished...")
+    detail: str = ""
+    actor_email: str | None = None
+
+
+class JobLogPublic(BaseModel):
+    """A job's events, oldest first."""
+
+    job_id: str
+    items: list[JobLogEntry]

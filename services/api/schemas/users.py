@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from services.api.accounts import EMAIL_PATTERN, MIN_PASSWORD_CHARS
-from services.api.schemas.common import ApiRequest, PublicModel
+from services.api.schemas.common import ApiRequest, PublicModel, described_pattern
 
 Role = Literal["admin", "staff", "viewer"]
 Password = Annotated[str, Field(min_length=MIN_PASSWORD_CHARS, max_length=256)]
@@ -17,7 +17,11 @@ Password = Annotated[str, Field(min_length=MIN_PASSWORD_CHARS, max_length=256)]
 class UserCreate(ApiRequest):
     """A new account (admin only)."""
 
-    email: str = Field(pattern=EMAIL_PATTERN, max_length=320)
+    email: Annotated[
+        str,
+        Field(max_length=320),
+        *described_pattern(EMAIL_PATTERN, "an e-mail address like name@lab.org"),
+    ]
     password: Password
     role: Role = "viewer"
 
