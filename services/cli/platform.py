@@ -262,7 +262,7 @@ def list_jobs(
             f"unknown status {status!r}; use one of {', '.join(get_args(JobStatus))}",
             EXIT_BAD_INPUT,
         )
-    kinds = (*get_args(JobKind), "reproduce_run")
+    kinds = (*get_args(JobKind), "reproduce_run", "live_session")
     if kind is not None and kind not in kinds:
         _fail(f"unknown job kind {kind!r}; use one of {', '.join(kinds)}", EXIT_BAD_INPUT)
     with _client(url) as client:

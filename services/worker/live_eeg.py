@@ -92,8 +92,11 @@ class EegDecoder:
         retry_s: float,
         period_s: float,
         recording: str | None = None,
+        channel_map: dict[str, str] | None = None,
     ) -> None:
         self.eeg = eeg
+        self.channel_map = channel_map
+        """The rig's {device name: standard name} for the LSL stream (None: standard)."""
         self.recording = recording
         """Name of the EEG service's live recording of this source (calibration), if any."""
         self.classifier_id = classifier_id
@@ -132,11 +135,13 @@ class EegDecoder:
     def _attach_once(self) -> None:
         if self.source is None:
             assert self.stream_name is not None
-            self.eeg.call(
-                "POST",
-                "/live",
-                json={"classifier_id": self.classifier_id, "stream_name": self.stream_name},
-            )
+            attach: dict[str, Any] = {
+                "classifier_id": self.classifier_id,
+                "stream_name": self.stream_name,
+            }
+            if self.channel_map:
+                attach["channel_map"] = self.channel_map
+            self.eeg.call("POST", "/live", json=attach)
             self._start_recording()
             time.sleep(WARMUP_S)  # the first marker must find data (and a settled filter)
             return

@@ -40,7 +40,7 @@ from sqlalchemy import func, select
 
 from services.core.db.base import utcnow
 from services.core.db.live import LiveDecision, LiveMarker, LiveRun
-from services.core.db.models import FeedbackLabel, LabSession
+from services.core.db.models import FeedbackLabel, LabSession, Rig
 from services.core.live import DEFAULT_ACTIONS, ONLINE_ACTIONS_PER_LABEL, LiveOptions
 from services.core.markers import ActionMarker
 from services.core.settings import load_settings
@@ -90,6 +90,9 @@ class LiveRunner:
             assert lab is not None
             self.run_id, self.session_id, self.mode = run.id, run.session_id, run.mode
             self.subject_id = lab.subject_id
+            # the rig's channel map, for the EEG service reading its LSL stream
+            rig = db.get(Rig, lab.rig_id) if lab.rig_id is not None else None
+            self.channel_map = rig.channel_map if rig is not None else None
             self.sim_session_id = run.sim_session_id
             self.learner = LearnerLink(
                 self.services["learner"],
@@ -193,6 +196,7 @@ class LiveRunner:
             source=source,
             accelerated=self.options.accelerated,
             stream_name=self.options.stream_name,
+            channel_map=self.channel_map,
             retry_s=self.settings.live_retry_s,
             period_s=self.options.period_s,
             recording=self.recording_name if self.mode == "calibration" else None,

@@ -125,7 +125,7 @@ def test_hf_method_is_taken_for_hf_sparse_and_refused_for_the_others(api: Api) -
     assert refused.status_code == 422
     assert refused.json()["detail"][0]["field"] == "config.hf_method"
     assert refused.json()["message"] == (
-        "config.hf_method: Value error, hf_method applies to hf_sparse only, not rl_rich"
+        "config.hf_method: hf_method applies to hf_sparse only, not rl_rich"
     )
     assert broker_messages(api) == [
         ("bgrl.jobs.guided_ppo", [response.json()["id"]]),
@@ -138,7 +138,7 @@ def test_ppo_step_rule_is_explained(api: Api) -> None:
         api, "guided_ppo", {"task": "SSSG", "method": "rl_sparse", "ppo": {"n_steps": 100}}
     )
     assert response.json()["message"] == (
-        "config: Value error, n_steps (100) must be a multiple of minibatch_size (64)"
+        "config: n_steps (100) must be a multiple of minibatch_size (64)"
     )
 
 

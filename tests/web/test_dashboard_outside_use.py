@@ -211,13 +211,13 @@ def test_the_apis_refusal_is_shown_at_the_field(context: tuple, server: Server) 
     form.get_by_role("button", name="Schedule").click()
     alert = form.get_by_role("alert")
     alert.wait_for()
-    assert alert.inner_text().startswith("scheduled_at: Value error, must be between 1900-01-01")
+    assert alert.inner_text().startswith("scheduled_at: must be between 1900-01-01")
     start = form.locator("input[name=time]")
     assert start.get_attribute("aria-invalid") == "true"
     assert (
         form.locator("input[name=time] ~ .field-error")
         .inner_text()
-        .startswith("Value error, must be between 1900-01-01 and 9000-01-01")
+        .startswith("must be between 1900-01-01 and 9000-01-01")
     )
     form.locator("input[name=date]").fill(datetime.now().strftime("%Y-%m-%d"))
     form.get_by_role("button", name="Schedule").click()  # corrected, it is taken
@@ -278,7 +278,7 @@ def test_a_failed_job_for_staff_and_viewer(context: tuple, server: Server) -> No
     page.locator(f"tr[data-job='{job_id}']").wait_for()
     kinds = page.locator("#filter-kind option").evaluate_all("os => os.map((o) => o.value)")
     assert kinds == ["", "guided_ppo", "reproduce", "reproduce_run", "eeg_calibration",
-                     "bids_export", "session_replay"]  # fmt: skip
+                     "live_session", "bids_export", "session_replay"]  # fmt: skip
     page.locator("#filter-kind").select_option("bids_export")
     page.locator(f"tr[data-job='{export_id}']").wait_for()
     page.locator("#filter-status").select_option("failed")

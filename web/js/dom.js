@@ -41,7 +41,7 @@ export function messageBox() {
     box.className = `message ${kind}`;
     box.setAttribute("role", kind === "error" ? "alert" : "status");
   };
-  box.error = (err) => box.show(err?.message || String(err), "error");
+  box.error = (err) => box.show(localTimes(err?.message || String(err)), "error");
   box.clear = () => box.show("");
   return box;
 }
@@ -134,7 +134,7 @@ export function field(label, input, hint = "") {
   input.setAttribute("aria-describedby", describedBy.join(" "));
   const wrapper = h("div", { class: "field" }, h("label", { for: id }, label), input, hintEl, error);
   wrapper.setError = (message) => {
-    error.textContent = message || "";
+    error.textContent = message ? localTimes(message) : "";
     if (message) input.setAttribute("aria-invalid", "true");
     else input.removeAttribute("aria-invalid");
   };
@@ -162,4 +162,49 @@ export function oneAtATime(buttons, action) {
       if (outcome !== "leaving") for (const b of buttons) b.disabled = false;
     }
   };
+}
+
+export const SHORT_ID_CHARS = 8; // the API and `bgrl` take any unique prefix of 6 or more
+
+/**
+ * A long id (a job's: 32 hex digits) as people read it: its first characters, linked when
+ * ``href`` is given, with a button copying the whole id (the API and the CLI take either).
+ */
+export function shortId(id, href = null) {
+  const text = id.slice(0, SHORT_ID_CHARS);
+  const shown = href ? h("a", { href, title: id }, text) : h("code", { title: id }, text);
+  const copy = h("button", {
+    type: "button", class: "copy-id", title: `Copy the full id ${id}`, "aria-label": `Copy the full id ${id}`,
+  }, "⧉");
+  copy.addEventListener("click", async () => {
+    try {
+      await navigator.clipboard.writeText(id);
+      copy.textContent = "✓";
+    } catch {
+      // no clipboard here (not a secure context): select the id for Ctrl+C instead
+      const field = h("input", { class: "copy-field", value: id, readonly: true, "aria-label": "Full id" });
+      copy.replaceWith(field);
+      field.select();
+      return;
+    }
+    setTimeout(() => { copy.textContent = "⧉"; }, 1500);
+  });
+  return h("span", { class: "short-id", "data-id": id }, shown, copy);
+}
+
+/** The browser's time zone, as people name it ("Europe/Berlin"). */
+export function timeZone() {
+  return Intl.DateTimeFormat().resolvedOptions().timeZone || "UTC";
+}
+
+const ISO_IN_TEXT = /\d{4}-\d{2}-\d{2}T\d{2}:\d{2}(?::\d{2}(?:\.\d+)?)?(?:Z|[+-]\d{2}:\d{2})/g;
+
+/** An API message with its ISO timestamps (UTC) written in the browser's time zone, named. */
+export function localTimes(text) {
+  let found = false;
+  const local = String(text).replace(ISO_IN_TEXT, (iso) => {
+    found = true;
+    return fmtDateTime(iso);
+  });
+  return found ? `${local} (times in ${timeZone()})` : local;
 }

@@ -57,6 +57,8 @@ def update(rig_id: RowId, body: RigUpdate, admin: AdminUser, db: DbDep) -> RigPu
     """Change a rig (admin)."""
     rig = get_or_404(db, Rig, rig_id, "rig_id")
     changes = apply_update(rig, body)
+    if rig.channel_map == {}:
+        rig.channel_map = None  # {} removes the map: the stream's names are standard
     audit.record(db, admin, "rig.update", "rig", rig.id, **changes)
     _commit_unique(db, rig.name)
     return RigPublic.model_validate(rig)

@@ -22,10 +22,17 @@ from services.core.hf_methods import HFMethodName
 JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration", "bids_export", "session_replay"]
 """Kinds a user may submit (``reproduce_run`` jobs are created by a reproduce job)."""
 JobListKind = Literal[
-    "guided_ppo", "reproduce", "eeg_calibration", "bids_export", "session_replay", "reproduce_run"
+    "guided_ppo",
+    "reproduce",
+    "eeg_calibration",
+    "bids_export",
+    "session_replay",
+    "reproduce_run",
+    "live_session",
 ]
-"""Kinds the job list filters on: the submitted kinds and a reproduce job's runs."""
-assert set(JobListKind.__args__) == {*JobKind.__args__, "reproduce_run"}  # type: ignore[attr-defined]
+"""Kinds the job list filters on: the submitted kinds, a reproduce job's runs and the live
+sessions' runs (started from a session, not submitted)."""
+assert set(JobListKind.__args__) == {*JobKind.__args__, "reproduce_run", "live_session"}  # type: ignore[attr-defined]
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
 

@@ -181,7 +181,9 @@ class Job(Base):
 
 
 class Rig(Base):
-    """An EEG set-up in a room (its channel mapping comes with the closed loop)."""
+    """An EEG set-up in a room, with the channel map of its amplifier: ``{device channel
+    name: standard 10-20/10-10 name}``, given to the EEG service when a live session on the
+    rig reads its LSL stream (None: the stream's names are standard already)."""
 
     __tablename__ = "rigs"
 
@@ -190,6 +192,7 @@ class Rig(Base):
     location: Mapped[str] = mapped_column(String(200), default="")
     description: Mapped[str] = mapped_column(Text, default="")
     active: Mapped[bool] = mapped_column(Boolean, default=True)
+    channel_map: Mapped[dict[str, str] | None] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow, onupdate=utcnow)
 

@@ -3,22 +3,50 @@
 
 import { ApiError, all, get, imageUrl } from "../api.js";
 import { lineChart, meanHalfStd } from "../chart.js";
-import { downloadButton, fmtBytes, fmtDateTime, h, messageBox, statusBadge, table } from "../dom.js";
+import {
+  SHORT_ID_CHARS, downloadButton, fmtBytes, fmtDateTime, h, localTimes, messageBox, shortId, statusBadge, table,
+} from "../dom.js";
 import { FINAL, progressBar, watchJob } from "../live.js";
-import { jobActions, jobSummary } from "./jobs.js";
+import { jobActions, jobSteps, jobSummary } from "./jobs.js";
 
-function facts(job) {
+/** Links from a job to what it worked on: its session, recording, classifier. */
+function workedOn(job, classifiers) {
+  const c = job.config || {};
+  const links = [];
+  if (c.session_id) links.push(h("a", { href: `/sessions/${c.session_id}/live` }, `session ${c.session_id}`));
+  if (c.recording_id) links.push(h("a", { href: `/recordings?recording=${c.recording_id}` }, `recording #${c.recording_id}`));
+  for (const classifier of classifiers) {
+    links.push(h("a", { href: `/classifiers/${classifier.id}` }, `classifier ${classifier.name}`));
+  }
+  return links.length ? links.flatMap((link, i) => (i ? [", ", link] : [link])) : null;
+}
+
+function facts(job, classifiers = []) {
+  const made = workedOn(job, classifiers);
   const rows = [
+    ["Id", shortId(job.id)],
     ["Kind", job.kind],
     ["What", jobSummary(job)],
+    made ? ["Linked", made] : null,
     ["Attempts", `${job.attempts} of ${job.max_attempts}`],
-    ["Steps done", job.steps_done.toLocaleString("en")],
+    ["Steps done", jobSteps(job)],
     ["Resumed from step", job.resumed_from_step ?? "–"],
     ["Submitted", fmtDateTime(job.created_at)],
     ["Started", fmtDateTime(job.started_at)],
     ["Finished", fmtDateTime(job.finished_at)],
   ];
-  return h("dl", { class: "facts" }, rows.map(([k, v]) => [h("dt", {}, k), h("dd", {}, v)]));
+  return h("dl", { class: "facts" }, rows.filter(Boolean).map(([k, v]) => [h("dt", {}, k), h("dd", {}, v)]));
+}
+
+/** The job's events (GET /log): who submitted, cancelled, retried it; started; ended. */
+async function history(job) {
+  const log = await get(`/api/v1/jobs/${job.id}/log`);
+  return table(log.items, [
+    { label: "When", cell: (e) => fmtDateTime(e.at) },
+    { label: "Event", cell: (e) => e.event },
+    { label: "By", cell: (e) => e.actor_email || "–" },
+    { label: "Detail", cell: (e) => localTimes(e.detail) || "–" },
+  ], { caption: "History", empty: "No events." });
 }
 
 /** A figure from the API (PNG), fetched with the token. */
@@ -83,7 +111,7 @@ async function reproductionCharts(job) {
   });
   return [h("p", { class: "muted" }, `${done} of ${runs.length} run(s) finished.`), ...figures,
     table(runs, [
-      { label: "Run", cell: (r) => h("a", { href: `/jobs/${r.id}` }, r.id.slice(0, 8)) },
+      { label: "Run", cell: (r) => shortId(r.id, `/jobs/${r.id}`) },
       { label: "What", cell: (r) => jobSummary(r) },
       { label: "Status", cell: (r) => statusBadge(r.status) },
       { label: "Progress", cell: (r) => progressBar(r) },
@@ -104,11 +132,22 @@ async function curveSection(job, curve) {
   return [lineChart(series, { title: `${jobSummary(job)}: SPL vs steps` })];
 }
 
+/** Which of a training job's two policies a file is: the best evaluation's (the job's
+ *  model, what "Download model" gives) or the last step's. */
+export function policyNote(job, artifact) {
+  if (artifact.kind !== "model") return null;
+  if (artifact.id === job.model_artifact_id || artifact.id === job.result?.model_artifact_id) {
+    return h("span", { class: "badge best" }, "best evaluation: the job's model");
+  }
+  if (artifact.id === job.result?.last_model_artifact_id) return h("span", { class: "badge" }, "last step");
+  return null;
+}
+
 async function downloads(job) {
   const artifacts = await all("/api/v1/artifacts", { job_id: job.id });
   const items = [];
   if (job.model_artifact_id && job.kind !== "eeg_calibration") {
-    items.push(h("li", {}, "Trained policy (TorchScript) ",
+    items.push(h("li", {}, "Trained policy (TorchScript; the best evaluation's, policy.pt) ",
       downloadButton("Download model", `/api/v1/jobs/${job.id}/model`, `policy-${job.id}.pt`)));
   }
   if (hasCurve(job)) {
@@ -117,7 +156,7 @@ async function downloads(job) {
       downloadButton("JSON", `/api/v1/jobs/${job.id}/curve`, `job-${job.id}-curve.json`)));
   }
   const files = table(artifacts, [
-    { label: "File", cell: (a) => a.relpath.split("/").pop() },
+    { label: "File", cell: (a) => [a.relpath.split("/").pop(), policyNote(job, a)] },
     { label: "Kind", cell: (a) => a.kind },
     { label: "Size", cell: (a) => fmtBytes(a.size_bytes) },
     { label: "SHA-256", cell: (a) => h("code", { title: a.sha256 }, `${a.sha256.slice(0, 12)}…`) },
@@ -138,13 +177,16 @@ async function plots(job, artifacts, curve) {
 
 export async function jobPage(root, { canEdit }, jobId) {
   let job = await get(`/api/v1/jobs/${jobId}`);
-  document.title = `Job ${job.id.slice(0, 8)} · Brain-guided RL platform`;
+  document.title = `Job ${job.id.slice(0, SHORT_ID_CHARS)} · Brain-guided RL platform`;
   const message = messageBox();
   const bar = progressBar(job);
   const badge = h("span", {}, statusBadge(job.status));
   const error = h("p", { class: "message error", role: "alert", hidden: !job.error }, job.error || "");
   const actions = h("span", { class: "actions" });
-  const factBox = h("div", {}, facts(job));
+  const classifiers = job.kind === "eeg_calibration"
+    ? (await all("/api/v1/classifiers")).filter((c) => c.job_id === job.id) : [];
+  const factBox = h("div", {}, facts(job, classifiers));
+  const events = h("section", { "aria-label": "History" });
   const curves = h("section", { "aria-labelledby": "curves-title" });
   const files = h("section", { "aria-labelledby": "files-title" });
   const pngs = h("section", { "aria-labelledby": "png-title" });
@@ -155,6 +197,7 @@ export async function jobPage(root, { canEdit }, jobId) {
     curves.replaceChildren(h("h2", { id: "curves-title" }, "Learning curves"), ...(await curveSection(job, curve)));
     files.replaceChildren(h("h2", { id: "files-title" }, "Downloads"),
       ...(await downloads(job)).filter(Boolean));
+    events.replaceChildren(await history(job));
     const images = await plots(job, artifacts, curve);
     pngs.replaceChildren(h("h2", { id: "png-title" }, "Figures from the API (PNG)"),
       ...(images.length ? images : [h("p", { class: "muted" }, "No figures yet.")]));
@@ -186,7 +229,7 @@ export async function jobPage(root, { canEdit }, jobId) {
     badge.replaceChildren(statusBadge(job.status));
     error.hidden = !job.error;
     error.textContent = job.error || "";
-    factBox.replaceChildren(facts(job));
+    factBox.replaceChildren(facts(job, classifiers));
     actions.replaceChildren(...jobActions(job, canEdit, message, (changed) => {
       update(changed);
       if (!FINAL.has(changed.status)) stop = watchJob(changed.id, update);
@@ -195,9 +238,9 @@ export async function jobPage(root, { canEdit }, jobId) {
   }
 
   root.append(
-    h("p", { class: "crumbs" }, h("a", { href: "/jobs" }, "Jobs"), " / ", job.id.slice(0, 8),
-      job.parent_id ? [" (run of ", h("a", { href: `/jobs/${job.parent_id}` }, job.parent_id.slice(0, 8)), ")"] : ""),
-    h("h1", {}, `Job ${job.id.slice(0, 8)} `, badge),
+    h("p", { class: "crumbs" }, h("a", { href: "/jobs" }, "Jobs"), " / ", job.id.slice(0, SHORT_ID_CHARS),
+      job.parent_id ? [" (run of ", shortId(job.parent_id, `/jobs/${job.parent_id}`), ")"] : ""),
+    h("h1", {}, `Job ${job.id.slice(0, SHORT_ID_CHARS)} `, badge),
     h("div", { class: "inline" }, bar, actions),
     message,
     error,
@@ -205,6 +248,7 @@ export async function jobPage(root, { canEdit }, jobId) {
     h("details", {}, h("summary", {}, "Configuration"), h("pre", {}, JSON.stringify(job.config, null, 2))),
     h("div", { class: "figures" }, curves, pngs),
     files,
+    events,
   );
   let stop = FINAL.has(job.status) ? () => {} : watchJob(job.id, update);
   update(job);

@@ -1,7 +1,7 @@
 // Jobs: submit (staff), a list with live progress, cancel and retry.
 
 import { all, get, post } from "../api.js";
-import { fmtShort, h, messageBox, oneAtATime, statusBadge } from "../dom.js";
+import { fmtShort, h, messageBox, oneAtATime, SHORT_ID_CHARS, shortId, statusBadge } from "../dom.js";
 import { FINAL, progressBar, watchJob } from "../live.js";
 import { jobForm } from "./jobform.js";
 
@@ -9,7 +9,7 @@ const PAGE = 50;
 const LIST_REFRESH_MS = 15_000;
 const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
 // the kinds the API's job list filters on (JobListKind)
-const KINDS = ["guided_ppo", "reproduce", "reproduce_run", "eeg_calibration", "bids_export", "session_replay"];
+const KINDS = ["guided_ppo", "reproduce", "reproduce_run", "eeg_calibration", "live_session", "bids_export", "session_replay"];
 
 /** One line saying what a job runs. */
 export function jobSummary(job) {
@@ -25,7 +25,22 @@ export function jobSummary(job) {
     return `${tasks} ${(c.methods || []).join(", ")}; ${c.seeds ?? "?"} seed(s)`;
   }
   if (job.kind === "eeg_calibration") return `recording #${c.recording_id}, seed ${c.seed ?? 0}`;
+  if (job.kind === "live_session") {
+    const how = c.accelerated === false ? "paced" : "accelerated";
+    return `session ${c.session_id}: ${c.mode || "live"} run, ${how}` +
+      (c.n_actions ? `, ${c.n_actions} actions` : "");
+  }
+  if (job.kind === "bids_export") return `BIDS export of subject #${c.subject_id}`;
+  if (job.kind === "session_replay") return `replay of session ${c.session_id}`;
   return "";
+}
+
+/** Kinds whose progress is environment steps (the others: "–" under Steps). */
+const STEP_KINDS = new Set(["guided_ppo", "reproduce", "reproduce_run"]);
+
+/** A job's steps as the list shows them. */
+export function jobSteps(job) {
+  return STEP_KINDS.has(job.kind) ? job.steps_done.toLocaleString("en") : "–";
 }
 
 /** Cancel / Retry buttons for a job (staff), reporting in ``message``. */
@@ -37,7 +52,7 @@ export function jobActions(job, canEdit, message, onChange) {
     cancel.addEventListener("click", oneAtATime([cancel], async () => {
       try {
         const changed = await post(`/api/v1/jobs/${job.id}/cancel`);
-        message.show(`Cancel requested for job ${job.id.slice(0, 8)}.`);
+        message.show(`Cancel requested for job ${job.id.slice(0, SHORT_ID_CHARS)}.`);
         onChange(changed);
       } catch (err) {
         message.error(err);
@@ -49,7 +64,7 @@ export function jobActions(job, canEdit, message, onChange) {
     retry.addEventListener("click", oneAtATime([retry], async () => {
       try {
         const changed = await post(`/api/v1/jobs/${job.id}/retry`);
-        message.show(`Job ${job.id.slice(0, 8)} queued again.`);
+        message.show(`Job ${job.id.slice(0, SHORT_ID_CHARS)} queued again.`);
         onChange(changed);
       } catch (err) {
         message.error(err);
@@ -76,13 +91,13 @@ export async function jobsPage(root, { canEdit, query }) {
   function row(job) {
     const bar = progressBar(job);
     const badge = h("td", {}, statusBadge(job.status));
-    const steps = h("td", { class: "num" }, job.steps_done.toLocaleString("en"));
+    const steps = h("td", { class: "num" }, jobSteps(job));
     const actions = h("td");
     const tr = h("tr", { "data-job": job.id },
-      h("td", {}, h("a", { href: `/jobs/${job.id}` }, job.id.slice(0, 8)),
+      h("td", {}, shortId(job.id, `/jobs/${job.id}`),
         h("div", { class: "muted small" }, job.kind),
         job.parent_id ? h("div", { class: "muted small" }, "run of ",
-          h("a", { href: `/jobs/${job.parent_id}` }, job.parent_id.slice(0, 8))) : ""),
+          shortId(job.parent_id, `/jobs/${job.parent_id}`)) : ""),
       h("td", {}, jobSummary(job)),
       badge,
       h("td", {}, bar),
@@ -92,7 +107,7 @@ export async function jobsPage(root, { canEdit, query }) {
     const update = (j) => {
       bar.set(j);
       badge.replaceChildren(statusBadge(j.status));
-      steps.textContent = j.steps_done.toLocaleString("en");
+      steps.textContent = jobSteps(j);
       actions.replaceChildren(...jobActions(j, canEdit, message, (changed) => {
         update(changed);
         watch(changed, update);
@@ -153,7 +168,7 @@ export async function jobsPage(root, { canEdit, query }) {
       kind.value = "";
       remember();
       load();
-      message.show(`Job ${job.id.slice(0, 8)} submitted.`);
+      message.show(`Job ${job.id.slice(0, SHORT_ID_CHARS)} submitted.`);
     }));
   }
   root.append(h("h1", {}, "Jobs"), h("div", { class: "columns" }, list, form));

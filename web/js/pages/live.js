@@ -19,6 +19,32 @@ export function offersLiveView(session, canEdit) {
   return session.status !== "cancelled";
 }
 
+/** Links from a session to what it made: its live run's job, recording, follow-up
+ *  calibration or online job, classifier and human-feedback model. */
+function sessionLinks(live, classifiers = []) {
+  const run = live.run;
+  const links = [];
+  if (run.job_id) links.push(["Run", h("a", { href: `/jobs/${run.job_id}` }, `live job ${run.job_id.slice(0, 8)}`)]);
+  if (run.recording_id) links.push(["Recording", h("a", { href: `/recordings?recording=${run.recording_id}` }, `recording #${run.recording_id}`)]);
+  if (run.follow_up_job_id) {
+    links.push(["Follow-up job", h("a", { href: `/jobs/${run.follow_up_job_id}` }, `job ${run.follow_up_job_id.slice(0, 8)}`)]);
+  }
+  for (const c of classifiers) links.push(["Classifier", h("a", { href: `/classifiers/${c.id}` }, c.name)]);
+  if (run.hf_model_id) links.push(["π_HF model", h("a", { href: "/models" }, `HF model #${run.hf_model_id}`)]);
+  return links;
+}
+
+/** What the banner says of a run in this state (null: nothing to say). */
+function runBanner(live) {
+  const { status, error } = live.run;
+  if (status === "completed") return [`Session completed: ${live.markers} actions recorded.`, "ok"];
+  if (status === "failed") return [`The session's run failed${error ? `: ${error}` : ""}.`, "error"];
+  if (status === "stopped" || status === "cancelled") return [`Session ${status} after ${live.markers} actions.`, "ok"];
+  if (status === "running") return ["Session running.", "ok"];
+  if (status === "queued") return ["Session started: waiting for a worker.", "ok"];
+  return null;
+}
+
 function startForm(session, classifiers, message, onStarted) {
   const classifier = h("select", { name: "classifier_id" },
     classifiers.map((c) => h("option", { value: c.id },
@@ -79,6 +105,9 @@ export async function livePage(root, { canEdit }, sessionId) {
   const current = h("p", { class: "current-action", id: "current-action", "aria-live": "polite" }, "No action yet.");
   const stats = h("dl", { class: "stats", id: "live-stats" });
   const rows = h("tbody", { id: "live-actions" });
+  const made = h("dl", { class: "facts", id: "live-links", hidden: true });
+  let banner = null; // the banner's text: changed only when the run's state changes
+  let linked = "";
   const steps = new Map(); // step -> {marker, decision}: the view's history, kept on reconnect
 
   function statRow(name, value) {
@@ -88,7 +117,9 @@ export async function livePage(root, { canEdit }, sessionId) {
     const { marker, decision } = steps.get(step);
     const latency = decision && decision.epoch_end_ts !== null && decision.epoch_end_ts !== undefined
       ? `${fmtNumber((decision.decided_ts - decision.epoch_end_ts) * 1000, 1)} ms` : "–";
-    const decoded = !decision ? "pending" : decision.status === "ok" ? decision.feedback : `rejected`;
+    // a calibration session only records: its epochs train the classifier afterwards
+    const undecoded = session.kind === "calibration" ? "not decoded (calibration)" : "pending";
+    const decoded = !decision ? undecoded : decision.status === "ok" ? decision.feedback : `rejected`;
     const agree = decision && decision.status === "ok" && marker.oracle_correct !== null
       ? (decision.feedback === "correct") === marker.oracle_correct : null;
     const tr = h(
@@ -138,6 +169,32 @@ export async function livePage(root, { canEdit }, sessionId) {
       ...(live.run.error || live.job_error ? statRow("Error", live.run.error || live.job_error) : []),
     );
     showControls(live);
+    const [text, kind] = runBanner(live) || [null, "ok"];
+    if (text && text !== banner) {
+      banner = text;
+      message.show(text, kind);
+    }
+    await showLinks(live);
+  }
+
+  /** Once the run has something to link (its job, recording, follow-up job, models). */
+  async function showLinks(live) {
+    const key = [live.run.job_id, live.run.recording_id, live.run.follow_up_job_id, live.run.hf_model_id].join();
+    if (key === linked) return;
+    linked = key;
+    let classifiers = [];
+    if (live.run.follow_up_job_id && session.kind === "calibration") {
+      try {
+        classifiers = (await all("/api/v1/classifiers", { subject_id: session.subject_id }))
+          .filter((c) => c.job_id === live.run.follow_up_job_id);
+      } catch {
+        // the next refresh asks again
+      }
+      if (!classifiers.length) linked = ""; // its calibration job has not made it yet
+    }
+    const links = sessionLinks(live, classifiers);
+    made.hidden = !links.length;
+    made.replaceChildren(...links.map(([name, link]) => [h("dt", {}, name), h("dd", {}, link)]));
   }
 
   // Until the session has started there is no run to follow (the API answers 404): wait
@@ -205,7 +262,8 @@ export async function livePage(root, { canEdit }, sessionId) {
       const classifiers = session.kind === "calibration"
         ? [] : await all("/api/v1/classifiers", { subject_id: session.subject_id });
       form = startForm(session, classifiers, message, () => {
-        message.show("Session started.");
+        banner = "Session started.";
+        message.show(banner);
         form.hidden = true;
         stopWaiting();
         follow();
@@ -232,7 +290,7 @@ export async function livePage(root, { canEdit }, sessionId) {
     message,
     h("div", { class: "live-grid" },
       h("div", {}, img, noFrame, current),
-      h("div", {}, stats)),
+      h("div", {}, stats, made)),
     h("h2", {}, "Actions"),
     h("table", { class: "grid" },
       h("thead", {}, h("tr", {}, ["Step", "Action", "Oracle", "Decoded", "p(error)", "Latency"].map((c) => h("th", { scope: "col" }, c)))),

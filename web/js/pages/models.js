@@ -2,10 +2,15 @@
 // and the results files and plots jobs wrote.
 
 import { all } from "../api.js";
-import { downloadButton, fmtBytes, fmtDateTime, fmtNumber, h, table } from "../dom.js";
+import { downloadButton, fmtBytes, fmtDateTime, fmtNumber, h, shortId, table } from "../dom.js";
 
 const fileName = (artifact) => artifact.relpath.split("/").pop();
-const jobLink = (jobId) => (jobId ? h("a", { href: `/jobs/${jobId}` }, jobId.slice(0, 8)) : "–");
+const jobLink = (jobId) => (jobId ? shortId(jobId, `/jobs/${jobId}`) : "–");
+/** The two policies a guided-PPO job keeps (the worker's file names). */
+const POLICY_FILES = {
+  "policy.pt": "best evaluation: the job's model",
+  "policy_last.pt": "last step",
+};
 
 export async function modelsPage(root) {
   document.title = "Models · Brain-guided RL platform";
@@ -21,14 +26,22 @@ export async function modelsPage(root) {
   root.append(
     h("h1", {}, "Models and downloads"),
     h("section", {}, h("h2", {}, "Trained policies (π_RL)"),
+      h("p", { class: "muted" }, "A guided-PPO job keeps two: policy.pt, the policy of its best evaluation ",
+        "(the job's model, what `bgrl models pull` fetches), and policy_last.pt, the policy at its last step."),
       table(policies, [
         { label: "Job", cell: (a) => jobLink(a.job_id) },
         { label: "File", cell: (a) => fileName(a) },
+        {
+          label: "Which",
+          cell: (a) => (POLICY_FILES[fileName(a)]
+            ? h("span", { class: fileName(a) === "policy.pt" ? "badge best" : "badge" }, POLICY_FILES[fileName(a)])
+            : "–"),
+        },
         { label: "Size", cell: (a) => fmtBytes(a.size_bytes) },
         { label: "Made", cell: (a) => fmtDateTime(a.created_at) },
         {
           label: "",
-          cell: (a) => a.job_id
+          cell: (a) => a.job_id && fileName(a) === "policy.pt"
             ? downloadButton("Download", `/api/v1/jobs/${a.job_id}/model`, `policy-${a.job_id}.pt`)
             : downloadButton("Download", `/api/v1/artifacts/${a.id}/download`, fileName(a)),
         },

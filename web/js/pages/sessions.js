@@ -2,11 +2,12 @@
 // the API (409) and its message is shown in the form the user acted in.
 
 import { all, patch, post, request } from "../api.js";
-import { field, fmtDateTime, fmtTime, h, messageBox, oneAtATime, statusBadge } from "../dom.js";
+import { field, fmtDateTime, fmtTime, h, messageBox, oneAtATime, statusBadge, timeZone } from "../dom.js";
 import { offersLiveView } from "./live.js";
 
 const KINDS = ["calibration", "test", "online", "rl"];
 const DAY_MS = 86_400_000;
+const WORKDAY_START_HOUR = 9; // a new session's default start on a day still to come
 
 /** ISO week ("2026-W49") of a local date. */
 export function isoWeek(date) {
@@ -95,6 +96,37 @@ function clearErrors(fields, message) {
   message.clear();
 }
 
+/** A new session's suggested start: the next full hour today when the week shown is this
+ *  one (at 09:00 the next day if that is past the evening), else 09:00 on its Monday. */
+export function defaultStart(monday, now = new Date()) {
+  if (now < monday) {
+    const start = new Date(monday);
+    start.setHours(WORKDAY_START_HOUR, 0, 0, 0);
+    return start;
+  }
+  const start = new Date(now);
+  start.setHours(start.getHours() + 1, 0, 0, 0);
+  if (start.getHours() >= 20 || start.getDate() !== now.getDate()) {
+    const tomorrow = addDays(now, 1);
+    tomorrow.setHours(WORKDAY_START_HOUR, 0, 0, 0);
+    return tomorrow;
+  }
+  return start;
+}
+
+/**
+ * A start in the past is asked about once: the first submit says so at the start field and
+ * the button becomes "Schedule in the past"; submitting again (same start) schedules it.
+ * Returns true when the request may go.
+ */
+function confirmPast(startIso, field, button, state) {
+  if (new Date(startIso).getTime() >= Date.now() || state.confirmed === startIso) return true;
+  state.confirmed = startIso;
+  field.setError(`${fmtDateTime(startIso)} (${timeZone()}) is in the past: submit again to record a session that has happened.`);
+  button.textContent = `${state.label} in the past`;
+  return false;
+}
+
 function scheduleForm(subjects, rigs, monday, onDone) {
   const subject = h(
     "select",
@@ -103,9 +135,7 @@ function scheduleForm(subjects, rigs, monday, onDone) {
     subjects.map((s) => h("option", { value: s.id }, s.code)),
   );
   const kind = h("select", { name: "kind" }, KINDS.map((k) => h("option", { value: k }, k)));
-  const start = new Date(Math.max(Date.now(), monday.getTime()));
-  start.setHours(start.getHours() + 1, 0, 0, 0);
-  const timing = timingFields(rigs, { start });
+  const timing = timingFields(rigs, { start: defaultStart(monday) });
   const notes = h("input", { name: "notes", maxlength: 10000 });
   const message = messageBox();
   const submit = h("button", { type: "submit", class: "btn primary" }, "Schedule");
@@ -124,17 +154,21 @@ function scheduleForm(subjects, rigs, monday, onDone) {
     message,
   );
   // one session per click: a second click while the first is on its way sends nothing
+  const past = { label: "Schedule", confirmed: null };
   form.addEventListener("submit", oneAtATime([submit], async () => {
     clearErrors(fields, message);
     try {
+      const values = timing.values();
+      if (!confirmPast(values.scheduled_at, fields.scheduled_at, submit, past)) return null;
       const created = await post("/api/v1/sessions", {
         subject_id: Number(subject.value),
         kind: kind.value,
         notes: notes.value,
-        ...timing.values(),
+        ...values,
       });
+      const when = new Date(created.scheduled_at) < new Date() ? " (in the past)" : "";
       onDone(
-        `Session ${created.id} scheduled for ${fmtDateTime(created.scheduled_at)}.`,
+        `Session ${created.id} scheduled for ${fmtDateTime(created.scheduled_at)} ${timeZone()}${when}.`,
         isoWeek(new Date(created.scheduled_at)),
       );
       return "leaving";
@@ -146,6 +180,7 @@ function scheduleForm(subjects, rigs, monday, onDone) {
   return form;
 }
 
+
 function editDialog(session, subjectCode, rigs, canEdit, onDone) {
   const dialog = h("dialog", { class: "card", "aria-labelledby": "edit-title" });
   const close = h("button", { type: "button", class: "btn small" }, "Close");
@@ -153,7 +188,7 @@ function editDialog(session, subjectCode, rigs, canEdit, onDone) {
   dialog.addEventListener("close", () => dialog.remove());
   const header = [
     h("h2", { id: "edit-title" }, `Session ${session.id}: ${subjectCode}, ${session.kind}`),
-    h("p", {}, statusBadge(session.status), ` ${fmtDateTime(session.scheduled_at)}, `,
+    h("p", {}, statusBadge(session.status), ` ${fmtDateTime(session.scheduled_at)} (${timeZone()}), `,
       `${session.duration_minutes} min`),
     session.notes ? h("p", { class: "pre" }, session.notes) : null,
     offersLiveView(session, canEdit)
@@ -161,8 +196,9 @@ function editDialog(session, subjectCode, rigs, canEdit, onDone) {
         h("a", { href: `/sessions/${session.id}/display`, target: "_blank" }, "Subject display"))
       : null,
   ];
+  const shown = header.filter(Boolean); // DOM append writes null as the text "null"
   if (!canEdit || session.status !== "scheduled") {
-    dialog.append(...header, close);
+    dialog.append(...shown, close);
     return dialog;
   }
   const timing = timingFields(rigs, {
@@ -172,10 +208,13 @@ function editDialog(session, subjectCode, rigs, canEdit, onDone) {
   const submit = h("button", { type: "submit", class: "btn primary" }, "Reschedule");
   const form = h("form", { "aria-label": "Reschedule" }, ...timing.nodes, submit);
   const cancel = h("button", { type: "button", class: "btn danger" }, "Cancel session");
+  const past = { label: "Reschedule", confirmed: null };
   form.addEventListener("submit", oneAtATime([submit, cancel], async () => {
     clearErrors(timing.fields, message);
     try {
-      await patch(`/api/v1/sessions/${session.id}`, timing.values());
+      const values = timing.values();
+      if (!confirmPast(values.scheduled_at, timing.fields.scheduled_at, submit, past)) return null;
+      await patch(`/api/v1/sessions/${session.id}`, values);
       dialog.close();
       onDone(`Session ${session.id} rescheduled.`);
       return "leaving";
@@ -196,7 +235,7 @@ function editDialog(session, subjectCode, rigs, canEdit, onDone) {
       return null;
     }
   }));
-  dialog.append(...header, form, message, h("div", { class: "actions" }, cancel, " ", close));
+  dialog.append(...shown, form, message, h("div", { class: "actions" }, cancel, " ", close));
   return dialog;
 }
 
@@ -207,7 +246,7 @@ export async function sessionsPage(root, { canEdit, query }) {
   const valid = /^\d{4}-W\d{2}$/.test(asked || "") && isoWeek(mondayOf(asked)) === asked;
   const week = valid ? asked : isoWeek(new Date());
   const monday = mondayOf(week);
-  const tz = Intl.DateTimeFormat().resolvedOptions().timeZone || "UTC";
+  const tz = timeZone();
   const [rigs, subjects, sessions] = await Promise.all([
     all("/api/v1/rigs"),
     all("/api/v1/subjects"),
