@@ -22,7 +22,8 @@ def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
 
 @pytest.mark.parametrize(
     "path", ["/", "/signin", "/subjects", "/subjects/12", "/sessions", "/jobs", "/jobs/ab12",
-             "/models", "/classifiers/3"],
+             "/models", "/classifiers/3", "/recordings", "/account", "/admin/users",
+             "/admin/rigs", "/admin/audit"],
 )  # fmt: skip
 def test_every_page_path_serves_the_dashboard(client: TestClient, path: str) -> None:
     response = client.get(path)

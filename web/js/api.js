@@ -37,11 +37,16 @@ export function takeSignInReason() {
 }
 
 async function errorOf(response) {
-  let message = `${response.status} ${response.statusText}`;
+  return errorFromText(response.status, response.statusText, await response.text());
+}
+
+/** The ApiError of an answer's status and body text (the API's JSON error, or not JSON). */
+function errorFromText(status, statusText, text) {
+  let message = `${status} ${statusText}`;
   let field = null;
   const fields = {};
   try {
-    const body = await response.json();
+    const body = JSON.parse(text);
     if (Array.isArray(body.detail)) {
       for (const entry of body.detail) fields[entry.field] = entry.msg;
       field = body.detail.length ? body.detail[0].field : null;
@@ -54,7 +59,7 @@ async function errorOf(response) {
   } catch {
     // not JSON: keep the status line
   }
-  return new ApiError(response.status, message, field, fields);
+  return new ApiError(status, message, field, fields);
 }
 
 /** Exchange e-mail and password for an access token (kept for this browser tab). */
@@ -89,6 +94,40 @@ export async function request(path, { method = "GET", json, query } = {}) {
   }
   if (!response.ok) throw await errorOf(response);
   return response;
+}
+
+/**
+ * Send a file as the raw body of a POST (XMLHttpRequest: fetch cannot report upload
+ * progress). ``onProgress(sent, total)`` follows the upload; ``onSent()`` is called once
+ * every byte is sent (the API then validates it before answering). Resolves with the JSON
+ * answer; rejects with an ApiError (a 401 sends the user to sign in, as request() does).
+ */
+export function uploadFile(path, file, { query = {}, onProgress = () => {}, onSent = () => {} } = {}) {
+  const url = new URL(path, location.origin);
+  for (const [key, value] of Object.entries(query)) url.searchParams.set(key, value);
+  return new Promise((resolve, reject) => {
+    const xhr = new XMLHttpRequest();
+    xhr.open("POST", url);
+    xhr.setRequestHeader("Authorization", `Bearer ${token()}`);
+    xhr.setRequestHeader("Content-Type", "application/octet-stream");
+    xhr.upload.addEventListener("progress", (event) => onProgress(event.loaded, event.total || file.size));
+    xhr.upload.addEventListener("load", () => onSent());
+    xhr.addEventListener("error", () => reject(new ApiError(0, "the upload was cut off (network error): try again")));
+    xhr.addEventListener("load", () => {
+      const error = xhr.status >= 200 && xhr.status < 300
+        ? null : errorFromText(xhr.status, xhr.statusText, xhr.responseText);
+      if (xhr.status === 401) {
+        signOut();
+        toSignIn(`Signed out: ${error.message}.`);
+        reject(new ApiError(401, "signed out: sign in again"));
+      } else if (error) {
+        reject(error);
+      } else {
+        resolve(JSON.parse(xhr.responseText));
+      }
+    });
+    xhr.send(file);
+  });
 }
 
 export async function get(path, query) {

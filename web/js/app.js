@@ -2,12 +2,15 @@
 
 import { get, signOut, toSignIn, token } from "./api.js";
 import { h } from "./dom.js";
+import { accountPage } from "./pages/account.js";
+import { auditPage, rigsPage, usersPage } from "./pages/admin.js";
 import { classifierPage } from "./pages/classifier.js";
 import { jobPage } from "./pages/job.js";
 import { jobsPage } from "./pages/jobs.js";
 import { displayPage } from "./pages/display.js";
 import { livePage } from "./pages/live.js";
 import { modelsPage } from "./pages/models.js";
+import { recordingsPage } from "./pages/recordings.js";
 import { sessionsPage } from "./pages/sessions.js";
 import { signinPage } from "./pages/signin.js";
 import { subjectPage } from "./pages/subject.js";
@@ -23,6 +26,11 @@ const ROUTES = [
   [/^\/jobs\/([A-Za-z0-9_-]+)$/, "jobs", jobPage],
   [/^\/models$/, "models", modelsPage],
   [/^\/classifiers\/(\d+)$/, "models", classifierPage],
+  [/^\/recordings$/, "recordings", recordingsPage],
+  [/^\/account$/, "account", accountPage],
+  [/^\/admin\/users$/, "users", usersPage],
+  [/^\/admin\/rigs$/, "rigs", rigsPage],
+  [/^\/admin\/audit$/, "audit", auditPage],
 ];
 
 const LISTS = {
@@ -30,6 +38,11 @@ const LISTS = {
   sessions: ["/sessions", "Sessions"],
   jobs: ["/jobs", "Jobs"],
   models: ["/models", "Models"],
+  recordings: ["/recordings", "Recordings"],
+  account: ["/account", "Your account"],
+  users: ["/admin/users", "Users"],
+  rigs: ["/admin/rigs", "Rigs"],
+  audit: ["/admin/audit", "Audit log"],
 };
 const MAX_ROW_ID = 2 ** 31 - 1; // the API's largest id: beyond it nothing can exist
 
@@ -54,9 +67,12 @@ function showAccount(user) {
     location.assign("/signin");
   });
   box.replaceChildren(
-    h("span", { class: "who" }, user.email, " ", h("span", { class: "badge" }, user.role)),
+    h("a", { class: "who", href: "/account", "data-nav": "account", title: "Your account: password, API tokens" },
+      user.email, " ", h("span", { class: "badge" }, user.role)),
     button,
   );
+  // admin pages are offered to admins only (the API refuses them to the others anyway)
+  for (const item of document.querySelectorAll("[data-admin]")) item.hidden = user.role !== "admin";
 }
 
 async function main() {

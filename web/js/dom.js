@@ -175,11 +175,11 @@ export function shortId(id, href = null) {
   const shown = href ? h("a", { href, title: id }, text) : h("code", { title: id }, text);
   const copy = h("button", {
     type: "button", class: "copy-id", title: `Copy the full id ${id}`, "aria-label": `Copy the full id ${id}`,
-  }, "⧉");
+  }, "copy");
   copy.addEventListener("click", async () => {
     try {
       await navigator.clipboard.writeText(id);
-      copy.textContent = "✓";
+      copy.textContent = "copied";
     } catch {
       // no clipboard here (not a secure context): select the id for Ctrl+C instead
       const field = h("input", { class: "copy-field", value: id, readonly: true, "aria-label": "Full id" });
@@ -187,7 +187,7 @@ export function shortId(id, href = null) {
       field.select();
       return;
     }
-    setTimeout(() => { copy.textContent = "⧉"; }, 1500);
+    setTimeout(() => { copy.textContent = "copy"; }, 1500);
   });
   return h("span", { class: "short-id", "data-id": id }, shown, copy);
 }

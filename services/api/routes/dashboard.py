@@ -54,7 +54,19 @@ MEDIA_TYPES = {
     ".png": "image/png",
     ".ico": "image/x-icon",
 }
-PAGES = ("/", "/signin", "/subjects", "/sessions", "/jobs", "/models")
+PAGES = (
+    "/",
+    "/signin",
+    "/subjects",
+    "/sessions",
+    "/jobs",
+    "/models",
+    "/recordings",
+    "/account",
+    "/admin/users",
+    "/admin/rigs",
+    "/admin/audit",
+)
 """Paths answered with the dashboard (and ``/subjects/{id}``, ``/jobs/{id}``,
 ``/classifiers/{id}``)."""
 

@@ -9,12 +9,11 @@ from services.api import audit
 from services.api.accounts import active_admin_count, create_user, set_password
 from services.api.crud import get_or_404, paginate
 from services.api.deps import AdminUser, CurrentUser, DbDep, PageDep, RowId, get_current_user
-from services.api.errors import UnauthorizedError
 from services.api.schemas.common import Page
 from services.api.schemas.users import PasswordChange, UserCreate, UserPublic, UserUpdate
 from services.api.security import verify_password
 from services.core.db.models import User
-from services.core.errors import ConflictError
+from services.core.errors import BadRequestError, ConflictError
 
 router = APIRouter(prefix="/api/v1/users", tags=["users"], dependencies=[Depends(get_current_user)])
 
@@ -27,9 +26,10 @@ def read_me(user: CurrentUser) -> UserPublic:
 
 @router.post("/me/password", status_code=status.HTTP_204_NO_CONTENT)
 def change_my_password(body: PasswordChange, user: CurrentUser, db: DbDep) -> None:
-    """Change your own password (the current one is required)."""
+    """Change your own password (the current one is required; a wrong one is 422, not 401:
+    the caller is signed in, the field is wrong)."""
     if not verify_password(user.password_hash, body.current_password):
-        raise UnauthorizedError("current password is wrong", field="current_password")
+        raise BadRequestError("current password is wrong", field="current_password")
     set_password(user, body.new_password)
     audit.record(db, user, "user.password", "user", user.id)
     db.commit()

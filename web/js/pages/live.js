@@ -34,6 +34,8 @@ function sessionLinks(live, classifiers = []) {
   return links;
 }
 
+const ENDED = new Set(["completed", "stopped"]); // a failed run may be resumed
+
 /** What the banner says of a run in this state (null: nothing to say). */
 function runBanner(live) {
   const { status, error } = live.run;
@@ -107,6 +109,7 @@ export async function livePage(root, { canEdit }, sessionId) {
   const rows = h("tbody", { id: "live-actions" });
   const made = h("dl", { class: "facts", id: "live-links", hidden: true });
   let banner = null; // the banner's text: changed only when the run's state changes
+  let frames = null; // the frame stream while the run goes on
   let linked = "";
   const steps = new Map(); // step -> {marker, decision}: the view's history, kept on reconnect
 
@@ -169,6 +172,12 @@ export async function livePage(root, { canEdit }, sessionId) {
       ...(live.run.error || live.job_error ? statRow("Error", live.run.error || live.job_error) : []),
     );
     showControls(live);
+    if (ENDED.has(live.run.status) && frames) {
+      frames.stop(); // an ended run streams no more frames (none are kept)
+      frames = null;
+      connection.textContent = "none (the session has ended)";
+      noFrame.textContent = "The session has ended; its frames are not kept.";
+    }
     const [text, kind] = runBanner(live) || [null, "ok"];
     if (text && text !== banner) {
       banner = text;
@@ -194,7 +203,7 @@ export async function livePage(root, { canEdit }, sessionId) {
     }
     const links = sessionLinks(live, classifiers);
     made.hidden = !links.length;
-    made.replaceChildren(...links.map(([name, link]) => [h("dt", {}, name), h("dd", {}, link)]));
+    made.replaceChildren(...links.flatMap(([name, link]) => [h("dt", {}, name), h("dd", {}, link)]));
   }
 
   // Until the session has started there is no run to follow (the API answers 404): wait
@@ -216,7 +225,7 @@ export async function livePage(root, { canEdit }, sessionId) {
       }
     });
     const timer = setInterval(refresh, 1000);
-    const frames = followFrames(sessionId, img, {
+    frames = followFrames(sessionId, img, {
       onStatus: (text) => { connection.textContent = text; },
       onFrame: (frame) => {
         img.hidden = false;
@@ -229,7 +238,7 @@ export async function livePage(root, { canEdit }, sessionId) {
     });
     window.bgrlLiveView = { frames, steps }; // for the browser tests: drop the connection
     stopFollowing = () => {
-      frames.stop(); stopMarkers(); stopDecisions(); clearInterval(timer);
+      frames?.stop(); stopMarkers(); stopDecisions(); clearInterval(timer);
     };
     return refresh();
   }

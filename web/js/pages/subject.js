@@ -30,8 +30,8 @@ function notesForm(subject, canEdit) {
   return form;
 }
 
-function section(title, content) {
-  return h("section", {}, h("h2", {}, title), content);
+function section(title, ...content) {
+  return h("section", {}, h("h2", {}, title), ...content);
 }
 
 /** Staff: export the subject's sessions as BIDS (a job; its zip downloads from the job page). */
@@ -113,6 +113,7 @@ export async function subjectPage(root, { canEdit }, subjectId) {
         { label: "Size", cell: (r) => fmtBytes(r.size_bytes) },
         { label: "", cell: (r) => downloadButton("Download", `/api/v1/recordings/${r.id}/file`, r.filename) },
       ], { empty: "No recordings." }),
+      h("p", {}, h("a", { href: `/recordings?subject_id=${subject.id}` }, "Upload, calibrate or delete recordings")),
     ),
     section(
       "Classifiers",
