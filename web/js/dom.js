@@ -142,6 +142,12 @@ export function field(label, input, hint = "") {
   return wrapper;
 }
 
+/** Show the API's refusal at the fields it names (e.g. scheduled_at: the start) and below. */
+export function showRefusal(err, fields, message) {
+  for (const [name, f] of Object.entries(fields)) f.setError(err.fields?.[name] || "");
+  message.error(err);
+}
+
 /**
  * One request at a time from a form or a button: ``buttons`` are disabled while ``action``
  * runs, so a double click or a second Enter sends nothing more. They are enabled again when

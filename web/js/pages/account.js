@@ -2,15 +2,9 @@
 // scripts (create: shown once; list; revoke).
 
 import { all, post, request, signOut, toSignIn } from "../api.js";
-import { field, fmtDateTime, h, messageBox, oneAtATime, table } from "../dom.js";
+import { field, fmtDateTime, h, messageBox, oneAtATime, showRefusal, table } from "../dom.js";
 
 const MIN_PASSWORD_CHARS = 12; // the API's minimum (accounts.MIN_PASSWORD_CHARS)
-
-/** Show the API's refusal at the fields it names, and below the form. */
-export function showRefusal(err, fields, message) {
-  for (const [name, f] of Object.entries(fields)) f.setError(err.fields?.[name] || "");
-  message.error(err);
-}
 
 /** A secret shown this once, with a copy button and a warning that it is not shown again. */
 export function shownOnce(label, secret) {

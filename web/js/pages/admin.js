@@ -2,8 +2,8 @@
 // user accounts, rigs with their channel maps, and the audit log.
 
 import { all, get, patch, post } from "../api.js";
-import { field, fmtDateTime, h, messageBox, oneAtATime, table } from "../dom.js";
-import { showRefusal, shownOnce } from "./account.js";
+import { field, fmtDateTime, h, messageBox, oneAtATime, showRefusal, table } from "../dom.js";
+import { shownOnce } from "./account.js";
 
 const ROLES = ["viewer", "staff", "admin"];
 const PASSWORD_ALPHABET = "abcdefghijkmnpqrstuvwxyzABCDEFGHJKLMNPQRSTUVWXYZ23456789";

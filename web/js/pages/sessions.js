@@ -2,7 +2,9 @@
 // the API (409) and its message is shown in the form the user acted in.
 
 import { all, patch, post, request } from "../api.js";
-import { field, fmtDateTime, fmtTime, h, messageBox, oneAtATime, statusBadge, timeZone } from "../dom.js";
+import {
+  field, fmtDateTime, fmtTime, h, messageBox, oneAtATime, showRefusal, statusBadge, timeZone,
+} from "../dom.js";
 import { offersLiveView } from "./live.js";
 
 const KINDS = ["calibration", "test", "online", "rl"];
@@ -83,12 +85,6 @@ function timingFields(rigs, { start, duration = 60, rig = null }) {
       rig_id: rigSelect.value ? Number(rigSelect.value) : null,
     }),
   };
-}
-
-/** Show the API's refusal at the fields it names (e.g. scheduled_at: the start) and below. */
-function showRefusal(err, fields, message) {
-  for (const [name, f] of Object.entries(fields)) f.setError(err.fields?.[name] || "");
-  message.error(err);
 }
 
 function clearErrors(fields, message) {
