@@ -75,7 +75,8 @@ def get_by_id_or_prefix(db: Session, model: type[RowT], row_id: str, field: str)
     name = getattr(model, "__tablename__", model.__name__).rstrip("s").replace("_", " ")
     prefix = row_id.lower()
     if len(prefix) < MIN_ID_PREFIX or not set(prefix) <= HEX_DIGITS:
-        hint = f" (give at least {MIN_ID_PREFIX} characters of it)" if prefix else ""
+        short = prefix and len(prefix) < MIN_ID_PREFIX and set(prefix) <= HEX_DIGITS
+        hint = f" (give at least {MIN_ID_PREFIX} characters of it)" if short else ""
         raise NotFoundError(f"no {name} with id {row_id}{hint}", field=field)
     key = model.id  # type: ignore[attr-defined]
     ids = list(

@@ -20,7 +20,8 @@ from tests.web.conftest import STAFF, Server, open_as
 
 pytestmark = pytest.mark.slow
 
-NAV = ["Subjects", "Sessions", "Jobs", "Models"]
+NAV = ["Subjects", "Sessions", "Jobs", "Recordings", "Models"]
+"""The navigation of staff and viewers (admins also get Users, Rigs, Audit)."""
 TINY_PPO = {"n_epochs": 4, "eval_every": 256}
 
 
@@ -481,7 +482,7 @@ def test_keyboard_reaches_the_nav_and_forms(context: tuple, server: Server) -> N
     page.keyboard.press("Tab")  # the skip link comes first
     assert page.evaluate("document.activeElement.textContent") == "Skip to content"
     seen = []
-    for _ in range(6):
+    for _ in range(7):
         page.keyboard.press("Tab")
         seen.append(page.evaluate("document.activeElement.textContent"))
-    assert seen[1:5] == NAV
+    assert seen[1:6] == NAV

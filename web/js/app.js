@@ -72,7 +72,10 @@ function showAccount(user) {
     button,
   );
   // admin pages are offered to admins only (the API refuses them to the others anyway)
-  for (const item of document.querySelectorAll("[data-admin]")) item.hidden = user.role !== "admin";
+  for (const item of document.querySelectorAll("[data-admin]")) {
+    if (user.role === "admin") item.hidden = false;
+    else item.remove();
+  }
 }
 
 async function main() {
