@@ -36,14 +36,13 @@ function sessionLinks(live, classifiers = []) {
 
 const ENDED = new Set(["completed", "stopped"]); // a failed run may be resumed
 
-/** What the banner says of a run in this state (null: nothing to say). */
+/** What the banner says of a run that has ended (null while it goes on: the messages of
+ *  the operator's actions, "Session started.", "Stop requested", stay until then). */
 function runBanner(live) {
   const { status, error } = live.run;
   if (status === "completed") return [`Session completed: ${live.markers} actions recorded.`, "ok"];
   if (status === "failed") return [`The session's run failed${error ? `: ${error}` : ""}.`, "error"];
-  if (status === "stopped" || status === "cancelled") return [`Session ${status} after ${live.markers} actions.`, "ok"];
-  if (status === "running") return ["Session running.", "ok"];
-  if (status === "queued") return ["Session started: waiting for a worker.", "ok"];
+  if (status === "stopped") return [`Session stopped after ${live.markers} actions.`, "ok"];
   return null;
 }
 
