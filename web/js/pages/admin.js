@@ -238,12 +238,23 @@ export async function rigsPage(root, { user }) {
 // -- audit log -----------------------------------------------------------------------------
 
 const AUDIT_PAGE = 50;
+/** The actions the API records (a hint while typing: the filter takes any). */
+const AUDIT_ACTIONS = [
+  "job.submit", "job.cancel", "job.retry", "recording.upload", "recording.validate", "recording.delete",
+  "rig.create", "rig.update", "rig.delete", "session.create", "session.update", "session.cancel",
+  "session.start", "session.stop", "subject.create", "subject.update", "subject.delete",
+  "token.create", "token.revoke", "user.create", "user.update", "user.password",
+];
 
 export async function auditPage(root, { user, query }) {
   document.title = "Audit log · Brain-guided RL platform";
   if (adminOnly(root, user)) return;
   const users = await all("/api/v1/users");
-  const action = h("input", { id: "audit-action", name: "action", value: query.get("action") || "", placeholder: "e.g. job.submit", maxlength: 64 });
+  const action = h("input", {
+    id: "audit-action", name: "action", value: query.get("action") || "", placeholder: "e.g. job.submit", maxlength: 64,
+    list: "audit-actions",
+  });
+  const actions = h("datalist", { id: "audit-actions" }, AUDIT_ACTIONS.map((a) => h("option", { value: a })));
   const actor = h("select", { id: "audit-actor", name: "actor_id" }, h("option", { value: "" }, "anyone"),
     users.map((u) => h("option", { value: u.id, selected: String(u.id) === query.get("actor_id") }, u.email)));
   const targetType = h("input", { id: "audit-target-type", name: "target_type", value: query.get("target_type") || "", placeholder: "e.g. job", maxlength: 32 });
@@ -277,7 +288,7 @@ export async function auditPage(root, { user, query }) {
     pager.replaceChildren(...(page.total > AUDIT_PAGE ? [newer, " ", older] : []));
   }
   const form = h("form", { class: "inline", id: "audit-filters", "aria-label": "Filter the audit log" },
-    h("label", { for: "audit-action" }, "Action"), action,
+    h("label", { for: "audit-action" }, "Action"), action, actions,
     h("label", { for: "audit-actor" }, "By"), actor,
     h("label", { for: "audit-target-type" }, "Target type"), targetType,
     h("label", { for: "audit-target-id" }, "Target id"), targetId,

@@ -2,7 +2,7 @@
 // report (ERP waveforms, topographies, training curves) its job wrote.
 
 import { all, get, imageUrl } from "../api.js";
-import { downloadButton, fmtDateTime, fmtNumber, h, table } from "../dom.js";
+import { downloadButton, fmtDateTime, fmtNumber, h, shortId, table } from "../dom.js";
 
 function confusionMatrix(cm) {
   if (!Array.isArray(cm) || cm.length !== 2) return null;
@@ -31,7 +31,7 @@ export async function classifierPage(root, _context, classifierId) {
     h("h1", {}, `Calibration: ${clf.name}`),
     h("p", { class: "muted" }, `Made ${fmtDateTime(clf.created_at)}`,
       subject ? [" · subject ", h("a", { href: `/subjects/${subject.id}` }, subject.code)] : "",
-      clf.job_id ? [" · job ", h("a", { href: `/jobs/${clf.job_id}` }, clf.job_id.slice(0, 8))] : ""),
+      clf.job_id ? [" · job ", shortId(clf.job_id, `/jobs/${clf.job_id}`)] : ""),
     h("div", { class: "columns" },
       h("section", {}, h("h2", {}, "Metrics"),
         table(scalar, [

@@ -1,10 +1,7 @@
 // One subject: notes, and its sessions, recordings, classifiers, HF models and jobs.
 
 import { all, get, patch, post } from "../api.js";
-import {
-  downloadButton, field, fmtBytes, fmtDateTime, fmtNumber, h, messageBox, oneAtATime, statusBadge,
-  table,
-} from "../dom.js";
+import { downloadButton, field, fmtBytes, fmtDateTime, fmtNumber, h, messageBox, oneAtATime, shortId, statusBadge, table } from "../dom.js";
 import { offersLiveView } from "./live.js";
 
 function notesForm(subject, canEdit) {
@@ -136,7 +133,7 @@ export async function subjectPage(root, { canEdit }, subjectId) {
     section(
       "Jobs",
       table(jobs, [
-        { label: "Job", cell: (j) => h("a", { href: `/jobs/${j.id}` }, j.id.slice(0, 8)) },
+        { label: "Job", cell: (j) => shortId(j.id, `/jobs/${j.id}`) },
         { label: "Kind", cell: (j) => j.kind },
         { label: "Recording", cell: (j) => `#${j.config.recording_id}` },
         { label: "Status", cell: (j) => statusBadge(j.status) },
