@@ -156,7 +156,7 @@ async function downloads(job) {
       downloadButton("JSON", `/api/v1/jobs/${job.id}/curve`, `job-${job.id}-curve.json`)));
   }
   const files = table(artifacts, [
-    { label: "File", cell: (a) => [a.relpath.split("/").pop(), policyNote(job, a)] },
+    { label: "File", cell: (a) => [a.relpath.split("/").pop(), " ", policyNote(job, a)] },
     { label: "Kind", cell: (a) => a.kind },
     { label: "Size", cell: (a) => fmtBytes(a.size_bytes) },
     { label: "SHA-256", cell: (a) => h("code", { title: a.sha256 }, `${a.sha256.slice(0, 12)}…`) },
