@@ -20,15 +20,18 @@ PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
 PROJECT_NAME = canonicalize_name(PROJECT["name"])
 
 SITECUSTOMIZE = """
-import importlib.abc, json, os, sys
+import importlib.machinery, json, os, sys
 _BLOCKED = frozenset(json.loads(open(os.environ["BLOCKED_MODULES_FILE"]).read()))
-class _Blocker(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        top = name.partition(".")[0]
-        if top in _BLOCKED:
-            raise ModuleNotFoundError(f"{top} is not installed for this role", name=top)
-        return None
-sys.meta_path.insert(0, _Blocker())
+class _RoleFinder(importlib.machinery.PathFinder):
+    # sys.path's finder, not finding the packages the role does not install
+    @classmethod
+    def find_spec(cls, name, path=None, target=None):
+        if path is None and name in _BLOCKED:
+            return None
+        return super().find_spec(name, path, target)
+sys.meta_path[:] = [
+    _RoleFinder if f is importlib.machinery.PathFinder else f for f in sys.meta_path
+]
 """
 
 

@@ -48,7 +48,7 @@ def test_the_check_can_fail(tmp_path: Path) -> None:
     for module in ("services.sim.app", "torch", "pybullet", "mne"):
         done = run_as("api", tmp_path, ["-c", f"import {module}"])
         assert done.returncode != 0, module
-        assert "is not installed for this role" in done.stderr, done.stderr[-2000:]
+        assert "No module named" in done.stderr, done.stderr[-2000:]
 
 
 def test_the_api_serves_and_the_client_signs_in_without_the_science_stack(
@@ -84,4 +84,4 @@ def test_the_api_serves_and_the_client_signs_in_without_the_science_stack(
         assert json.loads(done.stdout)["items"] == []
     finally:
         stop_processes([api])
-    assert "is not installed for this role" not in log.read_text()
+    assert "No module named" not in log.read_text()
