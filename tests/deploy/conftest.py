@@ -181,7 +181,8 @@ class ComposeLab:
             "postgres", [str(PG_BIN / "pg_isready"), "-U", "bgrl", "-d", "postgres"], pg_env
         ).returncode == 0)  # fmt: skip
         if created:
-            done = self.lab.run("postgres", [str(PG_BIN / "createdb"), "-U", "bgrl", "bgrl"], pg_env)
+            createdb = [str(PG_BIN / "createdb"), "-U", "bgrl", "bgrl"]
+            done = self.lab.run("postgres", createdb, pg_env)
             assert done.returncode == 0, done.stderr
         check = health_argv(self.specs["postgres"])  # compose's own check: pg_isready
         check[-1] = check[-1].replace("pg_isready", str(PG_BIN / "pg_isready"))
@@ -210,9 +211,7 @@ class ComposeLab:
     def wait_healthy(self, service: str, timeout: float = 180.0) -> None:
         check = health_argv(self.specs[service])
         env = {"PATH": os.environ["PATH"]}
-        self.wait_until(
-            service, lambda: self.lab.run(service, check, env).returncode == 0, timeout
-        )
+        self.wait_until(service, lambda: self.lab.run(service, check, env).returncode == 0, timeout)
 
     def wait_until(self, host: str, ready: Callable[[], bool], timeout: float = 180.0) -> None:
         deadline = time.monotonic() + timeout

@@ -44,6 +44,21 @@ def ip(*args: str, netns: str | None = None) -> None:
         raise RuntimeError(f"{' '.join(cmd)}: {done.stderr.strip()}")
 
 
+def descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (children in their own sessions included)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return found
+
+
 class Lab:
     """Hosts on one switch. ``add_host(name)`` -> its address; ``close()`` removes all."""
 
@@ -132,7 +147,12 @@ class Lab:
 
     def stop(self, proc: subprocess.Popen[bytes], sig: int = signal.SIGTERM,
              timeout: float = 15.0) -> None:  # fmt: skip
-        """Signal ``proc``'s process group; SIGKILL it if it has not exited in time."""
+        """Signal ``proc``'s process group (SIGKILL: and every process below it, in their own
+        sessions too); SIGKILL it if it has not exited in time."""
+        if sig == signal.SIGKILL:
+            for pid in descendants(proc.pid):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
         if proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(proc.pid, sig)

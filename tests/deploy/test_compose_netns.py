@@ -6,11 +6,16 @@ lab PC (this test) signs in as the admin the api printed at its first start, as 
 
 from __future__ import annotations
 
+import contextlib
 import re
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
+from datetime import UTC, datetime
 from typing import Any
 
+import httpx
 import pytest
 from sqlalchemy import create_engine, select
 from sqlalchemy.orm import Session
@@ -22,7 +27,7 @@ from tests.deploy.conftest import DOT_ENV, WORKER_HOSTS, ComposeLab
 pytestmark = pytest.mark.netns
 TINY_PPO = {"n_epochs": 4, "eval_every": 256}
 REPRODUCE = {"seeds": 1, "first_seed": 3, "tasks": ["sssg"], "methods": ["rl_sparse", "rl_rich"],
-             "ppo": {**TINY_PPO, "total_steps": 1024}}  # fmt: skip
+             "ppo": {**TINY_PPO, "total_steps": 1536}, "checkpoint_every": 2}  # fmt: skip
 RUN_RECORD = ("seed", "method", "final_spl", "curve")
 
 
@@ -119,3 +124,100 @@ def test_a_reproduce_job_fans_out_over_both_worker_hosts(
 ) -> None:
     assert [r["method"] for r in reference_records] == ["rl_rich", "rl_sparse"]
     assert all(r["final_spl"] is not None and r["curve"] for r in reference_records)
+
+
+def running_children(pc: LabPC, parent_id: str, checkpointed: bool = True) -> list[Job]:
+    """The parent's runs running now (with a checkpoint written, if asked)."""
+    return [
+        child
+        for child in pc.jobs(parent_id=parent_id, status="running")
+        if child.lease_owner and (child.checkpoint_artifact_id or not checkpointed)
+    ]
+
+
+def wait_for(what: str, ready: Callable[[], Any], timeout: float = 90.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while not (found := ready()):
+        if time.monotonic() > deadline:
+            pytest.fail(f"no {what} after {timeout} s")
+        time.sleep(0.2)
+    return found
+
+
+def test_a_worker_host_cut_off_mid_job_its_run_finishes_on_the_other_host(
+    lab_pc: LabPC, compose_lab: ComposeLab, reference_records: list[dict[str, Any]]
+) -> None:
+    job = lab_pc.call(lambda: lab_pc.client.submit_job("reproduce", REPRODUCE))
+    child = wait_for("checkpointed run", lambda: running_children(lab_pc, job.id))[0]
+    assert child.lease_owner is not None
+    cut = child.lease_owner.rsplit("-", 1)[0]
+    assert cut in WORKER_HOSTS
+    compose_lab.lab.cable(cut, up=False)
+    try:
+        done = lab_pc.wait_job(job.id)
+        moved = lab_pc.jobs(id=child.id)[0]
+    finally:
+        compose_lab.lab.cable(cut, up=True)
+    assert done.status == "succeeded", done.error
+    assert moved.status == "succeeded" and moved.attempts >= 2
+    assert moved.resumed_from_step is not None  # resumed from the cut host's checkpoint
+    assert run_records(lab_pc, job.id) == reference_records
+
+
+def test_redis_and_postgresql_restarted_mid_job_lose_nothing(
+    lab_pc: LabPC, compose_lab: ComposeLab, reference_records: list[dict[str, Any]]
+) -> None:
+    job = lab_pc.call(lambda: lab_pc.client.submit_job("reproduce", REPRODUCE))
+    wait_for("running run", lambda: running_children(lab_pc, job.id, checkpointed=False))
+    compose_lab.kill("redis", signal.SIGTERM)  # its append-only file keeps the queue
+    compose_lab.start_redis()
+    wait_for("checkpointed run", lambda: running_children(lab_pc, job.id))
+    compose_lab.kill("postgres", signal.SIGINT)  # fast shutdown: sessions cut
+    compose_lab.start_postgres()
+    done = lab_pc.wait_job(job.id)
+    assert done.status == "succeeded", done.error
+    assert run_records(lab_pc, job.id) == reference_records
+
+
+def test_the_api_killed_mid_upload_leaves_no_half_file(
+    lab_pc: LabPC, compose_lab: ComposeLab
+) -> None:
+    subject = lab_pc.call(lambda: lab_pc.client.create_subject("S-NETNS"))
+    when = datetime(2026, 12, 3, 9, tzinfo=UTC)
+    session = lab_pc.call(lambda: lab_pc.client.schedule_session(subject.id, "calibration", when))
+    sent = threading.Event()
+
+    def body() -> Iterator[bytes]:
+        for i in range(4000):
+            if i == 64:
+                sent.set()
+            yield b"\0" * 65536
+            if i >= 64:
+                time.sleep(0.01)
+
+    def upload() -> None:
+        url = f"http://{compose_lab.lab.hosts['api']}:8000"
+        path = f"/api/v1/sessions/{session.id}/recordings?filename=cut.bdf"
+        headers = {"Authorization": f"Bearer {lab_pc.client.token}",
+                   "Content-Type": "application/octet-stream"}  # fmt: skip
+        with contextlib.suppress(httpx.HTTPError):
+            httpx.post(url + path, content=body(), headers=headers, timeout=30)
+
+    uploading = threading.Thread(target=lambda: lab_pc.call(upload))
+    uploading.start()
+    assert sent.wait(30)
+    artifacts = compose_lab.volume("artifacts", "api")
+    wait_for("part file", lambda: list(artifacts.glob(".tmp/*.part")), timeout=30)
+    compose_lab.kill("api")  # SIGKILL: the api's process and its uvicorn processes
+    uploading.join(timeout=60)
+    compose_lab.start("api")
+    compose_lab.wait_healthy("api")
+    stored = [p for p in artifacts.rglob("*") if p.is_file() and ".tmp" not in p.parts]
+    assert not [p for p in stored if p.stat().st_size >= 64 * 65536], stored  # no half file
+    url = f"http://{compose_lab.lab.hosts['api']}:8000/api/v1/recordings"
+    headers = {"Authorization": f"Bearer {lab_pc.client.token}"}
+    recordings = lab_pc.call(lambda: httpx.get(url, headers=headers, timeout=10))
+    assert recordings.json()["items"] == []
+    leftovers = list(artifacts.glob(".tmp/*.part"))
+    if leftovers:  # the start-up cleaning of .tmp (issue 25, audit finding 6) is not there yet
+        pytest.xfail(f"the restarted api left the cut upload's part file: {leftovers}")
