@@ -20,6 +20,7 @@ from typer._click.exceptions import UsageError
 
 from services.api.settings import ApiSettings
 from services.cli.main import app
+from services.core.platform import PlatformSettings
 from services.eeg.settings import EEGSettings
 from services.learner.service.settings import LearnerSettings
 from services.sim.settings import SimSettings
@@ -30,12 +31,12 @@ ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
 SERVICES: dict[str, dict[str, Any]] = COMPOSE["services"]
 OURS = {name: spec for name, spec in SERVICES.items() if "build" in spec}
-SETTINGS: dict[str, type[BaseSettings]] = {
-    "api": ApiSettings,
-    "sim": SimSettings,
-    "eeg": EEGSettings,
-    "learner": LearnerSettings,
-    "worker": LiveSettings,
+SETTINGS: dict[str, tuple[type[BaseSettings], ...]] = {
+    "api": (ApiSettings,),
+    "sim": (SimSettings,),
+    "eeg": (EEGSettings,),
+    "learner": (LearnerSettings, PlatformSettings),  # the artifact store it exports into
+    "worker": (LiveSettings,),
 }
 LIBRARY_VARIABLES = {"eeg": {"LSLAPICFG"}}
 """Variables read by a library, not by our settings (liblsl's configuration file)."""
@@ -108,7 +109,8 @@ def test_a_bad_option_would_be_caught() -> None:
 @pytest.mark.parametrize("service", sorted(OURS))
 def test_every_environment_variable_is_a_settings_field(service: str) -> None:
     variables = set(OURS[service]["environment"])
-    unknown = variables - env_names(SETTINGS[service]) - LIBRARY_VARIABLES.get(service, set())
+    known = set().union(*(env_names(cls) for cls in SETTINGS[service]))
+    unknown = variables - known - LIBRARY_VARIABLES.get(service, set())
     assert not unknown, f"{service}: {sorted(unknown)} are not settings of {SETTINGS[service]}"
 
 
@@ -130,7 +132,10 @@ def test_api_and_workers_share_database_broker_and_artifacts() -> None:
     assert api["BGRL_DATABASE_URL"].startswith("postgresql+psycopg://bgrl:")
     assert api["BGRL_DATABASE_URL"].endswith("@postgres:5432/bgrl")
     artifacts = {"artifacts:/artifacts"}
-    assert artifacts <= set(OURS["api"]["volumes"]) and artifacts <= set(OURS["worker"]["volumes"])
+    # the learner service writes an online session's pi_HF into the same store
+    for service in ("api", "worker", "learner"):
+        assert artifacts <= set(OURS[service]["volumes"]), service
+        assert OURS[service]["environment"]["BGRL_ARTIFACT_DIR"] == "/artifacts", service
 
 
 def test_services_listen_where_their_health_checks_and_clients_look() -> None:
@@ -185,6 +190,16 @@ def test_workers_scale_and_volumes_are_named() -> None:
                 assert (ROOT / default.group(1)).is_file() and mount.endswith(":ro"), mount
                 continue
             assert source in declared, f"{name}: {source} is not a named volume"
+
+
+def test_workers_see_the_eeg_services_folder_where_they_look_for_it() -> None:
+    """A live session's worker installs the classifier into, and stores the recording from,
+    ``<its BGRL_DATA_DIR>/eeg``: the EEG service's own folder (EEGSettings.eeg_dir)."""
+    eeg_dir = EEGSettings(data_dir=Path(OURS["eeg"]["environment"]["BGRL_DATA_DIR"])).eeg_dir
+    worker_dir = EEGSettings(data_dir=Path(OURS["worker"]["environment"]["BGRL_DATA_DIR"])).eeg_dir
+    eeg = {mount_parts(m)[1]: mount_parts(m)[0] for m in OURS["eeg"]["volumes"]}
+    worker = {mount_parts(m)[1]: mount_parts(m)[0] for m in OURS["worker"]["volumes"]}
+    assert eeg[str(eeg_dir)] == worker[str(worker_dir)] == "eegdata"
 
 
 def test_the_eeg_service_finds_lsl_streams_through_known_peers() -> None:

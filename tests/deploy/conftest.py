@@ -5,10 +5,11 @@ and a lab PC (this test's own requests). Each service runs with its image's inst
 (tests/deploy/roles.py): the api without torch, pybullet or MNE.
 
 What a container would give differently, and how it is given here: the named volumes are
-folders (``artifacts`` one folder shared by the api, EEG and worker hosts, as an NFS mount
-would be), ``bgrl`` is this interpreter's ``-m services.cli.main``, ``python`` in health
-checks is this interpreter, the two worker replicas get ``BGRL_WORKER_NAME`` (a container's
-host name), and the jobs' lease timings are short so a lost host is noticed in seconds.
+folders (a volume several services mount, e.g. ``artifacts``, is one folder, as an NFS
+share would be; each host's container paths are links to them), ``bgrl`` is this
+interpreter's ``-m services.cli.main``, ``python`` in health checks is this interpreter,
+the two worker replicas get ``BGRL_WORKER_NAME`` (a container's host name), and the jobs'
+lease timings are short so a lost host is noticed in seconds.
 """
 
 from __future__ import annotations
@@ -101,35 +102,39 @@ class ComposeLab:
 
     # ------------------------------------------------------------------ pieces
     def volume(self, name: str, host: str) -> Path:
-        """The folder of named volume ``name`` (per replica for the workers' own data)."""
-        shared = name in {"artifacts"}
-        folder = self.root / "volumes" / (name if shared else f"{name}@{host}")
+        """The folder of named volume ``name``: one folder if several services mount it
+        (an NFS share across hosts), else one per host (a replica's own volume)."""
+        users = [s for s, spec in self.specs.items() if any(
+            m.split(":", 1)[0] == name for m in spec.get("volumes", []))]  # fmt: skip
+        folder = self.root / "volumes" / (name if len(users) > 1 else f"{name}@{host}")
         folder.mkdir(parents=True, exist_ok=True)
         return folder
 
-    def mounts(self, service: str, host: str) -> dict[str, Path]:
-        """Container path -> folder or file on this machine, for ``service``'s volumes."""
-        found = {}
+    def filesystem(self, service: str, host: str) -> Path:
+        """``host``'s container file system: a folder where each of ``service``'s mounts is
+        a link to its volume folder (or to the repository file it binds)."""
+        root = self.root / "hosts" / host
+        mounts = []
         for mount in self.specs[service].get("volumes", []):
             source, rest = mount.split("}", 1) if mount.startswith("${") else ("", mount)
             first, target, *_ = rest.split(":")
-            if source:
-                found[target] = ROOT / interpolate(source + "}" + first, DOT_ENV)
-            else:
-                found[target] = self.volume(first, host)
-        return found
+            path = ROOT / interpolate(source + "}" + first, DOT_ENV) if source else None
+            mounts.append((target, path or self.volume(first, host)))
+        for target, path in sorted(mounts, key=lambda m: m[0].count("/")):
+            link = root / target.lstrip("/")  # through an outer mount's link, as nested
+            link.parent.mkdir(parents=True, exist_ok=True)
+            if not link.is_symlink():
+                link.symlink_to(path)
+        return root
 
     def environment(self, service: str, host: str) -> dict[str, str]:
-        """The service's compose environment, volume paths mapped, plus its role's import
-        limits and (workers) the test's lease timings."""
-        mounts = self.mounts(service, host)
+        """The service's compose environment, container paths put in the host's file
+        system, plus its role's import limits and (workers) the test's lease timings."""
+        root = self.filesystem(service, host)
         env = {}
         for key, value in self.specs[service].get("environment", {}).items():
             value = interpolate(str(value), DOT_ENV)
-            for target, path in mounts.items():
-                if value == target or value.startswith(target + "/"):
-                    value = str(path) + value[len(target) :]
-            env[key] = value
+            env[key] = str(root) + value if value.startswith("/") else value
         if service == "worker":
             env |= {**TEST_TUNING, "BGRL_WORKER_NAME": host}
         role = ROLES.get(service, "worker")
@@ -168,9 +173,11 @@ class ComposeLab:
             created = True
         else:
             created = False
+        command = list(self.specs["postgres"].get("command", ["postgres"]))  # compose's
+        assert command[0] == "postgres", command
         self.procs["postgres"] = self.lab.start(
             "postgres",
-            [str(PG_BIN / "postgres"), "-D", str(data), "-p", "5432",
+            [str(PG_BIN / "postgres"), *command[1:], "-D", str(data), "-p", "5432",
              "-c", "listen_addresses=*", "-c", f"unix_socket_directories={self.pg_dir}"],
             env={"PATH": os.environ["PATH"]}, log=self.log("postgres"), cwd=self.pg_dir,
             user="postgres",
@@ -222,31 +229,31 @@ class ComposeLab:
                 pytest.fail(f"{host} {state}:\n{self.tail(host)}")
             time.sleep(0.3)
 
-    def up(self, services: tuple[str, ...]) -> None:
-        """Start ``services`` (and what they depend on) in compose's order: each once every
-        dependency's health check passes; ``worker`` on every worker host."""
-        started: set[str] = set()
-
-        def bring(service: str) -> None:
-            if service in started:
-                return
-            for dependency in self.specs[service].get("depends_on", {}):
-                if dependency in services or service != "worker":
-                    bring(dependency)
-            started.add(service)
-            if service == "postgres":
-                self.start_postgres()
-            elif service == "redis":
-                self.start_redis()
-            elif service == "worker":
-                for host in WORKER_HOSTS:
-                    self.start("worker", host)
-            else:
-                self.start(service)
-                self.wait_healthy(service)
-
-        for service in services:
-            bring(service)
+    def up(self) -> None:
+        """Start every service in compose's order, as ``docker compose up`` does: in
+        rounds, each service once every one it ``depends_on`` passed its health check, the
+        services of a round together; ``worker`` on every worker host."""
+        healthy: set[str] = set()
+        while len(healthy) < len(self.specs):
+            ready = [
+                name for name, spec in self.specs.items()
+                if name not in healthy and set(spec.get("depends_on", {})) <= healthy
+            ]  # fmt: skip
+            assert ready, f"a dependency cycle among {set(self.specs) - healthy}"
+            for service in ready:
+                if service == "postgres":
+                    self.start_postgres()
+                elif service == "redis":
+                    self.start_redis()
+                elif service == "worker":
+                    for host in WORKER_HOSTS:
+                        self.start("worker", host)
+                else:
+                    self.start(service)
+            for service in ready:
+                if service not in {"postgres", "redis", "worker"}:  # those waited above
+                    self.wait_healthy(service)
+            healthy.update(ready)
 
     def kill(self, host: str, sig: int = signal.SIGKILL) -> None:
         self.lab.stop(self.procs.pop(host), sig)

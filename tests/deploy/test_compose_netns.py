@@ -13,7 +13,8 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
-from typing import Any
+from pathlib import Path
+from typing import Any, TypeVar
 
 import httpx
 import pytest
@@ -21,13 +22,15 @@ from sqlalchemy import create_engine, select
 from sqlalchemy.orm import Session
 
 from services.client import PlatformClient
-from services.core.db.models import Job
+from services.core.db.live import LiveDecision, LiveRun
+from services.core.db.models import Classifier, FeedbackLabel, Job, Recording
 from tests.deploy.conftest import DOT_ENV, WORKER_HOSTS, ComposeLab
 
 pytestmark = pytest.mark.netns
+RowT = TypeVar("RowT")
 TINY_PPO = {"n_epochs": 4, "eval_every": 256}
 REPRODUCE = {"seeds": 1, "first_seed": 3, "tasks": ["sssg"], "methods": ["rl_sparse", "rl_rich"],
-             "ppo": {**TINY_PPO, "total_steps": 1536}, "checkpoint_every": 2}  # fmt: skip
+             "ppo": {**TINY_PPO, "total_steps": 1024}, "checkpoint_every": 2}  # fmt: skip
 RUN_RECORD = ("seed", "method", "final_spl", "curve")
 
 
@@ -51,13 +54,15 @@ class LabPC:
     def call(self, fn: Callable[[], Any]) -> Any:
         return self.run(fn)
 
-    def jobs(self, **where: Any) -> list[Job]:
-        def query() -> list[Job]:
+    def rows(self, model: type[RowT], **where: Any) -> list[RowT]:
+        def query() -> list[RowT]:
             with Session(self.engine) as db:
-                statement = select(Job).filter_by(**where).order_by(Job.created_at)
-                return list(db.scalars(statement))
+                return list(db.scalars(select(model).filter_by(**where)))
 
         return self.run(query)
+
+    def jobs(self, **where: Any) -> list[Job]:
+        return sorted(self.rows(Job, **where), key=lambda job: job.created_at)
 
     def wait_job(
         self, job_id: str, timeout: float = 150.0, watch: Callable[[], None] | None = None
@@ -81,7 +86,7 @@ class LabPC:
 
 @pytest.fixture(scope="module")
 def lab_pc(compose_lab: ComposeLab) -> Iterator[LabPC]:
-    compose_lab.up(("postgres", "redis", "sim", "eeg", "learner", "api", "worker"))
+    compose_lab.up()
     with compose_lab.lab.inside("lab-pc") as run:
         pc = LabPC(compose_lab, run)
         try:
@@ -124,6 +129,60 @@ def test_a_reproduce_job_fans_out_over_both_worker_hosts(
 ) -> None:
     assert [r["method"] for r in reference_records] == ["rl_rich", "rl_sparse"]
     assert all(r["final_spl"] is not None and r["curve"] for r in reference_records)
+
+
+def test_an_online_session_runs_across_sim_eeg_learner_and_a_worker_host(
+    lab_pc: LabPC, compose_lab: ComposeLab
+) -> None:
+    """The virtual subject, accelerated: a calibration session (its recording validated by
+    the EEG service, then the eeg_calibration job: a classifier), then an online session:
+    the worker host drives the sim, the EEG service decodes, the learner updates pi_HF."""
+    url = f"http://{compose_lab.lab.hosts['api']}:8000/api/v1"
+    headers = {"Authorization": f"Bearer {lab_pc.client.token}"}
+
+    def post(path: str, body: dict[str, Any]) -> dict[str, Any]:
+        response = lab_pc.call(lambda: httpx.post(url + path, json=body, headers=headers))
+        assert response.status_code == 201, response.text
+        return response.json()
+
+    subject = post("/subjects", {"code": "S-LIVE"})
+    hosts: set[str] = set()
+
+    def session(kind: str, hour: int, options: dict[str, Any]) -> dict[str, Any]:
+        when = datetime(2026, 12, 3, hour, tzinfo=UTC).isoformat()
+        lab = post("/sessions", {"subject_id": subject["id"], "kind": kind, "scheduled_at": when})
+        run = post(f"/sessions/{lab['id']}/start", options)
+
+        def watch() -> None:
+            for job in lab_pc.rows(Job, id=run["job_id"]):
+                if job.lease_owner:
+                    hosts.add(job.lease_owner.rsplit("-", 1)[0])
+
+        job = lab_pc.wait_job(run["job_id"], watch=watch)
+        assert job.status == "succeeded", job.error
+        (row,) = lab_pc.rows(LiveRun, id=run["id"])
+        assert row.status == "completed", row.error
+        return {"run": row, "session_id": lab["id"]}
+
+    calibration = session("calibration", 9, {
+        "accelerated": True, "n_actions": 60, "virtual_quality": 1.0, "seed": 1,
+        "calibration_max_passes": 5,
+    })["run"]  # fmt: skip
+    (recording,) = lab_pc.rows(Recording, id=calibration.recording_id)
+    assert recording.validation_status == "valid" and recording.synthetic
+    follow_up = lab_pc.wait_job(calibration.follow_up_job_id)
+    assert follow_up.status == "succeeded", follow_up.error
+    (classifier,) = lab_pc.rows(Classifier, job_id=follow_up.id)
+
+    online = session("online", 11, {
+        "accelerated": True, "classifier_id": classifier.id, "label_budget": 12,
+        "virtual_quality": 1.0,
+    })  # fmt: skip
+    run = online["run"]
+    assert run.result["labels"] == 12 and run.hf_model_id is not None
+    assert len(lab_pc.rows(FeedbackLabel, session_id=online["session_id"])) == 12
+    assert len(lab_pc.rows(LiveDecision, run_id=run.id)) == run.result["actions"]
+    assert hosts and hosts <= set(WORKER_HOSTS)  # the sessions ran on worker hosts
 
 
 def running_children(pc: LabPC, parent_id: str, checkpointed: bool = True) -> list[Job]:
@@ -203,18 +262,22 @@ def test_the_api_killed_mid_upload_leaves_no_half_file(
         with contextlib.suppress(httpx.HTTPError):
             httpx.post(url + path, content=body(), headers=headers, timeout=30)
 
+    artifacts = compose_lab.volume("artifacts", "api")
+
+    def stored_files() -> set[Path]:
+        return {p for p in artifacts.rglob("*") if p.is_file() and ".tmp" not in p.parts}
+
+    before = stored_files()
     uploading = threading.Thread(target=lambda: lab_pc.call(upload))
     uploading.start()
     assert sent.wait(30)
-    artifacts = compose_lab.volume("artifacts", "api")
     wait_for("part file", lambda: list(artifacts.glob(".tmp/*.part")), timeout=30)
     compose_lab.kill("api")  # SIGKILL: the api's process and its uvicorn processes
     uploading.join(timeout=60)
     compose_lab.start("api")
     compose_lab.wait_healthy("api")
-    stored = [p for p in artifacts.rglob("*") if p.is_file() and ".tmp" not in p.parts]
-    assert not [p for p in stored if p.stat().st_size >= 64 * 65536], stored  # no half file
-    url = f"http://{compose_lab.lab.hosts['api']}:8000/api/v1/recordings"
+    assert stored_files() == before  # no half file in the store
+    url = f"http://{compose_lab.lab.hosts['api']}:8000/api/v1/recordings?session_id={session.id}"
     headers = {"Authorization": f"Bearer {lab_pc.client.token}"}
     recordings = lab_pc.call(lambda: httpx.get(url, headers=headers, timeout=10))
     assert recordings.json()["items"] == []
