@@ -8,8 +8,9 @@ What a container would give differently, and how it is given here: the named vol
 folders (a volume several services mount, e.g. ``artifacts``, is one folder, as an NFS
 share would be; each host's container paths are links to them), ``bgrl`` is this
 interpreter's ``-m services.cli.main``, ``python`` in health checks is this interpreter,
-the two worker replicas get ``BGRL_WORKER_NAME`` (a container's host name), and the jobs'
-lease timings are short so a lost host is noticed in seconds.
+the two worker replicas get ``BGRL_WORKER_NAME`` (a container's host name), the jobs'
+lease timings are short so a lost host is noticed in seconds, and the free-space reserve is
+the test suite's.
 """
 
 from __future__ import annotations
@@ -135,6 +136,8 @@ class ComposeLab:
         for key, value in self.specs[service].get("environment", {}).items():
             value = interpolate(str(value), DOT_ENV)
             env[key] = str(root) + value if value.startswith("/") else value
+        # the test suite's free-space reserve (tests/conftest.py), not a lab's 1 GB
+        env["BGRL_MIN_FREE_MB"] = os.environ.get("BGRL_MIN_FREE_MB", "1")
         if service == "worker":
             env |= {**TEST_TUNING, "BGRL_WORKER_NAME": host}
         role = ROLES.get(service, "worker")
