@@ -1,10 +1,12 @@
-"""docker-compose.yml and the Dockerfile, checked without Docker: every command of our image
+"""docker-compose.yml and the Dockerfile, checked without Docker: every command of our images
 is a real ``bgrl`` entry point with valid options, every environment variable is a field of
-the settings class of the service that reads it, dependencies wait for health checks, and
-volumes are named."""
+the settings class of the service that reads it, every internal URL names a compose service
+at the port it listens on, dependencies wait for health checks, and volumes are named.
+tests/deploy runs the same file across network namespaces."""
 
 from __future__ import annotations
 
+import configparser
 import re
 from pathlib import Path
 from typing import Any
@@ -18,19 +20,31 @@ from typer._click.exceptions import UsageError
 
 from services.api.settings import ApiSettings
 from services.cli.main import app
+from services.core.platform import PlatformSettings
 from services.eeg.settings import EEGSettings
+from services.learner.service.settings import LearnerSettings
 from services.sim.settings import SimSettings
+from services.worker.live_services import LiveSettings
 from services.worker.settings import WorkerSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
 SERVICES: dict[str, dict[str, Any]] = COMPOSE["services"]
 OURS = {name: spec for name, spec in SERVICES.items() if "build" in spec}
-SETTINGS: dict[str, type[BaseSettings]] = {
-    "api": ApiSettings,
-    "sim": SimSettings,
-    "eeg": EEGSettings,
-    "worker": WorkerSettings,
+SETTINGS: dict[str, tuple[type[BaseSettings], ...]] = {
+    "api": (ApiSettings,),
+    "sim": (SimSettings,),
+    "eeg": (EEGSettings,),
+    "learner": (LearnerSettings, PlatformSettings),  # the artifact store it exports into
+    "worker": (LiveSettings,),
+}
+LIBRARY_VARIABLES = {"eeg": {"LSLAPICFG"}}
+"""Variables read by a library, not by our settings (liblsl's configuration file)."""
+PORT_VARIABLES = {
+    "api": "BGRL_PORT",
+    "sim": "BGRL_SIM_PORT",
+    "eeg": "BGRL_EEG_PORT",
+    "learner": "BGRL_LEARNER_PORT",
 }
 
 
@@ -49,6 +63,14 @@ def env_names(cls: type[BaseSettings]) -> set[str]:
     return names
 
 
+def mount_parts(mount: str) -> list[str]:
+    """A short-syntax volume as [source, target, options...]; a source may be
+    ``${VARIABLE:-default}``."""
+    source, rest = mount.split("}", 1) if mount.startswith("${") else ("", mount)
+    first, *others = rest.split(":")
+    return [source + "}" + first if source else first, *others]
+
+
 def check_entry_point(argv: list[str]) -> None:
     """``argv`` parses as a ``bgrl`` command line (options included) without running it;
     a wrong command or option raises ``UsageError``."""
@@ -62,9 +84,14 @@ def check_entry_point(argv: list[str]) -> None:
 
 
 def test_the_lab_stack_is_complete() -> None:
-    assert set(SERVICES) == {"postgres", "redis", "api", "sim", "eeg", "worker", "flower"}
-    assert set(OURS) == {"api", "sim", "eeg", "worker"}
-    assert {spec["image"] for spec in OURS.values()} == {"bgrl:latest"}
+    assert set(SERVICES) == {
+        "postgres", "redis", "api", "sim", "eeg", "learner", "worker", "flower",
+    }  # fmt: skip
+    assert set(OURS) == {"api", "sim", "eeg", "learner", "worker"}
+    targets = {name: spec["build"]["target"] for name, spec in OURS.items()}
+    assert targets == {"api": "api", "sim": "platform", "eeg": "platform",
+                       "learner": "platform", "worker": "platform"}  # fmt: skip
+    assert OURS["api"]["image"] != OURS["worker"]["image"]  # one image a target
 
 
 @pytest.mark.parametrize("service", sorted(OURS))
@@ -82,7 +109,8 @@ def test_a_bad_option_would_be_caught() -> None:
 @pytest.mark.parametrize("service", sorted(OURS))
 def test_every_environment_variable_is_a_settings_field(service: str) -> None:
     variables = set(OURS[service]["environment"])
-    unknown = variables - env_names(SETTINGS[service])
+    known = set().union(*(env_names(cls) for cls in SETTINGS[service]))
+    unknown = variables - known - LIBRARY_VARIABLES.get(service, set())
     assert not unknown, f"{service}: {sorted(unknown)} are not settings of {SETTINGS[service]}"
 
 
@@ -90,6 +118,9 @@ def test_the_check_of_variables_can_fail() -> None:
     assert "BGRL_SIM_PORT" in env_names(SimSettings)
     assert "BGRL_SIM_PORT" not in env_names(EEGSettings)
     assert "BGRL_BROKER_URL" in env_names(WorkerSettings)
+    assert "BGRL_LEARNER_URL" in env_names(LiveSettings)
+    assert "BGRL_LEARNER_URL" not in env_names(WorkerSettings)
+    assert "BGRL_LEARNER_PORT" in env_names(LearnerSettings)
     assert "BGRL_DATA_DIR" in env_names(SimSettings)
 
 
@@ -101,21 +132,28 @@ def test_api_and_workers_share_database_broker_and_artifacts() -> None:
     assert api["BGRL_DATABASE_URL"].startswith("postgresql+psycopg://bgrl:")
     assert api["BGRL_DATABASE_URL"].endswith("@postgres:5432/bgrl")
     artifacts = {"artifacts:/artifacts"}
-    assert artifacts <= set(OURS["api"]["volumes"]) and artifacts <= set(OURS["worker"]["volumes"])
+    # the learner service writes an online session's pi_HF into the same store
+    for service in ("api", "worker", "learner"):
+        assert artifacts <= set(OURS[service]["volumes"]), service
+        assert OURS[service]["environment"]["BGRL_ARTIFACT_DIR"] == "/artifacts", service
 
 
 def test_services_listen_where_their_health_checks_and_clients_look() -> None:
-    ports = {
-        "api": OURS["api"]["environment"]["BGRL_PORT"],
-        "sim": OURS["sim"]["environment"]["BGRL_SIM_PORT"],
-        "eeg": OURS["eeg"]["environment"]["BGRL_EEG_PORT"],
-    }
+    ports = {s: OURS[s]["environment"][var] for s, var in PORT_VARIABLES.items()}
     for service, port in ports.items():
         check = " ".join(OURS[service]["healthcheck"]["test"])
         assert f"http://127.0.0.1:{port}/" in check, service
-    hosts = {"api": "BGRL_HOST", "sim": "BGRL_SIM_HOST", "eeg": "BGRL_EEG_HOST"}
-    assert all(OURS[s]["environment"][var] == "0.0.0.0" for s, var in hosts.items())
-    assert OURS["api"]["environment"]["BGRL_EEG_URL"] == f"http://eeg:{ports['eeg']}"
+        host = PORT_VARIABLES[service].replace("_PORT", "_HOST")
+        assert OURS[service]["environment"][host] == "0.0.0.0", service
+    # every internal URL set explicitly, naming the service at the port it listens on
+    internal = ("sim", "eeg", "learner")
+    expected = {f"BGRL_{s.upper()}_URL": f"http://{s}:{ports[s]}" for s in internal}
+    worker = OURS["worker"]["environment"]
+    assert {var: worker.get(var) for var in expected} == expected
+    api = OURS["api"]["environment"]
+    assert {var: api[var] for var in expected if var in env_names(ApiSettings)} == {
+        var: url for var, url in expected.items() if var != "BGRL_LEARNER_URL"
+    }
     # One door: only the api publishes a port (Flower on loopback only).
     assert [s for s in OURS if "ports" in OURS[s]] == ["api"]
     assert all(p.startswith("127.0.0.1:") for p in SERVICES["flower"]["ports"])
@@ -134,7 +172,8 @@ def test_dependencies_wait_for_health_checks() -> None:
         for dependency, rule in spec.get("depends_on", {}).items():
             assert rule == {"condition": "service_healthy"}, (name, dependency)
             assert "healthcheck" in SERVICES[dependency], dependency
-    assert set(OURS["worker"]["depends_on"]) == {"api", "redis"}  # the api migrates first
+    # the api migrates first; live sessions need sim, EEG and learner up
+    assert set(OURS["worker"]["depends_on"]) == {"api", "redis", "sim", "eeg", "learner"}
     assert "--no-migrate" in OURS["worker"]["command"]
     assert "--no-migrate" not in OURS["api"]["command"]
 
@@ -145,15 +184,50 @@ def test_workers_scale_and_volumes_are_named() -> None:
     declared = set(COMPOSE["volumes"])
     for name, spec in SERVICES.items():
         for mount in spec.get("volumes", []):
-            source = mount.split(":", 1)[0]
+            source = mount_parts(mount)[0]
+            default = re.fullmatch(r"\$\{[A-Z_]+:-(\./[^}]+)\}", source)
+            if default is not None:  # a configuration file of the repository, read-only
+                assert (ROOT / default.group(1)).is_file() and mount.endswith(":ro"), mount
+                continue
             assert source in declared, f"{name}: {source} is not a named volume"
+
+
+def test_workers_see_the_eeg_services_folder_where_they_look_for_it() -> None:
+    """A live session's worker installs the classifier into, and stores the recording from,
+    ``<its BGRL_DATA_DIR>/eeg``: the EEG service's own folder (EEGSettings.eeg_dir)."""
+    eeg_dir = EEGSettings(data_dir=Path(OURS["eeg"]["environment"]["BGRL_DATA_DIR"])).eeg_dir
+    worker_dir = EEGSettings(data_dir=Path(OURS["worker"]["environment"]["BGRL_DATA_DIR"])).eeg_dir
+    eeg = {mount_parts(m)[1]: mount_parts(m)[0] for m in OURS["eeg"]["volumes"]}
+    worker = {mount_parts(m)[1]: mount_parts(m)[0] for m in OURS["worker"]["volumes"]}
+    assert eeg[str(eeg_dir)] == worker[str(worker_dir)] == "eegdata"
+
+
+def test_the_eeg_service_finds_lsl_streams_through_known_peers() -> None:
+    eeg = OURS["eeg"]
+    target = eeg["environment"]["LSLAPICFG"]
+    (mount,) = [m for m in eeg["volumes"] if mount_parts(m)[1] == target]
+    path = re.fullmatch(r"\$\{BGRL_LSL_CONFIG:-(\./[^}]+)\}", mount_parts(mount)[0])
+    assert path is not None, mount
+    config = configparser.ConfigParser()
+    config.read(ROOT / path.group(1))
+    assert config["lab"]["KnownPeers"].startswith("{")
 
 
 def test_dockerfile_runs_the_platform_with_settings_it_knows() -> None:
     dockerfile = (ROOT / "Dockerfile").read_text()
-    cmd = re.search(r"^CMD (\[.*\])$", dockerfile, re.MULTILINE)
-    assert cmd is not None
-    check_entry_point(yaml.safe_load(cmd.group(1)))
+    client, *services = [yaml.safe_load(c) for c in re.findall(r"^CMD (\[.*\])$", dockerfile, re.M)]
+    assert client == ["--help"] and 'ENTRYPOINT ["bgrl"]' in dockerfile  # the client image
+    assert len(services) == 2
+    for argv in services:
+        check_entry_point(argv)
+    stages = re.findall(r"^FROM \S+ AS (\S+)$", dockerfile, re.MULTILINE)
+    assert stages == ["base", "client", "api", "platform"]  # platform: the default target
+    assert {spec["build"]["target"] for spec in OURS.values()} <= set(stages)
+    installs = re.findall(r"pip install (.*?)'\.\[(\w+)\]'", dockerfile, re.DOTALL)
+    assert [extra for _, extra in installs] == ["client", "api", "worker"]
+    assert all("-c requirements.lock" in options for options, _ in installs)
+    exposed = set(re.findall(r"^EXPOSE (.*)$", dockerfile, re.MULTILINE)[-1].split())
+    assert exposed == {OURS[s]["environment"][v] for s, v in PORT_VARIABLES.items()}
     variables = set(re.findall(r"\b(BGRL_[A-Z_]+)=", dockerfile))
     assert variables == {"BGRL_DATA_DIR", "BGRL_ARTIFACT_DIR"}
     assert variables <= env_names(WorkerSettings) & env_names(ApiSettings)

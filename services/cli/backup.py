@@ -34,13 +34,15 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path, PurePosixPath
-from typing import IO, Annotated, Any
+from typing import IO, TYPE_CHECKING, Annotated, Any
 
 import typer
-from sqlalchemy import URL, make_url, text
 
 from services.core.platform import PlatformSettings
 from services.core.settings import SettingsError, load_settings
+
+if TYPE_CHECKING:  # SQLAlchemy is in the api and worker installs, not the client's
+    from sqlalchemy import URL
 
 FORMAT = "bgrl-backup"
 FORMAT_VERSION = 1
@@ -82,6 +84,8 @@ class Target:
 
     @property
     def url(self) -> URL:
+        from sqlalchemy import make_url
+
         return make_url(self.database_url)
 
     @property
@@ -375,6 +379,8 @@ def _not_empty(folder: Path) -> bool:
 
 
 def _postgres_has_tables(url: URL) -> bool:
+    from sqlalchemy import text
+
     from services.core.db.session import make_engine
 
     engine = make_engine(url.render_as_string(hide_password=False))

@@ -54,8 +54,12 @@ class ServiceSpec:
         return self.asgi_app.split(":", 1)[0]
 
     def available(self) -> bool:
-        """True when the service's module exists in this installation."""
-        return importlib.util.find_spec(self.module) is not None
+        """True when the service's module and its packages are in this installation (an
+        install of the ``api`` extra has no sim: its package needs gymnasium)."""
+        try:
+            return importlib.util.find_spec(self.module) is not None
+        except ModuleNotFoundError:
+            return False
 
     def load_settings(self) -> BaseServiceSettings:
         """The service's settings from the environment (SettingsError: one line)."""
@@ -160,7 +164,7 @@ def up(
         raise _fail(f"--only: unknown {sorted(set(only) - known)}; known: {sorted(known)}")
     try:
         platform = load_settings(PlatformSettings)
-        specs = [s for s in SERVICES if s.available() and (not only or s.name in only)]
+        specs = [s for s in SERVICES if (not only or s.name in only) and s.available()]
         service_settings = [(spec, spec.load_settings()) for spec in specs]
         n_workers = platform.workers if not only or "worker" in only else 0
         if n_workers:
