@@ -72,9 +72,9 @@ from services.learner.ppo.config import (
     hf_epsilon,
 )
 from services.learner.ppo.loop import train
+from services.learner.ppo.result import Callback, TrainResult
 from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
 from services.learner.ppo.update import ppo_loss, update_metrics, update_policy
-from services.learner.training import Callback, TrainResult
 
 __all__ = [
     "SETTING_BOUNDS",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -29,3 +30,9 @@ class ActorCritic(nn.Module):
             return out[0, 0], out[1, 0, 0]
         out = self.towers.forward(self.normalizer.forward(obs))
         return out[0], out[1, :, 0]
+
+    def value_of(self, obs: np.ndarray) -> float:
+        """V of one raw observation (no gradient)."""
+        with torch.inference_mode():
+            _, value = self.forward(torch.as_tensor(obs))
+        return float(value)

@@ -1,4 +1,5 @@
-"""What :func:`services.learner.ppo.train` takes and gives besides its config.
+"""What :func:`services.learner.ppo.train` (and ``train_lockstep``) take and give besides
+their config.
 
 :class:`Callback` (progress hooks that can stop training, SB3 style), :class:`TrainResult`
 and the TorchScript export of a trained policy (:class:`PolicyExport`).
@@ -11,16 +12,15 @@ import json
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
 from torch import nn
 
 from services.learner.networks import exported_observations
-
-if TYPE_CHECKING:
-    from services.learner.ppo import ActorCritic, PPOConfig
+from services.learner.ppo.agent import ActorCritic
+from services.learner.ppo.config import PPOConfig
 
 Checkpointed = Literal["last", "best"]
 """Which weights of a run: the ``last`` (end of training) or the ``best`` evaluation's."""
