@@ -60,6 +60,18 @@ class SuccessReplay:
         self.actions = np.concatenate([self.actions, np.asarray(actions, np.int64)])[keep:]
         self.returns = np.concatenate([self.returns, returns.astype(np.float32)])[keep:]
 
+    def draw(
+        self, config: PPOConfig, rng: np.random.Generator
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(observations, actions, returns-to-go) of ``config.minibatch_size`` transitions
+        drawn uniformly with replacement."""
+        rows = rng.integers(0, len(self), config.minibatch_size)
+        return (
+            torch.from_numpy(self.obs[rows]),
+            torch.from_numpy(self.actions[rows]),
+            torch.from_numpy(self.returns[rows]),
+        )
+
     def state_dict(self) -> dict[str, torch.Tensor]:
         """The stored transitions as tensors (for the checkpoint)."""
         return {
@@ -73,6 +85,21 @@ class SuccessReplay:
         self.obs = state["obs"].numpy().copy()
         self.actions = state["actions"].numpy().copy()
         self.returns = state["returns"].numpy().copy()
+
+
+def self_imitation_terms(
+    agent: ActorCritic, obs: torch.Tensor, actions: torch.Tensor, returns: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(policy loss, value loss, ``(R - V)+`` per transition) of SIL on a minibatch; for a
+    batch of runs every argument has a leading run dimension and the losses are one per run
+    (means over the last dimension)."""
+    logits, value = agent(obs)
+    log_probs = torch.log_softmax(logits, dim=-1)
+    logp = log_probs.gather(-1, actions.unsqueeze(-1))
+    gap = torch.clamp(returns - value, min=0.0)
+    policy_loss = -(logp.squeeze(-1) * gap.detach()).mean(-1)
+    value_loss = 0.5 * (gap**2).mean(-1)
+    return policy_loss, value_loss, gap
 
 
 def replay_episode(
@@ -102,13 +129,7 @@ def self_imitation_update(
         return {}
     policy_sum = value_sum = positive_sum = 0.0
     for _ in range(config.sil_updates):
-        rows = rng.integers(0, len(replay), config.minibatch_size)
-        logits, value = agent(torch.from_numpy(replay.obs[rows]))
-        log_probs = torch.log_softmax(logits, dim=-1)
-        logp = log_probs.gather(-1, torch.from_numpy(replay.actions[rows]).unsqueeze(-1))
-        gap = torch.clamp(torch.from_numpy(replay.returns[rows]) - value, min=0.0)
-        policy_loss = -(logp.squeeze(-1) * gap.detach()).mean()
-        value_loss = 0.5 * (gap**2).mean()
+        policy_loss, value_loss, gap = self_imitation_terms(agent, *replay.draw(config, rng))
         if bool((gap > 0).any()):  # else the loss is 0: no step (Adam's momentum would move)
             loss = config.sil_coef * (policy_loss + config.sil_value_coef * value_loss)
             optimizer.zero_grad()
