@@ -154,8 +154,19 @@ def reproduce(
             "paper's 1000). One count per output folder.",
         ),
     ] = 1000,
+    single_run: Annotated[
+        bool,
+        typer.Option(
+            "--single-run",
+            help="Train each run alone instead of in lockstep batches (one per worker; "
+            "the same records, several times slower).",
+        ),
+    ] = False,
 ) -> None:
     """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG.
+
+    Runs train in lockstep batches, one per worker (docs/learner.md, "Lockstep sweeps"):
+    each run's record is bit-identical to training it alone (``--single-run``).
 
     ``--preset platform`` replaces the default ``--treatments`` by truncated_is, adds
     ``--ppo hf_guide_sampling=true`` and ``--ppo sil_coef=1`` (self-imitation, every method
@@ -218,6 +229,7 @@ def reproduce(
                 out,
                 specs,
                 workers=workers,
+                lockstep=not single_run,
                 config_note={
                     "cli": {
                         "quick": quick,

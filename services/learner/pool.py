@@ -15,7 +15,7 @@ import multiprocessing
 import signal
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
@@ -23,13 +23,14 @@ from services.core.files import write_json_atomic
 from services.learner.feedback import FeedbackConfig
 from services.learner.hf_methods import PAPER_METHOD
 from services.learner.outputs import Results, load_results, save_results, write_outputs
-from services.learner.ppo import PPOConfig
+from services.learner.ppo import PPOConfig, lockstep_key
 from services.learner.runs import (
     SPL_TARGET,
     HFPolicySpec,
     RunFailure,
     RunRecord,
     hf_policy_run,
+    run_lockstep,
     run_one,
 )
 from services.learner.specs import ACCURACIES, N_VSSG_EVAL_STARTS, RunSpec, settings_conflict
@@ -145,17 +146,104 @@ def validate_maps(specs: Sequence[RunSpec]) -> None:
             raise ValueError(str(exc).splitlines()[0]) from None
 
 
+LOCKSTEP_MAX_RUNS = 64
+"""Most runs of one lockstep batch (one worker process holds a batch: its envs, networks)."""
+
+
+@dataclass(frozen=True)
+class RunBatch:
+    """Runs trained together in lockstep in one worker (:func:`run_lockstep`)."""
+
+    specs: tuple[RunSpec, ...]
+
+    @property
+    def key(self) -> tuple[Any, ...]:
+        """The runs' keys."""
+        return tuple(s.key for s in self.specs)
+
+    @property
+    def label(self) -> str:
+        """E.g. ``lockstep batch of 50 runs (sssg rl_sparse seed=0, ...)``."""
+        return f"lockstep batch of {len(self.specs)} runs ({self.specs[0].label}, ...)"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form: the runs' specs."""
+        return {"runs": [s.to_dict() for s in self.specs]}
+
+    def failures(self, failure: RunFailure) -> list[RunFailure]:
+        """The batch's failure (e.g. its worker died) as one failure per run."""
+        return [replace(failure, spec=s.to_dict(), label=s.label) for s in self.specs]
+
+
+def lockstep_batches(
+    specs: Sequence[RunSpec], workers: int, max_runs: int = LOCKSTEP_MAX_RUNS
+) -> list[RunBatch]:
+    """Split ``specs`` into lockstep batches: runs of one PPO shape
+    (:func:`~services.learner.ppo.lockstep_key`) together, each group dealt round-robin into
+    at least ``workers`` batches (all workers busy) of at most ``max_runs``."""
+    groups: dict[str, list[RunSpec]] = {}
+    for spec in specs:
+        groups.setdefault(lockstep_key(spec.ppo_config()), []).append(spec)
+    batches = []
+    for group in groups.values():
+        n_batches = min(len(group), max(workers, -(-len(group) // max_runs)))
+        batches += [RunBatch(tuple(group[b::n_batches])) for b in range(n_batches)]
+    return batches
+
+
+def _run_batch(batch: RunBatch) -> list[RunRecord | RunFailure]:
+    return run_lockstep(batch.specs)
+
+
+def run_sweep(
+    specs: Sequence[RunSpec],
+    *,
+    workers: int,
+    lockstep: bool,
+    on_result: Callable[[RunRecord], None],
+    on_failure: Callable[[RunFailure], None],
+) -> None:
+    """Every run of ``specs`` over ``workers`` processes: each alone (:func:`run_one`), or
+    in lockstep batches (:func:`lockstep_batches`, :func:`run_lockstep`; bit-identical
+    records). Each run's record or failure is handed over as it is known (a batch's when
+    the batch ends)."""
+    if not lockstep:
+        run_isolated(run_one, specs, workers=workers, on_result=on_result, on_failure=on_failure)
+        return
+
+    def batch_done(outcomes: list[RunRecord | RunFailure]) -> None:
+        for outcome in outcomes:
+            if isinstance(outcome, RunFailure):
+                on_failure(outcome)
+            else:
+                on_result(outcome)
+
+    def batch_failed(failure: RunFailure) -> None:
+        batch = RunBatch(tuple(RunSpec.from_dict(s) for s in failure.spec["runs"]))
+        for run_failure in batch.failures(failure):
+            on_failure(run_failure)
+
+    batches = lockstep_batches(specs, workers)
+    run_isolated(
+        _run_batch, batches, workers=workers, on_result=batch_done, on_failure=batch_failed
+    )
+
+
 def reproduce(
     out_dir: str | Path,
     specs: Sequence[RunSpec],
     *,
     workers: int = 2,
+    lockstep: bool = True,
     config_note: dict[str, Any] | None = None,
     on_done: Callable[[RunRecord], None] | None = None,
     on_failure: Callable[[RunFailure], None] | None = None,
     on_resume: Callable[[int], None] | None = None,
 ) -> Results:
     """Run every spec not yet in ``out_dir/results.json`` and write the outputs.
+
+    With ``lockstep`` (the default) the runs train in lockstep batches, one per worker
+    (:func:`run_sweep`); False runs each alone (the same records).
 
     ``on_done`` is called with each new run's record, ``on_failure`` with each failed run,
     ``on_resume`` once with the number of specs skipped because they are already done
@@ -209,7 +297,9 @@ def reproduce(
             on_failure(failure)
 
     try:
-        run_isolated(run_one, pending, workers=workers, on_result=finished, on_failure=failed)
+        run_sweep(
+            pending, workers=workers, lockstep=lockstep, on_result=finished, on_failure=failed
+        )
     except KeyboardInterrupt:  # the CSV, summary and plots cover the runs kept so far
         if results.runs:
             write_outputs(out, results.runs)

@@ -34,7 +34,7 @@ from services.learner.feedback import (
 from services.learner.feedback_buffer import FeedbackRecord
 from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.hf_methods import PAPER_METHOD, get_method
-from services.learner.ppo import Callback, PPOConfig, train
+from services.learner.ppo import Callback, TrainResult, train, train_lockstep
 from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
 from services.learner.specs import N_VSSG_EVAL_STARTS, TASK_ENV_IDS, RunSpec
 
@@ -215,30 +215,11 @@ def run_one(
     label collection (see :func:`learn_hf_policy`).
     """
     start = time.perf_counter()
-    config: PPOConfig = spec.ppo_config()
-    hf_policy_spl = None
-    hf_summary = None
-    if hf_policy is not None:
-        with closing(gym.make(config.env_id, **config.env_kwargs)) as eval_env:
-            hf_policy_spl = evaluate_spl(eval_env, hf_policy.act, config.eval_seeds)
-    elif spec.method == "hf_sparse":
-        assert spec.accuracy is not None  # RunSpec guarantees it for hf_sparse
-        with closing(gym.make(config.env_id, **config.env_kwargs)) as label_env:
-            hf = learn_hf_policy(
-                label_env,
-                spec.accuracy,
-                spec.seed,
-                spec.n_labels,
-                method=spec.hf_method or PAPER_METHOD,
-                on_label=on_label,
-            )
-            hf_policy = hf.policy
-            hf_policy_spl = evaluate_spl(label_env, hf_policy.act, config.eval_seeds)
-        hf_summary = hf.summary()
+    guidance = run_guidance(spec, hf_policy=hf_policy, on_label=on_label)
     result = train(
-        config,
+        spec.ppo_config(),
         callback,
-        hf_policy=hf_policy,
+        hf_policy=guidance.policy,
         checkpoint_path=checkpoint_path,
         checkpoint_every=checkpoint_every,
     )
@@ -246,6 +227,96 @@ def run_one(
         result.export_torchscript(model_path, which="best")
     if last_model_path is not None:
         result.export_torchscript(last_model_path, which="last")
+    return run_record(spec, result, guidance, time.perf_counter() - start)
+
+
+def run_lockstep(
+    specs: Sequence[RunSpec],
+    *,
+    callbacks: Sequence[Callback | None] | None = None,
+    checkpoint_paths: Sequence[str | Path | None] | None = None,
+    checkpoint_every: int = 10,
+) -> list[RunRecord | RunFailure]:
+    """Execute runs whose PPO settings allow one lockstep batch
+    (:func:`~services.learner.ppo.lockstep.lockstep_key`): stage 2 of each hf_sparse run
+    alone, then stage 3 of all together (:func:`train_lockstep`). Each run's record is the
+    one :func:`run_one` gives (bit-identical but for ``wall_seconds``: its stage 2 plus the
+    batch's stage 3); a run that raises is a :class:`RunFailure` and the others go on.
+    ``callbacks`` and ``checkpoint_paths`` are per run (as :func:`run_one`'s)."""
+    n = len(specs)
+    callbacks = list(callbacks) if callbacks is not None else [None] * n
+    paths = list(checkpoint_paths) if checkpoint_paths is not None else [None] * n
+    outcomes: list[RunRecord | RunFailure | None] = [None] * n
+    guided: list[tuple[int, RunGuidance]] = []
+    for i, spec in enumerate(specs):
+        try:
+            guided.append((i, run_guidance(spec)))
+        except Exception as exc:  # this run fails, the others go on
+            outcomes[i] = RunFailure.from_exception(spec, exc)
+    start = time.perf_counter()
+    results = train_lockstep(
+        [specs[i].ppo_config() for i, _ in guided],
+        callbacks=[callbacks[i] for i, _ in guided],
+        hf_policies=[guidance.policy for _, guidance in guided],
+        checkpoint_paths=[paths[i] for i, _ in guided],
+        checkpoint_every=checkpoint_every,
+    )
+    training_seconds = time.perf_counter() - start
+    for (i, guidance), result in zip(guided, results, strict=True):
+        if isinstance(result, Exception):
+            outcomes[i] = RunFailure.from_exception(specs[i], result)
+        else:
+            wall = guidance.seconds + training_seconds
+            outcomes[i] = run_record(specs[i], result, guidance, wall)
+    return [o for o in outcomes if o is not None]
+
+
+@dataclass(frozen=True)
+class RunGuidance:
+    """A run's pi_HF (None for the RL methods), its greedy SPL on the evaluation starts,
+    stage 2's summary (None unless it ran) and the seconds it took."""
+
+    policy: HFPolicy | None
+    spl: float | None
+    summary: dict[str, Any] | None
+    seconds: float
+
+
+def run_guidance(
+    spec: RunSpec,
+    *,
+    hf_policy: HFPolicy | None = None,
+    on_label: Callable[[FeedbackRecord], None] | None = None,
+) -> RunGuidance:
+    """The pi_HF that guides a run: ``hf_policy`` if given, else stage 2's from simulated
+    feedback for hf_sparse (:func:`learn_hf_policy`), else none; measured on the run's
+    evaluation starts before RL."""
+    start = time.perf_counter()
+    config = spec.ppo_config()
+    if hf_policy is not None:
+        with closing(gym.make(config.env_id, **config.env_kwargs)) as eval_env:
+            spl = evaluate_spl(eval_env, hf_policy.act, config.eval_seeds)
+        return RunGuidance(hf_policy, spl, None, time.perf_counter() - start)
+    if spec.method != "hf_sparse":
+        return RunGuidance(None, None, None, 0.0)
+    assert spec.accuracy is not None  # RunSpec guarantees it for hf_sparse
+    with closing(gym.make(config.env_id, **config.env_kwargs)) as label_env:
+        hf = learn_hf_policy(
+            label_env,
+            spec.accuracy,
+            spec.seed,
+            spec.n_labels,
+            method=spec.hf_method or PAPER_METHOD,
+            on_label=on_label,
+        )
+        spl = evaluate_spl(label_env, hf.policy.act, config.eval_seeds)
+    return RunGuidance(hf.policy, spl, hf.summary(), time.perf_counter() - start)
+
+
+def run_record(
+    spec: RunSpec, result: TrainResult, guidance: RunGuidance, wall_seconds: float
+) -> RunRecord:
+    """The record of a run of ``spec`` trained to ``result``."""
     curve = [[int(step), float(spl)] for step, spl in result.curve]
     return RunRecord(
         task=spec.task,
@@ -255,13 +326,15 @@ def run_one(
         hf_treatment=spec.hf_treatment,
         curve=curve,
         final_spl=float(result.final_spl),
-        hf_policy_spl=hf_policy_spl,
-        wall_seconds=time.perf_counter() - start,
+        hf_policy_spl=guidance.spl,
+        wall_seconds=wall_seconds,
         steps_to_0_7=steps_to_reach(curve),
         n_episodes=result.n_episodes,
         n_hf_episodes=result.n_hf_episodes,
-        training_episodes=episode_stats(result.episodes, config.eval_every, result.global_step),
-        hf=hf_summary,
+        training_episodes=episode_stats(
+            result.episodes, result.config.eval_every, result.global_step
+        ),
+        hf=guidance.summary,
         spec=spec.to_dict(),
         best_step=result.best_step,
         best_spl=float(result.best_spl),

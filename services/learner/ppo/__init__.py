@@ -71,12 +71,14 @@ from services.learner.ppo.config import (
     check_settings,
     hf_epsilon,
 )
+from services.learner.ppo.lockstep import PER_RUN_SETTINGS, lockstep_key, train_lockstep
 from services.learner.ppo.loop import train
 from services.learner.ppo.result import Callback, TrainResult
 from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
 from services.learner.ppo.update import ppo_loss, update_metrics, update_policy
 
 __all__ = [
+    "PER_RUN_SETTINGS",
     "SETTING_BOUNDS",
     "ActorCritic",
     "Callback",
@@ -90,8 +92,10 @@ __all__ = [
     "collect_rollout",
     "compute_advantages",
     "hf_epsilon",
+    "lockstep_key",
     "ppo_loss",
     "train",
+    "train_lockstep",
     "update_metrics",
     "update_policy",
 ]

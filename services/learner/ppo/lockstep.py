@@ -192,10 +192,9 @@ class BatchedAdam:
         self.params = self.model.tensors()
 
     def zero_grad(self) -> None:
-        """Zero every gradient."""
+        """Drop every gradient (backward then writes fresh ones: no zeroing, no adding)."""
         for p in self.params:
-            if p.grad is not None:
-                p.grad.zero_()
+            p.grad = None
 
     def clip_grad_norm_(self, max_norm: float) -> torch.Tensor:
         """Per run, ``nn.utils.clip_grad_norm_``: the norm of its per-parameter gradient
