@@ -10,6 +10,7 @@ alone (``hf_policies.json``).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import multiprocessing
 import signal
@@ -146,15 +147,19 @@ def validate_maps(specs: Sequence[RunSpec]) -> None:
             raise ValueError(str(exc).splitlines()[0]) from None
 
 
+CHECKPOINT_FOLDER = "checkpoints"
+"""Sub-folder of a reproduction where its lockstep runs keep their checkpoints."""
 LOCKSTEP_MAX_RUNS = 64
 """Most runs of one lockstep batch (one worker process holds a batch: its envs, networks)."""
 
 
 @dataclass(frozen=True)
 class RunBatch:
-    """Runs trained together in lockstep in one worker (:func:`run_lockstep`)."""
+    """Runs trained together in lockstep in one worker (:func:`run_lockstep`), each
+    checkpointed in ``checkpoint_dir`` if given (:func:`checkpoint_path`)."""
 
     specs: tuple[RunSpec, ...]
+    checkpoint_dir: str | None = None
 
     @property
     def key(self) -> tuple[Any, ...]:
@@ -167,16 +172,30 @@ class RunBatch:
         return f"lockstep batch of {len(self.specs)} runs ({self.specs[0].label}, ...)"
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able form: the runs' specs."""
-        return {"runs": [s.to_dict() for s in self.specs]}
+        """JSON-able form: the runs' specs and the checkpoint folder."""
+        return {"runs": [s.to_dict() for s in self.specs], "checkpoint_dir": self.checkpoint_dir}
 
     def failures(self, failure: RunFailure) -> list[RunFailure]:
         """The batch's failure (e.g. its worker died) as one failure per run."""
         return [replace(failure, spec=s.to_dict(), label=s.label) for s in self.specs]
 
 
+CHECKPOINT_EVERY = 10
+"""Updates between two checkpoints of a run of a sweep (1280 env steps by default)."""
+
+
+def checkpoint_path(folder: str | Path, spec: RunSpec) -> Path:
+    """Where a sweep keeps the checkpoint of the run of ``spec`` until its record is saved:
+    ``folder/<digest of the spec>.pt``."""
+    digest = hashlib.sha256(json.dumps(spec.to_dict(), sort_keys=True).encode()).hexdigest()
+    return Path(folder) / f"{digest[:20]}.pt"
+
+
 def lockstep_batches(
-    specs: Sequence[RunSpec], workers: int, max_runs: int = LOCKSTEP_MAX_RUNS
+    specs: Sequence[RunSpec],
+    workers: int,
+    max_runs: int = LOCKSTEP_MAX_RUNS,
+    checkpoint_dir: str | Path | None = None,
 ) -> list[RunBatch]:
     """Split ``specs`` into lockstep batches: runs of one PPO shape
     (:func:`~services.learner.ppo.lockstep_key`) together, each group dealt round-robin into
@@ -187,12 +206,25 @@ def lockstep_batches(
     batches = []
     for group in groups.values():
         n_batches = min(len(group), max(workers, -(-len(group) // max_runs)))
-        batches += [RunBatch(tuple(group[b::n_batches])) for b in range(n_batches)]
+        batches += [
+            RunBatch(
+                tuple(group[b::n_batches]),
+                None if checkpoint_dir is None else str(checkpoint_dir),
+            )
+            for b in range(n_batches)
+        ]
     return batches
 
 
 def _run_batch(batch: RunBatch) -> list[RunRecord | RunFailure]:
-    return run_lockstep(batch.specs)
+    folder = batch.checkpoint_dir
+    return run_lockstep(
+        batch.specs,
+        checkpoint_paths=None
+        if folder is None
+        else [checkpoint_path(folder, s) for s in batch.specs],
+        checkpoint_every=CHECKPOINT_EVERY,
+    )
 
 
 def run_sweep(
@@ -202,11 +234,14 @@ def run_sweep(
     lockstep: bool,
     on_result: Callable[[RunRecord], None],
     on_failure: Callable[[RunFailure], None],
+    checkpoint_dir: str | Path | None = None,
 ) -> None:
     """Every run of ``specs`` over ``workers`` processes: each alone (:func:`run_one`), or
     in lockstep batches (:func:`lockstep_batches`, :func:`run_lockstep`; bit-identical
     records). Each run's record or failure is handed over as it is known (a batch's when
-    the batch ends)."""
+    the batch ends). With ``checkpoint_dir``, lockstep runs write checkpoints there
+    (:func:`checkpoint_path`) and resume from them, so a batch interrupted or killed
+    resumes every run; a run's checkpoint is deleted once its record was handed over."""
     if not lockstep:
         run_isolated(run_one, specs, workers=workers, on_result=on_result, on_failure=on_failure)
         return
@@ -215,18 +250,24 @@ def run_sweep(
         for outcome in outcomes:
             if isinstance(outcome, RunFailure):
                 on_failure(outcome)
-            else:
-                on_result(outcome)
+                continue
+            on_result(outcome)
+            if checkpoint_dir is not None:
+                checkpoint_path(checkpoint_dir, outcome.run_spec).unlink(missing_ok=True)
 
     def batch_failed(failure: RunFailure) -> None:
         batch = RunBatch(tuple(RunSpec.from_dict(s) for s in failure.spec["runs"]))
         for run_failure in batch.failures(failure):
             on_failure(run_failure)
 
-    batches = lockstep_batches(specs, workers)
+    if checkpoint_dir is not None:
+        Path(checkpoint_dir).mkdir(parents=True, exist_ok=True)
+    batches = lockstep_batches(specs, workers, checkpoint_dir=checkpoint_dir)
     run_isolated(
         _run_batch, batches, workers=workers, on_result=batch_done, on_failure=batch_failed
     )
+    if checkpoint_dir is not None and not any(Path(checkpoint_dir).iterdir()):
+        Path(checkpoint_dir).rmdir()  # every run done: no folder left behind
 
 
 def reproduce(
@@ -243,7 +284,9 @@ def reproduce(
     """Run every spec not yet in ``out_dir/results.json`` and write the outputs.
 
     With ``lockstep`` (the default) the runs train in lockstep batches, one per worker
-    (:func:`run_sweep`); False runs each alone (the same records).
+    (:func:`run_sweep`), checkpointed in ``out_dir/checkpoints`` (a reproduction
+    interrupted mid-batch resumes every run from its last checkpoint); False runs each
+    alone (the same records).
 
     ``on_done`` is called with each new run's record, ``on_failure`` with each failed run,
     ``on_resume`` once with the number of specs skipped because they are already done
@@ -298,8 +341,9 @@ def reproduce(
 
     try:
         run_sweep(
-            pending, workers=workers, lockstep=lockstep, on_result=finished, on_failure=failed
-        )
+            pending, workers=workers, lockstep=lockstep, on_result=finished,
+            on_failure=failed, checkpoint_dir=out / CHECKPOINT_FOLDER,
+        )  # fmt: skip
     except KeyboardInterrupt:  # the CSV, summary and plots cover the runs kept so far
         if results.runs:
             write_outputs(out, results.runs)

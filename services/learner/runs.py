@@ -236,21 +236,24 @@ def run_lockstep(
     callbacks: Sequence[Callback | None] | None = None,
     checkpoint_paths: Sequence[str | Path | None] | None = None,
     checkpoint_every: int = 10,
+    hf_policies: Sequence[HFPolicy | None] | None = None,
 ) -> list[RunRecord | RunFailure]:
     """Execute runs whose PPO settings allow one lockstep batch
     (:func:`~services.learner.ppo.lockstep.lockstep_key`): stage 2 of each hf_sparse run
     alone, then stage 3 of all together (:func:`train_lockstep`). Each run's record is the
     one :func:`run_one` gives (bit-identical but for ``wall_seconds``: its stage 2 plus the
     batch's stage 3); a run that raises is a :class:`RunFailure` and the others go on.
-    ``callbacks`` and ``checkpoint_paths`` are per run (as :func:`run_one`'s)."""
+    ``callbacks``, ``checkpoint_paths`` and given ``hf_policies`` are per run (as
+    :func:`run_one`'s)."""
     n = len(specs)
     callbacks = list(callbacks) if callbacks is not None else [None] * n
     paths = list(checkpoint_paths) if checkpoint_paths is not None else [None] * n
+    given = list(hf_policies) if hf_policies is not None else [None] * n
     outcomes: list[RunRecord | RunFailure | None] = [None] * n
     guided: list[tuple[int, RunGuidance]] = []
     for i, spec in enumerate(specs):
         try:
-            guided.append((i, run_guidance(spec)))
+            guided.append((i, run_guidance(spec, hf_policy=given[i])))
         except Exception as exc:  # this run fails, the others go on
             outcomes[i] = RunFailure.from_exception(spec, exc)
     start = time.perf_counter()

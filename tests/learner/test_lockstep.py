@@ -11,6 +11,7 @@ import gymnasium as gym
 import pytest
 import torch
 
+from services.learner import pool
 from services.learner.feedback import FeedbackConfig, HFPolicy, collect_feedback
 from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.networks import ObsNormalizer
@@ -197,3 +198,24 @@ def test_run_lockstep_gives_run_ones_records_on_the_real_env() -> None:
         assert alone.to_dict() | timings == batched.to_dict() | timings
         if alone.hf is not None:
             assert {**alone.hf, "wall_seconds": 0} == {**batched.hf, "wall_seconds": 0}
+
+
+def _in_process(function, specs, *, workers, on_result, on_failure) -> None:
+    """``run_isolated`` without worker processes (quick; failures are not isolated)."""
+    for spec in specs:
+        on_result(function(spec))
+
+
+def test_a_reproduction_keeps_each_runs_checkpoint_until_its_record(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(pool, "run_isolated", _in_process)
+    spec = RunSpec("sssg", "rl_sparse", 0, ppo_overrides=TINY)
+    folder = tmp_path / pool.CHECKPOINT_FOLDER
+    folder.mkdir()
+    # what a worker killed mid-batch left behind, here damaged: the batch reads it
+    pool.checkpoint_path(folder, spec).write_bytes(b"not a checkpoint")
+    [failure] = pool.reproduce(tmp_path, [spec], workers=1).failed
+    assert "not a readable checkpoint" in failure.message
+    pool.checkpoint_path(folder, spec).unlink()
+    results = pool.reproduce(tmp_path, [spec], workers=1)
+    assert [r.run_spec for r in results.runs] == [spec] and results.failed == []
+    assert not folder.exists()  # the run's checkpoint went with its record, then the folder

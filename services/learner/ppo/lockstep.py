@@ -13,9 +13,10 @@ step on two 64-64 MLPs, and most of that step is per-operation overhead, not ari
 * each run keeps everything else its own (:class:`~services.learner.ppo.run.PPORun`, the
   same code as the single-run :func:`~services.learner.ppo.train`): its env stepped in a
   loop, its random streams, episodes, evaluations, best weights, checkpoints, metrics and
-  callbacks. Runs that differ in seed, task (env id and kwargs: reward, map), evaluation
-  starts, treatment of pi_HF's steps and pi_HF (or none) share a batch; every other
-  setting must be equal (:func:`lockstep_key`).
+  callbacks (the evaluation env, reset with each evaluation start's seed, is one per task
+  and batch: a pybullet client holds ~40 MB). Runs that differ in seed, task (env id and
+  kwargs: reward, map), evaluation starts, treatment of pi_HF's steps and pi_HF (or none)
+  share a batch; every other setting must be equal (:func:`lockstep_key`).
 
 Same science. A run's records in a batch are bit-identical to the single-run path's (tested
 on every stabiliser and guidance option): every batched op computes each run's slice with
@@ -38,11 +39,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from contextlib import ExitStack
+from contextlib import ExitStack, closing
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 from torch import nn
@@ -406,12 +408,19 @@ def train_lockstep(
     with ExitStack() as stack:
         runs: list[PPORun] = []
         slots: list[int] = []  # each batch row's index in configs
+        eval_envs: dict[str, gym.Env] = {}  # one per task: a pybullet client is ~40 MB
         for i, config in enumerate(configs):
+            task = repr((config.env_id, sorted(config.env_kwargs.items())))
             try:
+                if task not in eval_envs:
+                    eval_envs[task] = stack.enter_context(
+                        closing(gym.make(config.env_id, **config.env_kwargs))
+                    )
                 runs.append(
                     PPORun(
                         config, stack, callback=callbacks[i], hf_policy=hf_policies[i],
                         checkpoint_path=checkpoint_paths[i], checkpoint_every=checkpoint_every,
+                        eval_env=eval_envs[task],
                     )
                 )  # fmt: skip
                 slots.append(i)

@@ -37,7 +37,9 @@ from services.learner.seeding import RunSeeds, Stream
 class PPORun:
     """A run set up (or resumed from ``checkpoint_path``) and evaluated at step 0.
 
-    The envs are closed by ``stack``. ``keep_going`` turns False once a hook asks to stop;
+    The envs are closed by ``stack``; ``eval_env``, for the evaluations and the replays of
+    successful episodes, may be shared by runs of one task (every use resets it with its
+    own seed), else the run makes its own. ``keep_going`` turns False once a hook asks to stop;
     :attr:`running` says whether another update is due.
     """
 
@@ -50,6 +52,7 @@ class PPORun:
         hf_policy: HFPolicy | None = None,
         checkpoint_path: str | Path | None = None,
         checkpoint_every: int = 10,
+        eval_env: gym.Env | None = None,
     ) -> None:
         self.start_time = time.perf_counter()
         self.config = config
@@ -59,7 +62,9 @@ class PPORun:
         self.checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = checkpoint_every
         self.env = stack.enter_context(closing(gym.make(config.env_id, **config.env_kwargs)))
-        self.eval_env = stack.enter_context(closing(gym.make(config.env_id, **config.env_kwargs)))
+        if eval_env is None:  # evaluations and replays reset it with their seed each time
+            eval_env = stack.enter_context(closing(gym.make(config.env_id, **config.env_kwargs)))
+        self.eval_env = eval_env
         env = self.env
         # ---- networks, optimiser and the run's random streams -----------------------------
         n_actions = int(env.action_space.n)
