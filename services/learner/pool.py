@@ -149,8 +149,9 @@ def validate_maps(specs: Sequence[RunSpec]) -> None:
 
 CHECKPOINT_FOLDER = "checkpoints"
 """Sub-folder of a reproduction where its lockstep runs keep their checkpoints."""
-LOCKSTEP_MAX_RUNS = 64
-"""Most runs of one lockstep batch (one worker process holds a batch: its envs, networks)."""
+LOCKSTEP_MAX_RUNS = 32
+"""Most runs of one lockstep batch: a worker holds its batch's envs, ~38 MB of pybullet
+client a run (32 runs: ~1.7 GB with the process's own ~0.5 GB)."""
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from services.learner.optimizer import FlatAdam
 from services.learner.ppo import Callback, PPOConfig, TrainResult, train, train_lockstep
 from services.learner.ppo.agent import ActorCritic
 from services.learner.ppo.lockstep import BatchedActorCritic, BatchedAdam
-from services.learner.runs import run_lockstep, run_one
+from services.learner.runs import RunFailure, run_lockstep, run_one
 from services.learner.specs import RunSpec
 from tests.learner.conftest import TOY_ENV_ID, toy_config
 
@@ -219,3 +219,15 @@ def test_a_reproduction_keeps_each_runs_checkpoint_until_its_record(tmp_path, mo
     results = pool.reproduce(tmp_path, [spec], workers=1)
     assert [r.run_spec for r in results.runs] == [spec] and results.failed == []
     assert not folder.exists()  # the run's checkpoint went with its record, then the folder
+
+
+def test_a_sweep_is_dealt_into_lockstep_batches_of_one_ppo_shape() -> None:
+    paper = [RunSpec("sssg", "rl_sparse", seed) for seed in range(5)]
+    epochs = [RunSpec("vssg", "rl_rich", seed, ppo_overrides={"n_epochs": 8}) for seed in (0, 1)]
+    batches = pool.lockstep_batches([*paper, *epochs], workers=2, max_runs=2)
+    # paper settings: 5 runs in 3 batches of at most 2, dealt round-robin; the other shape apart
+    assert [[s.seed for s in b.specs] for b in batches] == [[0, 3], [1, 4], [2], [0], [1]]
+    assert {b.specs[0].ppo_overrides.get("n_epochs") for b in batches[3:]} == {8}
+    failures = batches[0].failures(RunFailure("spec", "label", "BrokenProcessPool", "died", ""))
+    assert [f.spec for f in failures] == [paper[0].to_dict(), paper[3].to_dict()]
+    assert failures[1].label == paper[3].label and failures[1].error_type == "BrokenProcessPool"

@@ -54,12 +54,18 @@ and optimised by :class:`~services.learner.optimizer.FlatAdam` (clip + Adam on o
 buffer); the tests check both against a plain ``nn.Linear`` / ``torch.optim.Adam`` /
 ``Categorical`` PPO to a tolerance.
 
+Sweeps. :func:`train_lockstep` trains many runs of one PPO shape as one batch (one
+``baddbmm`` per layer for all runs' networks, one optimiser with per-run clipping and Adam,
+each run's envs, streams, evaluations and checkpoints its own); each run's records are
+bit-identical to :func:`train`'s (:mod:`~services.learner.ppo.lockstep`).
+
 Reading order, one module a concern: :mod:`~services.learner.ppo.config` (:class:`PPOConfig`,
 :func:`hf_epsilon`), :mod:`~services.learner.ppo.agent` (:class:`ActorCritic`), then
 :func:`train` in :mod:`~services.learner.ppo.loop`, top to bottom as CleanRL's ``ppo.py``:
 1. the rollout with the behaviour policy (:mod:`~services.learner.ppo.rollout`), 2. advantages
 and returns (:mod:`~services.learner.ppo.advantages`), 3. minibatch updates of the clipped
-loss (:mod:`~services.learner.ppo.update`). Every name is importable from here.
+loss (:mod:`~services.learner.ppo.update`); what a run keeps besides is
+:class:`~services.learner.ppo.run.PPORun`. Every name is importable from here.
 """
 
 from services.learner.ppo.advantages import advantages_and_returns, compute_advantages
