@@ -243,6 +243,8 @@ def run_sweep(
     the batch ends). With ``checkpoint_dir``, lockstep runs write checkpoints there
     (:func:`checkpoint_path`) and resume from them, so a batch interrupted or killed
     resumes every run; a run's checkpoint is deleted once its record was handed over."""
+    if not specs:
+        return
     if not lockstep:
         run_isolated(run_one, specs, workers=workers, on_result=on_result, on_failure=on_failure)
         return

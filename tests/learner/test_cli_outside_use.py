@@ -267,7 +267,7 @@ def test_reproduce_interrupted_keeps_a_consistent_folder_and_resumes(tmp_path, m
         on_result(_record(specs[0]))
         raise KeyboardInterrupt
 
-    args = [*REPRODUCE, "--seeds", "3", "--out", str(tmp_path)]
+    args = [*REPRODUCE, "--seeds", "3", "--out", str(tmp_path), "--single-run"]
     monkeypatch.setattr(pool, "run_isolated", one_then_ctrl_c)
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 130, result.output
@@ -289,6 +289,30 @@ def test_reproduce_interrupted_keeps_a_consistent_folder_and_resumes(tmp_path, m
     assert resumed == [1, 2]
     rows = _csv_rows(tmp_path / "results.csv")
     assert [r["seed"] for r in rows] == ["0", "1", "2"] and rows[0]["curve"].startswith("0:")
+
+
+def test_an_interrupted_lockstep_reproduction_keeps_the_batches_done(tmp_path, monkeypatch) -> None:
+    def one_batch_then_ctrl_c(function, batches, *, workers, on_result, on_failure) -> None:
+        on_result([_record(spec) for spec in batches[0].specs])
+        raise KeyboardInterrupt
+
+    args = [*REPRODUCE, "--seeds", "3", "--out", str(tmp_path), "--workers", "2"]
+    monkeypatch.setattr(pool, "run_isolated", one_batch_then_ctrl_c)
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 130, result.output
+    # two batches for two workers, the seeds dealt round-robin: [0, 2] and [1]
+    assert [r["seed"] for r in _csv_rows(tmp_path / "results.csv")] == ["0", "2"]
+    resumed: list[int] = []
+
+    def the_rest(function, batches, *, workers, on_result, on_failure) -> None:
+        for batch in batches:
+            resumed.extend(spec.seed for spec in batch.specs)
+            on_result([_record(spec) for spec in batch.specs])
+
+    monkeypatch.setattr(pool, "run_isolated", the_rest)
+    assert CliRunner().invoke(app, args).exit_code == 0
+    assert resumed == [1]
+    assert [r["seed"] for r in _csv_rows(tmp_path / "results.csv")] == ["0", "1", "2"]
 
 
 def test_ctrl_c_stops_a_real_hf_sweep_at_once_and_a_rerun_resumes(tmp_path) -> None:
