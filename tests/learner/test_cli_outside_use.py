@@ -150,6 +150,7 @@ def _bench_never_runs(*args: Any, **kwargs: Any) -> None:
         ["eeg", "calibrate", "{dir}/none.bdf", "--out", "{file}"],
         ["eeg", "quality-sweep", "--seeds", "1", "--actions", "60", "--out", "{file}"],
         ["bench", "learner", "--out", "{file}"],
+        ["bench", "sweep", "--out", "{file}"],
         ["bench", "sim", "--out", "{file}"],
         ["bench", "eeg", "--memory-only", "--out", "{file}"],
     ],
@@ -160,8 +161,10 @@ def test_an_out_that_cannot_be_written_is_a_one_line_error_and_no_work(
     import benchmarks.bench_eeg
     import benchmarks.bench_learner
     import benchmarks.bench_sim
+    import benchmarks.bench_sweep
 
     monkeypatch.setattr(pool, "run_isolated", _no_runs)
+    monkeypatch.setattr(benchmarks.bench_sweep, "run", _bench_never_runs)
     monkeypatch.setattr(benchmarks.bench_learner, "run_benchmark", _bench_never_runs)
     monkeypatch.setattr(benchmarks.bench_sim, "run", _bench_never_runs)
     monkeypatch.setattr(benchmarks.bench_eeg, "bench_memory", _bench_never_runs)
