@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
@@ -15,6 +16,7 @@ from services.api.settings import ApiSettings
 from services.core.db.base import utcnow
 from services.core.db.models import ROLES, User
 from services.core.errors import BadRequestError, ConflictError
+from services.core.files import write_private_text
 
 log = logging.getLogger(__name__)
 
@@ -74,11 +76,14 @@ class FirstAdmin:
     generated_password: str | None
 
 
-def ensure_first_admin(sessions: sessionmaker[Session], settings: ApiSettings) -> FirstAdmin | None:
+def ensure_first_admin(
+    sessions: sessionmaker[Session], settings: ApiSettings, password_file: Path | None = None
+) -> FirstAdmin | None:
     """Create the first admin if the database has no user at all.
 
     From ``BGRL_ADMIN_EMAIL``/``BGRL_ADMIN_PASSWORD`` when set; otherwise with
-    ``admin@localhost`` and/or a generated password, which is returned (and logged) once.
+    ``admin@localhost`` and/or a generated password, which is returned and logged once, or
+    with ``password_file``, written to that file (mode 600) and the log names the file.
     """
     with sessions() as db:
         if db.scalar(select(func.count()).select_from(User)):
@@ -92,7 +97,12 @@ def ensure_first_admin(sessions: sessionmaker[Session], settings: ApiSettings) -
         except (ConflictError, IntegrityError):
             return None  # another process created it at the same moment
     first = FirstAdmin(email=normalize_email(email), generated_password=None if given else password)
-    if first.generated_password is not None:
+    if first.generated_password is not None and password_file is not None:
+        write_private_text(password_file, first.generated_password + "\n")
+        log.warning(
+            "first start: created admin %s; its password is in %s", first.email, password_file
+        )
+    elif first.generated_password is not None:
         log.warning(
             "first start: created admin %s with password %s (shown once; change it with "
             "POST /api/v1/users/me/password)",

@@ -96,6 +96,11 @@ class ApiSettings(PlatformSettings):
         default_factory=list,
         description="Extra websocket Origins accepted besides the api's own host (JSON list).",
     )
+    supervisor_status_file: Path | None = Field(
+        None,
+        description="Set by `bgrl up`: the JSON file where it keeps the state of the "
+        "processes it supervises; /readyz reports it.",
+    )
     migrate_on_start: bool = Field(
         True, description="Run the database migrations when the api starts."
     )

@@ -1,19 +1,23 @@
 """``bgrl up`` (alias ``bgrl serve``): the whole platform on one machine, one command.
 
-Creates the data folder, brings the database to the current schema, then starts the api
-(8000; ``BGRL_API_WORKERS`` processes behind that port), sim (8001), EEG (8002) and learner
-(8003) services as uvicorn processes and ``BGRL_WORKERS`` job workers. Every value comes
-from the services' settings (``BGRL_PORT``, ``BGRL_SIM_HOST``, ``BGRL_EEG_PORT``...),
-validated before anything starts: a bad one is one line naming the variable. A worker that
-dies is restarted; if an HTTP service dies, everything stops. Ctrl-C or SIGTERM stops every
-process within 10 s (workers hand their running job back to the queue); the data folder
-keeps the database, broker and artifacts for the next start.
+Every value comes from the services' settings (``BGRL_PORT``, ``BGRL_SIM_HOST``,
+``BGRL_EEG_PORT``...), validated before anything starts: a bad one is one line naming the
+variable. Then ``bgrl up`` binds every port itself (one in use: one line naming the variable
+and the process holding it), creates the data folder, brings the database to the current
+schema, creates the first admin, and starts the api (8000; ``BGRL_API_WORKERS`` processes
+sharing its socket), sim (8001), EEG (8002) and learner (8003) services and ``BGRL_WORKERS``
+job workers. Each process is told where the others are (``BGRL_SIM_URL``, ``BGRL_EEG_URL``,
+``BGRL_LEARNER_URL``), derived from those same settings unless the variable is given.
+
+:mod:`services.cli.supervisor` keeps them running (restart with backoff, health checks, a
+crash loop stops that one process, or everything for the api) and every process dies with
+``bgrl up``, even by SIGKILL. Ctrl-C or SIGTERM stops every process within 10 s (workers hand
+their running job back to the queue); the data folder keeps the database, broker and
+artifacts for the next start. The start-up ends with one block: dashboard, admin, data folder.
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import importlib
 import importlib.util
 import logging
@@ -24,6 +28,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -34,10 +39,12 @@ from services.core.settings import BaseServiceSettings, SettingsError, load_sett
 
 logger = logging.getLogger("bgrl.up")
 
-STOP_TIMEOUT_S = 7.0
-"""Seconds a child gets to stop after SIGTERM before it is killed (all stop within 10 s)."""
-WORKER_RESTART_DELAY_S = 2.0
-"""A worker that died is restarted after this pause (no busy loop if it dies at start)."""
+SERVICE_TOKEN_FILE = "service-token"
+"""File in the data folder keeping the internal service token ``bgrl up`` generated."""
+ADMIN_PASSWORD_FILE = "first-admin-password"
+"""File in the data folder with the first admin's generated password (mode 600)."""
+STATUS_FILE = "run/processes.json"
+"""File in the data folder where ``bgrl up`` keeps its processes' state (for ``/readyz``)."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +74,12 @@ class ServiceSpec:
         cls = getattr(importlib.import_module(module), name)
         return load_settings(cls)
 
+    def variable(self, field: str) -> str:
+        """The environment variable of one of its settings: ``BGRL_SIM_PORT``..."""
+        module, _, name = self.settings_class.partition(":")
+        cls = getattr(importlib.import_module(module), name)
+        return f"{cls.model_config.get('env_prefix', '')}{field.upper()}"
+
 
 SERVICES = (
     ServiceSpec("api", "services.api.app:app", "services.api.settings:ApiSettings"),
@@ -78,28 +91,58 @@ SERVICES = (
         "services.learner.service.settings:LearnerSettings",
     ),
 )
+CALLED_SERVICES = ("sim", "eeg", "learner")
+"""Services the api and the workers call, each at ``BGRL_<NAME>_URL``."""
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
-    """Linux: the child gets SIGTERM if ``bgrl up`` itself is killed (nothing orphaned)."""
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+def url_variable(name: str) -> str:
+    """``BGRL_SIM_URL`` for ``sim``: where the platform's processes find that service."""
+    return f"BGRL_{name.upper()}_URL"
+
+
+def connect_host(host: str) -> str:
+    """The address to call a service listening on ``host`` (a wildcard: this machine)."""
+    if host in ("", "0.0.0.0"):
+        return "127.0.0.1"
+    if host == "::":
+        return "[::1]"
+    return f"[{host}]" if ":" in host else host
+
+
+def service_url(settings: BaseServiceSettings) -> str:
+    """``http://host:port`` of a service from its settings."""
+    return f"http://{connect_host(settings.host)}:{settings.port}"
+
+
+def internal_urls(
+    settings: Mapping[str, BaseServiceSettings], environ: Mapping[str, str]
+) -> dict[str, str]:
+    """``BGRL_SIM_URL``, ``BGRL_EEG_URL``, ``BGRL_LEARNER_URL``: as given in ``environ``,
+    else derived from the service's own host and port settings (one source for both)."""
+    urls = {}
+    for name in CALLED_SERVICES:
+        variable = url_variable(name)
+        if variable in environ:
+            urls[variable] = environ[variable]
+        elif name in settings:
+            urls[variable] = service_url(settings[name])
+    return urls
 
 
 class Child:
-    """A child process of ``bgrl up`` (in its own process group, so only we signal it)."""
+    """A child process that dies with this one (for commands that start a service or two)."""
 
     def __init__(self, name: str, cmd: list[str], env: dict[str, str] | None = None) -> None:
         self.name = name
         self.cmd = cmd
         self.env = env
-        """Variables set for this child on top of ``bgrl up``'s environment."""
+        """Variables set for this child on top of this process's environment."""
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
-        preexec = _die_with_parent if sys.platform.startswith("linux") else None
-        env = {**os.environ, **self.env} if self.env else None
-        self.proc = subprocess.Popen(self.cmd, start_new_session=True, preexec_fn=preexec, env=env)
+        from services.cli.supervisor import spawn_child
+
+        self.proc = spawn_child(self.cmd, {**os.environ, **(self.env or {})})
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -118,10 +161,6 @@ class Child:
             logger.warning("%s did not stop in time; killing it", self.name)
             self.proc.kill()
             self.proc.wait()
-
-
-SERVICE_TOKEN_FILE = "service-token"
-"""File in the data folder keeping the internal service token ``bgrl up`` generated."""
 
 
 def kept_service_token(path: Path) -> str:
@@ -156,47 +195,59 @@ def up(
     ] = True,
 ) -> None:
     """Start the platform: api, sim, EEG, learner services and job workers; Ctrl-C stops all."""
+    from services.api.settings import ApiSettings
+    from services.cli.ports import PortError, bind_all
+    from services.cli.supervisor import Supervisor, SupervisorSettings
     from services.core.logging import configure_log_file, configure_logging
-    from services.core.platform import PlatformSettings
 
     known = {s.name for s in SERVICES} | {"worker"}
     if only and set(only) - known:
         raise _fail(f"--only: unknown {sorted(set(only) - known)}; known: {sorted(known)}")
     try:
-        platform = load_settings(PlatformSettings)
-        specs = [s for s in SERVICES if (not only or s.name in only) and s.available()]
-        service_settings = [(spec, spec.load_settings()) for spec in specs]
+        platform = load_settings(ApiSettings)
+        every = {spec.name: (spec, spec.load_settings()) for spec in SERVICES if spec.available()}
+        started = [(spec, s) for spec, s in every.values() if not only or spec.name in only]
         n_workers = platform.workers if not only or "worker" in only else 0
         if n_workers:
-            from services.worker.settings import WorkerSettings
+            from services.worker.live_services import LiveSettings
 
-            load_settings(WorkerSettings)
+            load_settings(LiveSettings)
+        supervision = load_settings(SupervisorSettings)
     except SettingsError as exc:
+        raise _fail(str(exc)) from None
+    if not started and not n_workers:
+        raise _fail("nothing to start")
+    try:  # before anything starts: a port in use is one line naming who holds it
+        sockets = bind_all([(spec.variable("port"), s.host, s.port) for spec, s in started])
+    except PortError as exc:
         raise _fail(str(exc)) from None
     configure_logging(platform.log_level, json_lines=platform.log_json)
     configure_log_file(platform, "up")
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # not a line per health check
 
     data_dir = platform.ensure_data_dir().resolve()
-    typer.echo(f"data folder {data_dir}")
+    env = dict(os.environ)
     if platform.service_token is None:
         # one door: sim, EEG and learner take calls only from the platform's own processes
-        token_file = data_dir / SERVICE_TOKEN_FILE
-        os.environ["BGRL_SERVICE_TOKEN"] = kept_service_token(token_file)
-        typer.echo(f"internal services take the X-Service-Token kept in {token_file}")
+        env["BGRL_SERVICE_TOKEN"] = kept_service_token(data_dir / SERVICE_TOKEN_FILE)
+    env.update(internal_urls({name: s for name, (_, s) in every.items()}, os.environ))
     if migrate:
         from services.core.db.migrate import upgrade_database
 
         upgrade_database(platform.resolved_database_url)
-        typer.echo("database schema up to date")
-
-    services = [_service_child(spec, s) for spec, s in service_settings]
+    status_file = data_dir / STATUS_FILE
+    status_file.parent.mkdir(exist_ok=True)
+    specs = []
+    for (spec, settings), sock in zip(started, sockets, strict=True):
+        specs += _service_processes(spec, settings, sock.fileno(), env, status_file)
     worker_cmd = [sys.executable, "-m", "services.cli.main", "worker", "--no-migrate"]
-    workers = [
-        Child(f"worker-{i + 1}", [*worker_cmd, "--name", f"local{i + 1}"]) for i in range(n_workers)
-    ]
-    if not services and not workers:
-        raise _fail("nothing to start")
+    specs += [_worker_process(i + 1, worker_cmd, env, status_file) for i in range(n_workers)]
+    admin = _first_admin(platform, data_dir) if "api" in [s.name for s, _ in started] else None
 
+    supervisor = Supervisor(
+        specs, supervision, status_file=status_file, echo=lambda line: typer.echo(line, err=True)
+    )
+    reaper = _reaper(platform)
     stop = threading.Event()
 
     def request_stop(signum: int, _frame: Any) -> None:
@@ -205,23 +256,18 @@ def up(
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     exit_code = 0
     try:
-        for child in [*services, *workers]:
-            child.start()
-        for spec, settings in service_settings:
-            url = f"http://{settings.host}:{settings.port}"
-            processes = getattr(settings, "api_workers", 1)
-            extra = f", {processes} processes (BGRL_API_WORKERS)" if processes > 1 else ""
-            typer.echo(f"{spec.name:>8}: {url}  (docs: {url}/docs{extra})")
-        if workers:
-            typer.echo(f"{'workers':>8}: {len(workers)} (BGRL_WORKERS)")
-        typer.echo("Ctrl-C stops everything.")
-        exit_code = _supervise(services, workers, stop)
+        # the sockets stay open here: a restarted process serves the same one, and a port
+        # never goes free (connections wait in its queue) while its service restarts
+        supervisor.start()
+        reaper.start()
+
+        def ready(not_answering: list[str]) -> None:
+            typer.echo(_ready_block(started, n_workers, admin, data_dir, env, not_answering))
+
+        exit_code = supervisor.run(stop, ready)
     finally:
-        deadline = time.monotonic() + STOP_TIMEOUT_S
-        for child in [*workers, *services]:
-            child.terminate()
-        for child in [*workers, *services]:
-            child.wait_or_kill(deadline)
+        reaper.stop()
+        supervisor.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         typer.echo("stopped")
@@ -232,46 +278,123 @@ def up(
     os._exit(exit_code)
 
 
-def _service_child(spec: ServiceSpec, settings: BaseServiceSettings) -> Child:
-    """The uvicorn process of one service; the api's with ``BGRL_API_WORKERS`` processes.
+def _service_processes(
+    spec: ServiceSpec,
+    settings: BaseServiceSettings,
+    fd: int,
+    env: dict[str, str],
+    status_file: Path,
+) -> list[Any]:
+    """The processes of one service, each serving the listening socket ``fd``: one, or the
+    api's ``BGRL_API_WORKERS``.
 
     The api processes do not migrate: ``bgrl up`` did it once before starting them (or was
     told not to), so several processes never run the migrations at the same moment.
     """
-    cmd = [sys.executable, "-m", "uvicorn", spec.asgi_app]
-    cmd += ["--host", settings.host, "--port", str(settings.port)]
+    from services.cli.supervisor import ProcessSpec
+
+    cmd = [sys.executable, "-m", "services.cli.child", spec.asgi_app, "--fd", str(fd)]
+    health = f"{service_url(settings)}/health"
     if spec.name != "api":
-        return Child(spec.name, cmd)
-    workers = getattr(settings, "api_workers", 1)
-    if workers > 1:
-        cmd += ["--workers", str(workers)]
-    return Child(spec.name, cmd, env={"BGRL_MIGRATE_ON_START": "false"})
+        return [ProcessSpec(spec.name, spec.name, cmd, env, (fd,), health)]
+    api_env = {
+        **env,
+        "BGRL_MIGRATE_ON_START": "false",
+        "BGRL_SUPERVISOR_STATUS_FILE": str(status_file),
+    }
+    n = getattr(settings, "api_workers", 1)
+    names = ["api"] if n == 1 else [f"api-{i + 1}" for i in range(n)]
+    return [ProcessSpec(name, "api", cmd, api_env, (fd,), health, essential=True) for name in names]
 
 
-def _supervise(services: list[Child], workers: list[Child], stop: threading.Event) -> int:
-    """Wait for a stop request; restart dead workers; return 1 if an HTTP service died."""
-    restart_at: dict[str, float] = {}
-    while not stop.wait(0.5):
-        for child in services:
-            if not child.alive():
-                assert child.proc is not None
-                typer.echo(
-                    f"service {child.name} exited with code {child.proc.returncode}", err=True
-                )
-                return 1
-        for child in workers:
-            if child.alive():
-                continue
-            due = restart_at.setdefault(child.name, time.monotonic() + WORKER_RESTART_DELAY_S)
-            if time.monotonic() >= due:
-                assert child.proc is not None
-                typer.echo(
-                    f"{child.name} exited with code {child.proc.returncode}; restarting it",
-                    err=True,
-                )
-                del restart_at[child.name]
-                child.start()
-    return 0
+def _worker_process(number: int, cmd: list[str], env: dict[str, str], status_file: Path) -> Any:
+    """A job worker, ready once it created its ready file beside the status file."""
+    from services.cli.supervisor import ProcessSpec
+
+    name = f"worker-{number}"
+    ready = status_file.parent / f"{name}.ready"
+    env = {**env, "BGRL_READY_FILE": str(ready)}
+    return ProcessSpec(name, "worker", [*cmd, "--name", f"local{number}"], env, ready_file=ready)
+
+
+def _reaper(settings: Any) -> Any:
+    """The reaper of jobs whose worker died, in this process: whichever child dies (every
+    worker included), a job left running is sent again or failed with the reason."""
+    from services.core.db.session import make_engine, make_session_factory
+    from services.core.queue import make_celery
+    from services.core.reaper import Reaper
+
+    sessions = make_session_factory(make_engine(settings.resolved_database_url))
+    return Reaper(
+        sessions,
+        make_celery(settings),
+        interval_s=settings.reaper_interval_s,
+        stale_queued_s=settings.stale_queued_s,
+    )
+
+
+def _first_admin(settings: Any, data_dir: Path) -> str:
+    """Create the first admin if there is no user; the block's lines about the admin."""
+    from sqlalchemy import select
+
+    from services.api.accounts import ensure_first_admin
+    from services.core.db.models import User
+    from services.core.db.session import make_engine, make_session_factory
+
+    password_file = data_dir / ADMIN_PASSWORD_FILE
+    engine = make_engine(settings.resolved_database_url)
+    try:
+        sessions = make_session_factory(engine)
+        first = ensure_first_admin(sessions, settings, password_file=password_file)
+        with sessions() as db:
+            query = select(User.email).where(User.role == "admin", User.active).order_by(User.id)
+            email = db.scalars(query).first()
+    except Exception as exc:  # e.g. --no-migrate on a database without the schema
+        return f"  admin        unknown ({type(exc).__name__}: is the database migrated?)"
+    finally:
+        engine.dispose()
+    if email is None:
+        return "  admin        none active: bgrl user create EMAIL --admin"
+    lines = [f"  admin        {email}"]
+    if first is not None and first.generated_password is None:
+        lines.append("  password     the one in BGRL_ADMIN_PASSWORD")
+    elif password_file.exists():
+        lines.append(f"  password     in {password_file} (change it after signing in,")
+        lines.append("               then delete the file)")
+    else:
+        lines.append(f"  password     as set (forgotten: bgrl user set-password {email})")
+    return "\n".join(lines)
+
+
+def _ready_block(
+    started: list[tuple[ServiceSpec, BaseServiceSettings]],
+    n_workers: int,
+    admin: str | None,
+    data_dir: Path,
+    env: Mapping[str, str],
+    not_answering: list[str],
+) -> str:
+    """The block that ends the start-up: where to go, who signs in, where the data is."""
+    by_name = {spec.name: settings for spec, settings in started}
+    rule = "-" * 72
+    lines = [rule, "bgrl is up" if not not_answering else "bgrl is up, but not answering yet: "
+             + ", ".join(not_answering)]  # fmt: skip
+    if "api" in by_name:
+        url = service_url(by_name["api"])
+        lines.append(f"  dashboard    {url}/   (API docs: {url}/docs, state: {url}/readyz)")
+    if admin:
+        lines.append(admin)
+    lines.append(f"  data folder  {data_dir}")
+    others = [f"{spec.name} {service_url(s)}" for spec, s in started if spec.name != "api"]
+    if n_workers:
+        others.append(f"{n_workers} worker{'s' if n_workers > 1 else ''}")
+    if others:
+        lines.append(f"  services     {', '.join(others)}")
+    called = [f"{v}={env[v]}" for v in map(url_variable, CALLED_SERVICES) if v in env]
+    if called:
+        lines.append(f"  wiring       {' '.join(called)}")
+    lines += ["  Ctrl-C stops everything.", rule]
+    return "\n".join(lines)
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

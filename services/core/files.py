@@ -34,17 +34,17 @@ def _umask() -> int:
     return 0o022
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+def write_bytes_atomic(path: str | Path, data: bytes, *, mode: int | None = None) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same folder and rename it.
 
     The file gets the mode a plain ``open(path, "w")`` would give (0666 less the umask), not
     the temporary file's 0600, so results in a shared folder are readable as the CSVs and
-    plots beside them are. Secrets are written by their own code with mode 0600.
+    plots beside them are; ``mode`` sets another (0600 for a secret).
     """
     path = Path(path)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        os.fchmod(fd, 0o666 & ~_umask())
+        os.fchmod(fd, 0o666 & ~_umask() if mode is None else mode)
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
@@ -54,6 +54,11 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
         Path(tmp_name).unlink(missing_ok=True)
         raise
     return path
+
+
+def write_private_text(path: str | Path, text: str) -> Path:
+    """Write a secret to ``path`` atomically, readable by this user alone (mode 0600)."""
+    return write_bytes_atomic(path, text.encode(), mode=0o600)
 
 
 def write_json_atomic(path: str | Path, payload: Any, *, indent: int | None = 2) -> Path:

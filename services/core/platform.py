@@ -45,6 +45,15 @@ class PlatformSettings(BaseServiceSettings):
     job_max_attempts: int = Field(
         3, ge=1, le=100, description="Attempts a job gets before it is marked failed."
     )
+    reaper_interval_s: float = Field(
+        2.0, gt=0, description="Seconds between passes of the reaper of expired leases."
+    )
+    stale_queued_s: float = Field(
+        900.0,
+        gt=0,
+        description="A job queued this long without being claimed is sent again (its message "
+        "may have died with a worker); duplicates are dropped.",
+    )
 
     @property
     def resolved_database_url(self) -> str:

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from services.core.files import write_json_atomic
+from services.core.lifetime import die_with_parent
 from services.learner.feedback import FeedbackConfig
 from services.learner.hf_methods import PAPER_METHOD
 from services.learner.outputs import Results, load_results, save_results, write_outputs
@@ -53,6 +54,12 @@ ResultT = TypeVar("ResultT")
 
 def _worker_init() -> None:
     import torch
+
+    # a run pool's process ends with its parent, even a parent killed with SIGKILL (a job
+    # worker restarted by `bgrl up`): no orphan keeps computing
+    parent = multiprocessing.parent_process()
+    if parent is not None and parent.pid is not None:
+        die_with_parent(parent.pid)
 
     torch.set_num_threads(1)  # one run per core
     # Ctrl-C reaches the whole process group: the parent alone handles it (run_isolated

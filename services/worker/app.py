@@ -2,24 +2,24 @@
 
 Start a worker with ``bgrl worker`` (or ``celery -A services.worker.app worker``). Each task
 takes a job id and runs :func:`services.worker.runtime.run_job` with the handler of its
-kind. Every worker process also runs the reaper every ``reaper_interval_s``: it re-sends
-jobs whose lease expired (their worker died) and parents whose child jobs are all final.
+kind. Every worker process also runs the reaper (:mod:`services.core.reaper`) every
+``reaper_interval_s``: it re-sends jobs whose lease expired (their worker died) and parents
+whose child jobs are all final.
 """
 
 from __future__ import annotations
 
 import importlib
 import logging
-import threading
 from typing import Any
 
 import torch
 from celery import Celery
 from celery.signals import worker_ready, worker_shutdown, worker_shutting_down
 
-from services.core.db import jobs as job_rows
 from services.core.gc_pauses import freeze_startup_objects, unfreeze
-from services.core.queue import TASK_NAMES, enqueue_job, make_celery
+from services.core.queue import TASK_NAMES, make_celery
+from services.core.reaper import Reaper
 from services.core.settings import load_settings
 from services.worker.runtime import SHUTDOWN, Handler, Runtime, run_job
 from services.worker.settings import WorkerSettings
@@ -65,34 +65,6 @@ def _register(celery: Celery, runtime: Runtime, kind: str) -> None:
     celery.task(name=TASK_NAMES[kind])(task)
 
 
-class Reaper(threading.Thread):
-    """Re-sends jobs that dead workers left behind (see :func:`job_rows.reap`)."""
-
-    def __init__(self, runtime: Runtime) -> None:
-        super().__init__(name="reaper", daemon=True)
-        self.runtime = runtime
-        self._done = threading.Event()
-
-    def run(self) -> None:
-        interval = self.runtime.settings.reaper_interval_s
-        while not self._done.wait(interval):
-            try:
-                self.reap_once()
-            except Exception:
-                logger.exception("reaper pass failed")
-
-    def reap_once(self) -> list[tuple[str, str]]:
-        with self.runtime.sessions() as session:
-            to_send = job_rows.reap(session, stale_queued_s=self.runtime.settings.stale_queued_s)
-        for job_id, kind in to_send:
-            logger.info("reaper: sending job %s (%s) again", job_id, kind)
-            enqueue_job(self.runtime.celery, job_id, kind)
-        return to_send
-
-    def stop(self) -> None:
-        self._done.set()
-
-
 runtime: Runtime | None = None
 """This process's runtime, created by :func:`main_app` (a worker builds one at start)."""
 
@@ -114,8 +86,15 @@ _reaper: Reaper | None = None
 def _start_reaper(**_: Any) -> None:
     global _reaper
     if runtime is not None and _reaper is None:
-        _reaper = Reaper(runtime)
+        _reaper = Reaper(
+            runtime.sessions,
+            runtime.celery,
+            interval_s=runtime.settings.reaper_interval_s,
+            stale_queued_s=runtime.settings.stale_queued_s,
+        )
         _reaper.start()
+    if runtime is not None and runtime.settings.ready_file is not None:
+        runtime.settings.ready_file.touch()
     # a full collection walks torch's, MNE's and SQLAlchemy's objects: 100+ ms mid-job
     freeze_startup_objects()
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+from pathlib import Path
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
@@ -34,14 +35,10 @@ class WorkerSettings(PlatformSettings):
     checkpoint_every: int = Field(
         10, ge=1, description="PPO updates between checkpoints of a training job."
     )
-    reaper_interval_s: float = Field(
-        2.0, gt=0, description="Seconds between passes of the reaper of expired leases."
-    )
-    stale_queued_s: float = Field(
-        900.0,
-        gt=0,
-        description="A job queued this long without being claimed is sent again (its message "
-        "may have died with a worker); duplicates are dropped.",
+    ready_file: Path | None = Field(
+        None,
+        description="Set by `bgrl up`: a file the worker creates once it takes jobs (the "
+        "supervisor waits for it before calling the platform up).",
     )
 
     @property

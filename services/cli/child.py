@@ -1,0 +1,42 @@
+"""``python -m services.cli.child APP --fd N``: one HTTP service process of ``bgrl up``.
+
+Serves the ASGI app ``APP`` (``module:attribute``) with uvicorn on the listening socket
+``bgrl up`` bound and handed over as file descriptor ``N``. Every process of a service is
+such a child of ``bgrl up`` (the api's ``BGRL_API_WORKERS`` processes share its socket, as
+uvicorn's own workers would), so each is supervised, restarted and ended with it: none is
+a grandchild that could outlive a killed parent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import socket
+
+import uvicorn
+
+GRACEFUL_SHUTDOWN_S = 5.0
+"""Seconds open connections (a live page's websocket) get to finish after SIGTERM."""
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Parse the arguments and serve until SIGTERM or SIGINT."""
+    parser = argparse.ArgumentParser(prog="python -m services.cli.child", description=__doc__)
+    parser.add_argument("app", help="ASGI app as module:attribute")
+    parser.add_argument("--fd", type=int, required=True, help="listening socket to serve")
+    parser.add_argument(
+        "--forwarded-allow-ips",
+        default=None,
+        help="addresses whose X-Forwarded-* headers are trusted (uvicorn's option)",
+    )
+    args = parser.parse_args(argv)
+    sock = socket.socket(fileno=args.fd)
+    config = uvicorn.Config(
+        args.app,
+        forwarded_allow_ips=args.forwarded_allow_ips,
+        timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
+    )
+    uvicorn.Server(config).run(sockets=[sock])
+
+
+if __name__ == "__main__":
+    main()
