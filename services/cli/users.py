@@ -2,18 +2,26 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from pathlib import Path
+from typing import Annotated, Any
 
 import typer
 
 user_app = typer.Typer(
-    help="Platform accounts (works on BGRL_DATABASE_URL directly).", no_args_is_help=True
+    help="Platform accounts, straight in the platform database (BGRL_DATABASE_URL, or "
+    "BGRL_DATA_DIR/bgrl.db); each command names the database it uses.",
+    no_args_is_help=True,
 )
 
 
-def _sessions():
+def _sessions(create_database: bool = False) -> Any:
+    """The session factory of the platform database, named on stderr; a one-line error if
+    there is none (no SQLite file, or a database without the platform's tables) unless
+    ``create_database``: a command run from the wrong folder must not make an empty one."""
+    from sqlalchemy.engine import make_url
+
     from services.api.settings import ApiSettings
-    from services.core.db.migrate import upgrade_database
+    from services.core.db.migrate import current_revision, upgrade_database
     from services.core.db.session import make_engine, make_session_factory
     from services.core.settings import SettingsError, load_settings
 
@@ -21,8 +29,26 @@ def _sessions():
         settings = load_settings(ApiSettings)
     except SettingsError as exc:
         raise typer.BadParameter(str(exc)) from None
-    settings.ensure_data_dir()
     url = settings.resolved_database_url
+    parsed = make_url(url)
+    shown = parsed.render_as_string(hide_password=True)
+    typer.echo(f"database: {shown}", err=True)
+    sqlite_file = parsed.database if parsed.get_backend_name() == "sqlite" else None
+    missing = bool(sqlite_file) and not Path(str(sqlite_file)).exists()
+    if not missing:
+        engine = make_engine(url)
+        try:
+            missing = current_revision(engine) is None
+        finally:
+            engine.dispose()
+    if missing and not create_database:
+        typer.echo(
+            f"error: no platform database at {shown}: set BGRL_DATA_DIR (or BGRL_DATABASE_URL) "
+            "to the platform's, or pass --create-database to make a new one",
+            err=True,
+        )
+        raise typer.Exit(1)
+    settings.ensure_data_dir()
     upgrade_database(url)
     return make_session_factory(make_engine(url))
 
@@ -35,14 +61,19 @@ def create(
         str | None,
         typer.Option(help="Password (at least 12 characters); asked for when omitted."),
     ] = None,
+    create_database: Annotated[
+        bool,
+        typer.Option("--create-database", help="Make the platform database if there is none yet."),
+    ] = False,
 ) -> None:
     """Create an account; ``--admin`` for an administrator."""
     from services.api.accounts import create_user
     from services.core.errors import ServiceError
 
+    sessions = _sessions(create_database)
     if password is None:
         password = typer.prompt("Password", hide_input=True, confirmation_prompt=True)
-    with _sessions()() as db:
+    with sessions() as db:
         try:
             user = create_user(db, email, password, "admin" if admin else role)
         except ServiceError as exc:
@@ -78,9 +109,10 @@ def set_password(
     from services.core.db.models import User
     from services.core.errors import ServiceError
 
+    sessions = _sessions()
     if password is None:
         password = typer.prompt("New password", hide_input=True, confirmation_prompt=True)
-    with _sessions()() as db:
+    with sessions() as db:
         try:
             check_password(password)
             user = db.scalar(select(User).where(User.email == normalize_email(email)))
