@@ -295,6 +295,7 @@ class Supervisor:
         self.echo(f"{process.spec.name}: {why}; stopping it")
         assert process.proc is not None
         process.proc.send_signal(signal.SIGTERM)
+        process.proc.send_signal(signal.SIGCONT)  # a stopped process handles it too
         self._wait_or_kill(process, time.monotonic() + STOP_TIMEOUT_S)
         return self._exited(process, why)
 
