@@ -53,13 +53,12 @@ ResultT = TypeVar("ResultT")
 
 
 def _worker_init() -> None:
-    import torch
-
     # a run pool's process ends with its parent, even a parent killed with SIGKILL (a job
     # worker restarted by `bgrl up`): no orphan keeps computing
     parent = multiprocessing.parent_process()
     if parent is not None and parent.pid is not None:
         die_with_parent(parent.pid)
+    import torch
 
     torch.set_num_threads(1)  # one run per core
     # Ctrl-C reaches the whole process group: the parent alone handles it (run_isolated

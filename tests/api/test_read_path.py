@@ -20,7 +20,7 @@ from sqlalchemy.exc import OperationalError
 
 from services.api.security import load_jwt_key
 from services.api.settings import ApiSettings, default_api_workers
-from services.cli.serve import SERVICES, _service_child
+from services.cli.serve import SERVICES, _service_processes
 from services.core.db import session as db_session
 from services.core.db.session import make_engine
 from services.core.settings import SettingsError
@@ -108,11 +108,19 @@ def test_up_starts_the_api_with_its_worker_processes(
     api_spec = next(spec for spec in SERVICES if spec.name == "api")
     monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path))
     monkeypatch.setenv("BGRL_API_WORKERS", "3")
-    child = _service_child(api_spec, api_spec.load_settings())
-    assert child.cmd[child.cmd.index("--workers") + 1] == "3"
-    assert child.env == {"BGRL_MIGRATE_ON_START": "false"}  # `bgrl up` migrated already
+    status = tmp_path / "processes.json"
+    processes = _service_processes(api_spec, api_spec.load_settings(), 7, {}, status)
+    # three supervised processes sharing the socket bgrl up bound (fd 7), none a grandchild
+    assert [p.name for p in processes] == ["api-1", "api-2", "api-3"]
+    assert all(p.pass_fds == (7,) and p.essential for p in processes)
+    assert processes[0].cmd[-3:] == ["services.api.app:app", "--fd", "7"]
+    assert processes[0].env == {  # `bgrl up` migrated already
+        "BGRL_MIGRATE_ON_START": "false",
+        "BGRL_SUPERVISOR_STATUS_FILE": str(status),
+    }
     monkeypatch.setenv("BGRL_API_WORKERS", "1")
-    assert "--workers" not in _service_child(api_spec, api_spec.load_settings()).cmd
+    one = _service_processes(api_spec, api_spec.load_settings(), 7, {}, status)
+    assert [p.name for p in one] == ["api"]
     monkeypatch.setenv("BGRL_API_WORKERS", "0")
     with pytest.raises(SettingsError, match=r"invalid setting: BGRL_API_WORKERS \(got '0'\)"):
         api_spec.load_settings()

@@ -158,3 +158,52 @@ def test_cli_ppo_overrides_are_typed_and_checked() -> None:
     ]:
         with pytest.raises(ValueError, match=message):
             parse_ppo_overrides(bad)
+
+
+def test_pool_processes_die_with_a_parent_killed_by_sigkill(tmp_path: Path) -> None:
+    """A job worker running a reproduction is SIGKILLed (or restarted by ``bgrl up``): its
+    run pool's processes end too, none keeps computing as an orphan of init."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = (
+        "import time; from services.learner.pool import run_isolated; "
+        "run_isolated(time.sleep, [120, 120], workers=2, on_result=print, on_failure=print)"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script])
+
+    def pool_children() -> list[int]:
+        found = []
+        for entry in Path("/proc").iterdir():
+            try:
+                stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                cmdline = (entry / "cmdline").read_bytes()
+            except (OSError, IndexError):
+                continue
+            if int(stat[1]) == parent.pid and b"spawn_main" in cmdline and stat[0] != "Z":
+                found.append(int(entry.name))
+        return found
+
+    def alive(pid: int) -> bool:
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    try:
+        deadline = time.monotonic() + 60
+        while len(children := pool_children()) < 2:
+            assert time.monotonic() < deadline, "the pool did not start"
+            time.sleep(0.1)
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 60  # a child still importing torch ends once it ran
+        while [pid for pid in children if alive(pid)]:
+            assert time.monotonic() < deadline, "a pool process outlived its parent"
+            time.sleep(0.1)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
