@@ -101,9 +101,28 @@ def test_service_errors_and_request_ids(client: TestClient) -> None:
 
 
 def test_request_id_reaches_log_lines(client: TestClient, caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.INFO, logger="bgrl.http"):
+    with caplog.at_level(logging.DEBUG, logger="bgrl.http"):
         client.get("/health", headers={"x-request-id": "rid-42"})
-    assert any("/health -> 200" in r.getMessage() for r in caplog.records)
+        client.get("/no-such-route", headers={"x-request-id": "rid-43"})
+    levels = {r.getMessage().split(" -> ")[0]: r.levelno for r in caplog.records}
+    # a passed health check (a supervisor's probe every few seconds) is not news
+    assert levels == {"GET /health": logging.DEBUG, "GET /no-such-route": logging.INFO}
+
+
+def test_uvicorn_access_lines_of_passed_health_checks_are_dropped() -> None:
+    from services.core.logging import configure_logging
+
+    configure_logging()
+    access = logging.getLogger("uvicorn.access")
+
+    def kept(path: str, status: int) -> bool:
+        args = ("127.0.0.1:5000", "GET", path, "1.1", status)
+        line = '%s - "%s %s HTTP/%s" %d'
+        record = access.makeRecord(access.name, logging.INFO, __file__, 1, line, args, None)
+        return access.filter(record)
+
+    assert not kept("/health", 200)
+    assert kept("/health", 503) and kept("/api/v1/jobs", 200)
 
 
 def test_settings_errors_are_one_line_naming_the_variable(monkeypatch) -> None:
