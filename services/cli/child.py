@@ -4,7 +4,8 @@ Serves the ASGI app ``APP`` (``module:attribute``) with uvicorn on the listening
 ``bgrl up`` bound and handed over as file descriptor ``N``. Every process of a service is
 such a child of ``bgrl up`` (the api's ``BGRL_API_WORKERS`` processes share its socket, as
 uvicorn's own workers would), so each is supervised, restarted and ended with it: none is
-a grandchild that could outlive a killed parent.
+a grandchild that could outlive a killed parent. ``--proxy-headers`` and
+``--forwarded-allow-ips`` are uvicorn's options of those names.
 """
 
 from __future__ import annotations
@@ -24,6 +25,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("app", help="ASGI app as module:attribute")
     parser.add_argument("--fd", type=int, required=True, help="listening socket to serve")
     parser.add_argument(
+        "--proxy-headers",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="believe X-Forwarded-* headers from --forwarded-allow-ips (uvicorn's option)",
+    )
+    parser.add_argument(
         "--forwarded-allow-ips",
         default=None,
         help="addresses whose X-Forwarded-* headers are trusted (uvicorn's option)",
@@ -32,6 +39,7 @@ def main(argv: list[str] | None = None) -> None:
     sock = socket.socket(fileno=args.fd)
     config = uvicorn.Config(
         args.app,
+        proxy_headers=args.proxy_headers,
         forwarded_allow_ips=args.forwarded_allow_ips,
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
     )

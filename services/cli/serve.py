@@ -295,7 +295,8 @@ def _service_processes(
 
     cmd = [sys.executable, "-m", "services.cli.child", spec.asgi_app, "--fd", str(fd)]
     health = f"{service_url(settings)}/health"
-    if spec.name != "api":
+    if spec.name != "api":  # the internal services are behind no proxy
+        cmd = [*cmd, "--no-proxy-headers"]
         return [ProcessSpec(spec.name, spec.name, cmd, env, (fd,), health)]
     api_env = {
         **env,

@@ -32,16 +32,6 @@ class _RequestIdFilter(logging.Filter):
         return True
 
 
-class _QuietHealthChecks(logging.Filter):
-    """Drops uvicorn's access line of a passed ``GET /health`` (a probe every few seconds)."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        args = record.args
-        return not (
-            isinstance(args, tuple) and len(args) == 5 and args[2] == "/health" and args[4] == 200
-        )
-
-
 class JsonFormatter(logging.Formatter):
     """One JSON object per line: time, level, logger, request id, message, traceback."""
 
@@ -76,7 +66,6 @@ def configure_logging(level: str = "INFO", *, json_lines: bool = False) -> None:
     for name in ("uvicorn", "uvicorn.error", "uvicorn.access"):
         logging.getLogger(name).handlers.clear()
         logging.getLogger(name).propagate = True
-    logging.getLogger("uvicorn.access").addFilter(_QuietHealthChecks())
     _configured = True
 
 

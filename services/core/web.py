@@ -32,8 +32,6 @@ from services.core.logging import request_id
 from services.core.websockets import CLOSE_UNAUTHORIZED
 
 log = logging.getLogger("bgrl.http")
-HEALTH_PATH = "/health"
-"""Every service's liveness route (no token, no database)."""
 
 REQUEST_ID_HEADER = "x-request-id"
 SERVICE_TOKEN_HEADER = "x-service-token"
@@ -204,7 +202,7 @@ class _RequestId:
             if scope["type"] == "http":
                 # a passed health check is a supervisor's or an orchestrator's probe, every
                 # few seconds for weeks: not news
-                quiet = status_code == 200 and scope.get("path") == HEALTH_PATH
+                quiet = status_code == 200 and scope.get("path") == "/health"
                 log.log(
                     logging.DEBUG if quiet else logging.INFO,
                     "%s %s -> %s (%.1f ms)",
@@ -224,7 +222,7 @@ class _ServiceToken:
         self.token = token.encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket") or scope.get("path") == HEALTH_PATH:
+        if scope["type"] not in ("http", "websocket") or scope.get("path") == "/health":
             await self.app(scope, receive, send)
             return
         given = dict(scope.get("headers", [])).get(SERVICE_TOKEN_HEADER.encode(), b"")
@@ -305,9 +303,9 @@ def create_service_app(
         await request.send_json({"type": "error", **body})
         await request.close(code=CLOSE_BAD_REQUEST, reason=close_reason(body["message"]))
 
-    if not any(getattr(r, "path", None) == HEALTH_PATH for r in routers):
+    if not any(getattr(r, "path", None) == "/health" for r in routers):
 
-        @app.get(HEALTH_PATH, tags=["service"])
+        @app.get("/health", tags=["service"])
         def health_route(request: Request) -> dict[str, Any]:
             """Liveness of the service."""
             extra = health(request) if health is not None else {}

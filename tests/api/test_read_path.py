@@ -113,7 +113,9 @@ def test_up_starts_the_api_with_its_worker_processes(
     # three supervised processes sharing the socket bgrl up bound (fd 7), none a grandchild
     assert [p.name for p in processes] == ["api-1", "api-2", "api-3"]
     assert all(p.pass_fds == (7,) and p.essential for p in processes)
-    assert processes[0].cmd[-3:] == ["services.api.app:app", "--fd", "7"]
+    cmd = processes[0].cmd
+    assert cmd[1:4] == ["-m", "services.cli.child", "services.api.app:app"]
+    assert cmd[cmd.index("--fd") + 1] == "7"
     assert processes[0].env == {  # `bgrl up` migrated already
         "BGRL_MIGRATE_ON_START": "false",
         "BGRL_SUPERVISOR_STATUS_FILE": str(status),

@@ -109,22 +109,6 @@ def test_request_id_reaches_log_lines(client: TestClient, caplog: pytest.LogCapt
     assert levels == {"GET /health": logging.DEBUG, "GET /no-such-route": logging.INFO}
 
 
-def test_uvicorn_access_lines_of_passed_health_checks_are_dropped() -> None:
-    from services.core.logging import configure_logging
-
-    configure_logging()
-    access = logging.getLogger("uvicorn.access")
-
-    def kept(path: str, status: int) -> bool:
-        args = ("127.0.0.1:5000", "GET", path, "1.1", status)
-        line = '%s - "%s %s HTTP/%s" %d'
-        record = access.makeRecord(access.name, logging.INFO, __file__, 1, line, args, None)
-        return access.filter(record)
-
-    assert not kept("/health", 200)
-    assert kept("/health", 503) and kept("/api/v1/jobs", 200)
-
-
 def test_settings_errors_are_one_line_naming_the_variable(monkeypatch) -> None:
     class DemoSettings(BaseServiceSettings):
         model_config = SettingsConfigDict(env_prefix="BGRL_DEMO_")
