@@ -104,7 +104,8 @@ def test_request_id_reaches_log_lines(client: TestClient, caplog: pytest.LogCapt
     with caplog.at_level(logging.DEBUG, logger="bgrl.http"):
         client.get("/health", headers={"x-request-id": "rid-42"})
         client.get("/no-such-route", headers={"x-request-id": "rid-43"})
-    levels = {r.getMessage().split(" -> ")[0]: r.levelno for r in caplog.records}
+    lines = [r for r in caplog.records if r.name == "bgrl.http"]
+    levels = {r.getMessage().split(" -> ")[0]: r.levelno for r in lines}
     # a passed health check (a supervisor's probe every few seconds) is not news
     assert levels == {"GET /health": logging.DEBUG, "GET /no-such-route": logging.INFO}
 
