@@ -52,7 +52,12 @@ from services.worker.live_finish import (
     stored_calibration_recording,
 )
 from services.worker.live_learner import LearnerLink
-from services.worker.live_services import LiveSettings, ServiceCallError, clients
+from services.worker.live_services import (
+    LiveSettings,
+    ServiceCallError,
+    ServiceDownError,
+    clients,
+)
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome
 
 logger = logging.getLogger(__name__)
@@ -416,6 +421,23 @@ class LiveRunner:
             fraction = step / total
         self.context.update(steps_done=step, progress=min(fraction, 0.99))
 
+    def end_without(self, down: ServiceDownError) -> None:
+        """End the run because a service stayed down through the job's last attempt: the
+        rows written so far (markers, decisions, labels) stay, and the run says so; starting
+        the session again resumes from them."""
+        with self.runtime.sessions() as db:
+            steps = db.scalar(select(func.count()).where(LiveMarker.run_id == self.run_id))
+        error = (
+            f"session ended after {steps or 0} steps: {down}; its markers, decisions and "
+            "labels are kept, start the session again to resume"
+        )
+        self._set_run(status="failed", error=error, finished_at=utcnow())
+        with self.runtime.sessions() as db:
+            lab = db.get(LabSession, self.session_id)
+            assert lab is not None
+            lab.status = "failed"
+            db.commit()
+
     def finish(self, stopped: bool) -> JobOutcome:
         if self.mode == "calibration":
             result = finish_calibration(self)
@@ -445,4 +467,8 @@ def live_session(context: JobContext) -> JobOutcome:
         return runner.run()
     except JobConfigError as exc:
         runner._set_run(status="failed", error=str(exc), finished_at=utcnow())
+        raise
+    except ServiceDownError as exc:
+        if context.attempt >= context.max_attempts:  # no attempt left to wait for it
+            runner.end_without(exc)
         raise

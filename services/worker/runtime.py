@@ -181,6 +181,8 @@ class JobContext:
     parent_id: str | None
     max_attempts: int
     keeper: LeaseKeeper
+    attempt: int = 1
+    """Which attempt this is (1 for the first); ``attempt == max_attempts``: the last."""
 
     @property
     def stop_reason(self) -> str | None:
@@ -258,6 +260,7 @@ def run_job(runtime: Runtime, job_id: str, handler: Handler) -> str:
             parent_id=job.parent_id,
             max_attempts=job.max_attempts,
             keeper=keeper,
+            attempt=job.attempts,
         )
         logger.info("job %s (%s): attempt %d started", job_id, job.kind, job.attempts)
     if not isinstance(config, dict):  # written around the api (an old version, by hand)

@@ -1,0 +1,73 @@
+"""A live session whose service stays down: each attempt but the last waits for it (the job
+is retried and resumes from its rows); the last ends the session, keeps its rows, says so."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+
+from services.core.db.base import utcnow
+from services.core.db.live import LiveRun, queue_live_job
+from services.core.db.migrate import upgrade_database
+from services.core.db.models import Job, LabSession, Subject
+from services.core.queue import make_celery
+from services.worker.app import load_handler
+from services.worker.runtime import Runtime, run_job
+from services.worker.settings import WorkerSettings
+from tests.helpers import free_port
+
+
+@pytest.mark.parametrize("max_attempts", [1, 2])
+def test_a_session_whose_service_stays_down_ends_on_the_last_attempt_keeping_its_rows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, max_attempts: int
+) -> None:
+    dead = f"http://127.0.0.1:{free_port()}"  # nothing listens: the service is down
+    for name in ("SIM", "EEG", "LEARNER"):
+        monkeypatch.setenv(f"BGRL_{name}_URL", dead)
+    monkeypatch.setenv("BGRL_LIVE_RETRY_S", "0.3")
+    settings = WorkerSettings(data_dir=tmp_path, job_lease_s=30, job_heartbeat_s=0.5)
+    upgrade_database(settings.resolved_database_url)
+    runtime = Runtime(settings=settings, celery=make_celery(settings))
+    with runtime.sessions() as db:
+        subject = Subject(code="S-001")
+        db.add(subject)
+        db.flush()
+        start = utcnow()
+        lab = LabSession(
+            subject_id=subject.id, kind="calibration", scheduled_at=start, duration_minutes=60,
+            ends_at=start + timedelta(minutes=60),
+        )  # fmt: skip
+        db.add(lab)
+        db.flush()
+        run = LiveRun(session_id=lab.id, mode="calibration", options={}, status="queued")
+        db.add(run)
+        db.flush()
+        job = queue_live_job(db, run, max_attempts=max_attempts)
+        db.commit()
+        run_id, lab_id, job_id = run.id, lab.id, job.id
+    try:
+        outcome = run_job(runtime, job_id, load_handler("live_session"))
+        with runtime.sessions() as db:
+            job_row, run_row, lab_row = (
+                db.get(Job, job_id), db.get(LiveRun, run_id), db.get(LabSession, lab_id)
+            )  # fmt: skip
+            assert job_row is not None and run_row is not None and lab_row is not None
+            if max_attempts == 2:  # an attempt is left: the job waits for the service
+                assert outcome == "queued"
+                assert (run_row.status, lab_row.status) == ("running", "running")
+                return
+            assert outcome == "failed"
+            assert job_row.status == "failed"
+            assert f"the sim service at {dead} is unreachable" in (job_row.error or "")
+            assert (run_row.status, lab_row.status) == ("failed", "failed")
+            assert run_row.error is not None and run_row.error.startswith(
+                f"session ended after 0 steps: the sim service at {dead} is unreachable"
+            )
+            assert run_row.error.endswith(
+                "its markers, decisions and labels are kept, start the session again to resume"
+            )
+            assert run_row.finished_at is not None
+    finally:
+        runtime.engine.dispose()
