@@ -261,8 +261,8 @@ def up(
         supervisor.start()
         reaper.start()
 
-        def ready(not_answering: list[str]) -> None:
-            typer.echo(_ready_block(started, n_workers, admin, data_dir, env, not_answering))
+        def ready(not_running: list[str]) -> None:
+            typer.echo(_ready_block(started, n_workers, admin, data_dir, env, not_running))
 
         exit_code = supervisor.run(stop, ready)
     finally:
@@ -373,13 +373,13 @@ def _ready_block(
     admin: str | None,
     data_dir: Path,
     env: Mapping[str, str],
-    not_answering: list[str],
+    not_running: list[str],
 ) -> str:
     """The block that ends the start-up: where to go, who signs in, where the data is."""
     by_name = {spec.name: settings for spec, settings in started}
     rule = "-" * 72
-    lines = [rule, "bgrl is up" if not not_answering else "bgrl is up, but not answering yet: "
-             + ", ".join(not_answering)]  # fmt: skip
+    lines = [rule, "bgrl is up" if not not_running else "bgrl is up, except: "
+             + "; ".join(not_running)]  # fmt: skip
     if "api" in by_name:
         url = service_url(by_name["api"])
         lines.append(f"  dashboard    {url}/   (API docs: {url}/docs, state: {url}/readyz)")

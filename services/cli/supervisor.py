@@ -220,8 +220,9 @@ class Supervisor:
     def run(self, stop: threading.Event, on_ready: Callable[[list[str]], None]) -> int:
         """Watch until ``stop`` is set (0) or an essential process gives up (1).
 
-        ``on_ready(not_answering)`` is called once: when every HTTP service has answered
-        its health check, or after ``start_timeout_s`` with the names of those that have not.
+        ``on_ready(not_running)`` is called once, when no process is starting or restarting
+        any more (every HTTP service answered its health check, every worker is ready), or
+        after ``start_timeout_s``; ``not_running`` says which are not, and why.
         """
         ready_by = time.monotonic() + self.settings.start_timeout_s
         announced = False
@@ -234,12 +235,16 @@ class Supervisor:
             if self.fatal is not None:
                 return 1
             if not announced:
-                waiting = [
-                    p.spec.name for p in self.processes if p.state in ("starting", "restarting")
-                ]
-                if not waiting or time.monotonic() > ready_by:
+                pending = any(p.state in ("starting", "restarting") for p in self.processes)
+                if not pending or time.monotonic() > ready_by:
                     announced = True
-                    on_ready(waiting)
+                    on_ready(
+                        [
+                            f"{p.spec.name} ({p.reason or p.state})"
+                            for p in self.processes
+                            if p.state != "running"
+                        ]
+                    )
         return 0
 
     def _look_at(self, process: Supervised) -> bool:

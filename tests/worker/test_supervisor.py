@@ -24,6 +24,8 @@ from tests.helpers import free_port
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs Linux")
 
+supervisor_ready: list[list[str]] = []
+"""What the supervisor under test announced once ready (its ``on_ready`` calls)."""
 SLEEPER = [sys.executable, "-c", "import time; time.sleep(120)"]
 CRASHER = [sys.executable, "-c", "raise SystemExit(3)"]
 
@@ -46,6 +48,7 @@ def supervising(
     """A supervisor of ``specs`` running in a thread; yields it, its output lines and
     ``{"code": run's return}`` once it returned."""
     lines: list[str] = []
+    supervisor_ready.clear()
     supervisor = Supervisor(
         specs,
         SupervisorSettings(**settings),
@@ -56,7 +59,7 @@ def supervising(
     returned: dict[str, int] = {}
     supervisor.start()
     thread = threading.Thread(
-        target=lambda: returned.setdefault("code", supervisor.run(stop, lambda _: None))
+        target=lambda: returned.setdefault("code", supervisor.run(stop, supervisor_ready.append))
     )
     thread.start()
     try:
@@ -72,7 +75,8 @@ def status(tmp_path: Path) -> dict[str, dict[str, object]]:
 
 
 def test_a_crash_loop_stops_that_process_and_the_rest_stay_up(tmp_path: Path) -> None:
-    specs = [spec("sim", CRASHER), spec("worker-1", SLEEPER, kind="worker")]
+    never = f"http://127.0.0.1:{free_port()}/health"  # the sim never gets to answer
+    specs = [spec("sim", CRASHER, health_url=never), spec("worker-1", SLEEPER, kind="worker")]
     with supervising(specs, tmp_path, restart_limit=3, restart_window_s=60) as (sup, lines, _):
         crasher, sleeper = sup.processes
         wait_for(lambda: crasher.state == "stopped", "the crash loop to be stopped")
@@ -89,6 +93,9 @@ def test_a_crash_loop_stops_that_process_and_the_rest_stay_up(tmp_path: Path) ->
         assert written["sim"]["restarts"] == 2
         assert written["worker-1"]["state"] == "running"
         assert written["worker-1"]["pid"] == sleeper.proc.pid  # type: ignore[union-attr]
+        # ready once nothing restarts any more, naming what is not running
+        wait_for(lambda: bool(supervisor_ready), "the start-up announcement")
+        assert supervisor_ready == [["sim (crash loop: 3 exits in 60 s (last: code 3))"]]
     assert not sleeper.alive()  # stop() ended it
 
 
