@@ -99,7 +99,8 @@ class Supervised:
     spec: ProcessSpec
     proc: subprocess.Popen[bytes] | None = None
     state: str = "starting"
-    """``starting`` (not answered yet), ``running``, ``restarting`` or ``stopped``."""
+    """``starting`` (not ready yet), ``running``, ``restarting`` (from an exit until it is
+    ready again) or ``stopped`` (a crash loop)."""
     restarts: int = 0
     exits: deque[float] = field(default_factory=deque)
     """When it exited (or was restarted for its health) within the restart window."""
@@ -257,6 +258,8 @@ class Supervisor:
                 return False
             self._spawn(process)
             process.restarts += 1
+            if process.state == "starting":  # restarting until it answers again
+                process.state = "restarting"
             return True
         if not process.alive():
             assert process.proc is not None
@@ -285,7 +288,7 @@ class Supervisor:
 
     def _look_for_ready_file(self, process: Supervised, now: float) -> bool:
         ready_file = process.spec.ready_file
-        if ready_file is None or process.state != "starting":
+        if ready_file is None or process.state not in ("starting", "restarting"):
             return False
         if ready_file.exists():
             process.state = "running"
