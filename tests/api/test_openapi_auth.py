@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from datetime import timedelta
+from pathlib import Path
 
 import jwt
 import pytest
@@ -129,6 +131,28 @@ def test_readyz_names_the_revision(api: Api) -> None:
 
     assert head_revision() == "0007"  # a new migration updates this line
     assert api.client.get("/readyz").json() == {"status": "ready", "database_revision": "0007"}
+
+
+def test_readyz_reports_the_processes_bgrl_up_supervises(
+    api: Api, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Under ``bgrl up``, /readyz lists each process; one restarting or stopped after a
+    crash loop makes the platform 503 ``degraded``, naming it and why."""
+    status = tmp_path / "processes.json"
+    monkeypatch.setattr(api.client.app.state.settings, "supervisor_status_file", status)
+    running = {"kind": "sim", "state": "running", "pid": 7, "restarts": 2, "reason": None}
+    status.write_text(json.dumps({"processes": {"sim": running}}))
+    ready = api.client.get("/readyz")
+    assert ready.status_code == 200
+    assert ready.json()["status"] == "ready" and ready.json()["processes"] == {"sim": running}
+    stopped = {**running, "state": "stopped", "pid": None, "reason": "crash loop: 5 exits"}
+    status.write_text(json.dumps({"processes": {"sim": running, "worker-1": stopped}}))
+    degraded = api.client.get("/readyz")
+    assert degraded.status_code == 503
+    assert degraded.json()["status"] == "degraded"
+    assert degraded.json()["detail"] == "worker-1: crash loop: 5 exits"
+    status.write_text("{not json")  # half-written or gone: the database decides alone
+    assert api.client.get("/readyz").json() == {"status": "ready", "database_revision": "0006"}
 
 
 def test_start_page_links_the_docs(api: Api) -> None:
