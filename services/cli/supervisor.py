@@ -158,6 +158,7 @@ class Supervisor:
         *,
         status_file: Path | None = None,
         echo: Callable[[str], None] = print,
+        on_exit: Callable[[ProcessSpec], None] | None = None,
     ) -> None:
         names = [spec.name for spec in specs]
         if len(set(names)) != len(names):
@@ -166,6 +167,8 @@ class Supervisor:
         self.settings = settings
         self.status_file = status_file
         self.echo = echo
+        self.on_exit = on_exit
+        """Called with a process's spec whenever it exited or was stopped for its health."""
         self.fatal: str | None = None
         """Why everything stops (an essential process's crash loop), once it happened."""
         self._lock = threading.Lock()
@@ -316,6 +319,8 @@ class Supervisor:
             process.exits.popleft()
         process.last_exit = what
         process.since = _now()
+        if self.on_exit is not None:
+            self.on_exit(process.spec)
         name = process.spec.name
         if len(process.exits) >= self.settings.restart_limit:
             process.state = "stopped"

@@ -39,6 +39,7 @@ class Reaper(threading.Thread):
         self.interval_s = interval_s
         self.stale_queued_s = stale_queued_s
         self._done = threading.Event()
+        self._resend = threading.Event()
 
     def run(self) -> None:
         while not self._done.wait(self.interval_s):
@@ -47,10 +48,19 @@ class Reaper(threading.Thread):
             except Exception:
                 logger.exception("reaper pass failed")
 
+    def resend_queued_soon(self) -> None:
+        """Have the next pass send every queued job again: a worker died, and the messages
+        it had taken but not claimed died with it (the file broker deletes a message once
+        taken; Redis returns it only after an hour). The claim drops duplicates."""
+        self._resend.set()
+
     def reap_once(self) -> list[tuple[str, str]]:
         """One pass; the ``(job id, kind)`` sent again."""
+        resend = self._resend.is_set()
+        self._resend.clear()
+        stale_queued_s = 0.0 if resend else self.stale_queued_s
         with self.sessions() as session:
-            to_send = job_rows.reap(session, stale_queued_s=self.stale_queued_s)
+            to_send = job_rows.reap(session, stale_queued_s=stale_queued_s)
         for job_id, kind in to_send:
             logger.info("reaper: sending job %s (%s) again", job_id, kind)
             enqueue_job(self.celery, job_id, kind)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Iterator
 from datetime import timedelta
+from pathlib import Path
 
 import pytest
 from sqlalchemy import delete, update
@@ -197,3 +198,26 @@ def test_hand_back_does_not_use_up_an_attempt(sessions: sessionmaker[Session]) -
         assert job_rows.hand_back(session, job_id, "w") is True
     job = row(sessions, job_id)
     assert (job.status, job.attempts, job.lease_owner) == ("queued", 0, None)
+
+
+def test_a_dead_workers_untaken_messages_are_sent_again_at_once(tmp_path: Path) -> None:
+    """A worker killed while holding a queued job's message (taken, not yet claimed) lost
+    it; ``bgrl up``'s reaper sends every queued job again on the worker's exit instead of
+    after ``stale_queued_s`` (the claim drops the duplicates)."""
+    from services.core.platform import PlatformSettings
+    from services.core.queue import make_celery
+    from services.core.reaper import Reaper
+
+    settings = PlatformSettings(data_dir=tmp_path)
+    upgrade_database(settings.resolved_database_url)
+    engine = make_engine(settings.resolved_database_url)
+    sessions = make_session_factory(engine)
+    try:
+        queued = add_job(sessions)
+        reaper = Reaper(sessions, make_celery(settings), interval_s=1, stale_queued_s=900)
+        assert reaper.reap_once() == []  # queued a moment ago: not stale
+        reaper.resend_queued_soon()
+        assert reaper.reap_once() == [(queued, "guided_ppo")]
+        assert reaper.reap_once() == []  # once
+    finally:
+        engine.dispose()

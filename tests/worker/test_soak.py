@@ -1,0 +1,28 @@
+"""The soak benchmark's short version: ``bgrl up`` under load while random processes are
+SIGKILLed loses no job and leaves no orphan (``bgrl bench soak`` runs it for longer)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks.bench_soak import run_soak
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs Linux")
+
+
+@pytest.mark.slow
+def test_a_short_soak_loses_no_job_and_leaves_no_orphan(tmp_path: Path) -> None:
+    report = run_soak(tmp_path, minutes=0.75, kill_every_s=10, job_every_s=6, drain_s=400, seed=1)
+    jobs = report["jobs"]
+    assert jobs["submitted"] >= 3
+    assert jobs["lost"] == 0, report
+    assert jobs["succeeded"] + jobs["failed_with_reason"] == jobs["submitted"]
+    assert report["orphans"] == 0
+    kills = sum(report["kills"].values())
+    assert kills >= 3
+    assert sum(report["restarts"].values()) >= kills  # every killed process came back
+    assert report["reads"]["count"] > 0 and report["reads"]["p99_ms"] is not None
+    assert (tmp_path / "soak_rss.png").stat().st_size > 0
