@@ -51,10 +51,9 @@ JOB_CONFIG = {
     "task": "SSSG",
     "method": "hf_sparse",
     "accuracy": 0.7,
-    "total_steps": 2048,
-    "ppo": {"n_epochs": 4, "eval_every": 512},
+    "ppo": {"n_epochs": 4, "eval_every": 256},
 }
-"""A guided-PPO job of a few seconds of CPU; each gets its own seed."""
+"""A small guided-PPO job (``job_steps`` env steps); each gets its own seed."""
 
 
 def _free_port() -> int:
@@ -110,6 +109,7 @@ def run_soak(
     job_every_s: float,
     drain_s: float,
     seed: int,
+    job_steps: int = 1024,
     progress: Callable[[str], None] = lambda _: None,
 ) -> dict[str, Any]:
     """Run the soak in ``out`` (the platform's data in ``out/data``); the report."""
@@ -138,7 +138,10 @@ def run_soak(
         )
     base = f"http://127.0.0.1:{ports['api']}"
     try:
-        return _soak(up, base, out, rng, minutes, kill_every_s, job_every_s, drain_s, progress)
+        config = {**JOB_CONFIG, "total_steps": job_steps}
+        return _soak(
+            up, base, out, rng, config, minutes, kill_every_s, job_every_s, drain_s, progress
+        )
     finally:
         if up.poll() is None:
             up.kill()
@@ -149,6 +152,7 @@ def _soak(
     base: str,
     out: Path,
     rng: random.Random,
+    job_config: dict[str, Any],
     minutes: float,
     kill_every_s: float,
     job_every_s: float,
@@ -183,7 +187,7 @@ def _soak(
         now = time.monotonic()
         if now >= next_job:
             next_job += job_every_s
-            config = {**JOB_CONFIG, "seed": len(jobs) + 1}
+            config = {**job_config, "seed": len(jobs) + 1}
             try:
                 sent = client.post("/api/v1/jobs", json={"kind": "guided_ppo", "config": config})
                 if sent.status_code == 201:
@@ -245,6 +249,7 @@ def _soak(
         "minutes": minutes,
         "kill_every_s": kill_every_s,
         "job_every_s": job_every_s,
+        "job_config": job_config,
         "cpu_count": os.cpu_count(),
         "jobs": {
             "submitted": len(jobs),

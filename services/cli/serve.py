@@ -417,6 +417,9 @@ def bench_soak(
     drain: Annotated[
         float, typer.Option(min=0, help="Seconds the jobs get to end after the load.")
     ] = 300,
+    job_steps: Annotated[
+        int, typer.Option(min=256, help="Env steps of each guided-PPO job.")
+    ] = 1024,
     seed: Annotated[int, typer.Option(min=0, help="Seed of which process is killed.")] = 0,
 ) -> None:
     """Soak with faults: bgrl up under a steady load while random processes are SIGKILLed;
@@ -436,6 +439,7 @@ def bench_soak(
         job_every_s=job_every,
         drain_s=drain,
         seed=seed,
+        job_steps=job_steps,
         progress=lambda message: typer.echo(message, err=True),
     )
     write_results_json(out / "soak.json", report)
