@@ -110,9 +110,12 @@ def run_soak(
     drain_s: float,
     seed: int,
     job_steps: int = 1024,
+    settings: dict[str, str] | None = None,
     progress: Callable[[str], None] = lambda _: None,
 ) -> dict[str, Any]:
-    """Run the soak in ``out`` (the platform's data in ``out/data``); the report."""
+    """Run the soak in ``out`` (the platform's data in ``out/data``); the report.
+    ``settings``: more ``BGRL_*`` variables for ``bgrl up`` (the rest of this process's
+    ``BGRL_*`` are left out)."""
     rng = random.Random(seed)
     ports = {name: _free_port() for name in ("api", "sim", "eeg", "learner")}
     env = {k: v for k, v in os.environ.items() if not k.startswith("BGRL_")}
@@ -128,6 +131,7 @@ def run_soak(
         BGRL_REAPER_INTERVAL_S="1",
         BGRL_LOG_LEVEL="WARNING",
     )
+    env.update(settings or {})
     log = out / "up.log"
     with log.open("wb") as sink:
         up = subprocess.Popen(
