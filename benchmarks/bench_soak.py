@@ -26,6 +26,7 @@ import random
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -113,14 +114,16 @@ def run_soak(
     settings: dict[str, str] | None = None,
     progress: Callable[[str], None] = lambda _: None,
 ) -> dict[str, Any]:
-    """Run the soak in ``out`` (the platform's data in ``out/data``); the report.
+    """Run the soak in ``out``; the report. The platform's data folder and ``bgrl up``'s log
+    go to a new folder ``out/soak-*`` of each run.
     ``settings``: more ``BGRL_*`` variables for ``bgrl up`` (the rest of this process's
     ``BGRL_*`` are left out)."""
     rng = random.Random(seed)
+    run_dir = Path(tempfile.mkdtemp(prefix="soak-", dir=out))
     ports = {name: _free_port() for name in ("api", "sim", "eeg", "learner")}
     env = {k: v for k, v in os.environ.items() if not k.startswith("BGRL_")}
     env.update(
-        BGRL_DATA_DIR=str(out / "data"),
+        BGRL_DATA_DIR=str(run_dir / "data"),
         BGRL_PORT=str(ports["api"]),
         BGRL_SIM_PORT=str(ports["sim"]),
         BGRL_EEG_PORT=str(ports["eeg"]),
@@ -132,8 +135,7 @@ def run_soak(
         BGRL_LOG_LEVEL="WARNING",
     )
     env.update(settings or {})
-    log = out / "up.log"
-    with log.open("wb") as sink:
+    with (run_dir / "up.log").open("wb") as sink:
         up = subprocess.Popen(
             [sys.executable, "-m", "services.cli.main", "up"],
             env=env,
@@ -143,9 +145,8 @@ def run_soak(
     base = f"http://127.0.0.1:{ports['api']}"
     try:
         config = {**JOB_CONFIG, "total_steps": job_steps}
-        return _soak(
-            up, base, out, rng, config, minutes, kill_every_s, job_every_s, drain_s, progress
-        )
+        timing = (minutes, kill_every_s, job_every_s, drain_s)
+        return _soak(up, base, out, run_dir, rng, config, *timing, progress)
     finally:
         if up.poll() is None:
             up.kill()
@@ -155,6 +156,7 @@ def _soak(
     up: subprocess.Popen[bytes],
     base: str,
     out: Path,
+    run_dir: Path,
     rng: random.Random,
     job_config: dict[str, Any],
     minutes: float,
@@ -163,14 +165,14 @@ def _soak(
     drain_s: float,
     progress: Callable[[str], None],
 ) -> dict[str, Any]:
-    log = out / "up.log"
+    log = run_dir / "up.log"
     deadline = time.monotonic() + 600
     while "Ctrl-C stops everything." not in log.read_text(errors="replace"):
         if up.poll() is not None or time.monotonic() > deadline:
             raise RuntimeError(f"bgrl up did not start; see {log}")
         time.sleep(1)
     progress("platform up")
-    password = (out / "data" / "first-admin-password").read_text().strip()
+    password = (run_dir / "data" / "first-admin-password").read_text().strip()
     client = httpx.Client(base_url=base, timeout=30)
     answer = client.post(
         "/api/v1/auth/token", data={"username": "admin@localhost", "password": password}
@@ -234,7 +236,7 @@ def _soak(
         if all(s.get("status") in FINAL for s in statuses.values()):
             break
         time.sleep(3)
-    state = json.loads((out / "data" / "run" / "processes.json").read_text())["processes"]
+    state = json.loads((run_dir / "data" / "run" / "processes.json").read_text())["processes"]
     restarts: dict[str, int] = defaultdict(int)
     for process in state.values():
         restarts[process["kind"]] += process["restarts"]
@@ -255,6 +257,7 @@ def _soak(
         "job_every_s": job_every_s,
         "job_config": job_config,
         "cpu_count": os.cpu_count(),
+        "folder": str(run_dir),
         "jobs": {
             "submitted": len(jobs),
             "refused_or_unanswered": refused,

@@ -408,7 +408,9 @@ def _ready_block(
 
 
 def bench_soak(
-    out: Annotated[Path, typer.Option(help="Folder for soak.json, soak_rss.png, the data.")],
+    out: Annotated[
+        Path, typer.Option(help="Folder for soak.json, soak_rss.png and the run's soak-* folder.")
+    ],
     minutes: Annotated[float, typer.Option(min=0.5, help="Minutes under load and faults.")] = 5,
     kill_every: Annotated[
         float, typer.Option(min=2, help="Seconds between two SIGKILLs of a random process.")
@@ -430,8 +432,6 @@ def bench_soak(
     from services.core.files import write_results_json
 
     output_folder(out)
-    if (out / "data").exists():
-        raise typer.BadParameter(f"{out / 'data'} exists: give the soak a new folder", "--out")
     report = run_soak(
         out.resolve(),
         minutes=minutes,
