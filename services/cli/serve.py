@@ -244,10 +244,12 @@ def up(
     specs += [_worker_process(i + 1, worker_cmd, env, status_file) for i in range(n_workers)]
     admin = _first_admin(platform, data_dir) if "api" in [s.name for s, _ in started] else None
 
-    reaper = _reaper(platform)
+    # the platform's side (api, workers) reaps jobs; a lone sim, EEG or learner has no database
+    runs_jobs = n_workers > 0 or "api" in [s.name for s, _ in started]
+    reaper = _reaper(platform) if runs_jobs else None
 
     def exited(spec: Any) -> None:
-        if spec.kind == "worker":  # the messages it had taken died with it
+        if spec.kind == "worker" and reaper is not None:  # its taken messages died with it
             reaper.resend_queued_soon()
 
     supervisor = Supervisor(
@@ -268,14 +270,16 @@ def up(
         # the sockets stay open here: a restarted process serves the same one, and a port
         # never goes free (connections wait in its queue) while its service restarts
         supervisor.start()
-        reaper.start()
+        if reaper is not None:
+            reaper.start()
 
         def ready(not_running: list[str]) -> None:
             typer.echo(_ready_block(started, n_workers, admin, data_dir, env, not_running))
 
         exit_code = supervisor.run(stop, ready)
     finally:
-        reaper.stop()
+        if reaper is not None:
+            reaper.stop()
         supervisor.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -1,8 +1,9 @@
 """The compose deployment across real network boundaries (conftest.ComposeLab): every
 service of docker-compose.yml in its own network namespace, reached only through the
 compose hostnames, with PostgreSQL and Redis as real servers and two worker hosts. The
-lab PC (this test) signs in as the admin the api printed at its first start, as a lab would
-(``docker compose logs api | grep "created admin"``)."""
+lab PC (this test) signs in as the admin created at the first start, with the password in
+the file the api's log names, as a lab would (``docker compose exec api cat
+/data/first-admin-password``)."""
 
 from __future__ import annotations
 
@@ -43,11 +44,12 @@ class LabPC:
         self.compose = compose
         self.run = run
         log = compose.log("api").read_text(errors="replace")
-        found = re.search(r"created admin (\S+) with password (\S+)", log)
+        found = re.search(r"created admin (\S+); its password is in (\S+)", log)
         assert found is not None, compose.tail("api")
+        email, password = found.group(1), Path(found.group(2)).read_text().strip()
         hosts = compose.lab.hosts
         self.client: PlatformClient = run(lambda: PlatformClient(f"http://{hosts['api']}:8000"))
-        run(lambda: self.client.login(found.group(1), found.group(2)))
+        run(lambda: self.client.login(email, password))
         url = f"postgresql+psycopg://bgrl:{DOT_ENV['POSTGRES_PASSWORD']}@{hosts['postgres']}:5432/bgrl"
         self.engine = run(lambda: create_engine(url, pool_pre_ping=True))
 
