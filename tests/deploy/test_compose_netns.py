@@ -44,7 +44,7 @@ class LabPC:
         self.compose = compose
         self.run = run
         log = compose.log("api").read_text(errors="replace")
-        found = re.search(r"created admin (\S+); its password is in (\S+)", log)
+        found = re.search(r"created admin (\S+); its password is in ([^\s\"]+)", log)
         assert found is not None, compose.tail("api")
         email, password = found.group(1), Path(found.group(2)).read_text().strip()
         hosts = compose.lab.hosts
