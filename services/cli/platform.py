@@ -25,6 +25,7 @@ from services.client.config import (
     save_credentials,
 )
 from services.client.schemas import JobKind, JobStatus
+from services.core.model_formats import SUFFIXES, ModelFormat
 from services.core.settings import SettingsError, load_settings
 
 jobs_app = typer.Typer(
@@ -397,15 +398,25 @@ def pull(
         str,
         typer.Argument(help="A finished guided_ppo job's id, or a unique prefix (6 or more)."),
     ],
-    out: Annotated[Path, typer.Option(help="Where to save the TorchScript policy (.pt).")],
+    out: Annotated[
+        Path, typer.Option(help="Where to save the policy (a folder: policy-<job id>.<ending>).")
+    ],
+    model_format: Annotated[
+        ModelFormat,
+        typer.Option(
+            "--format",
+            help="torchscript (.pt, torch.jit.load), pt2 (torch.export.load) or onnx "
+            "(onnxruntime); each holds the observation normalisation.",
+        ),
+    ] = "torchscript",
     url: UrlOption = None,
 ) -> None:
     """Download a job's trained policy, verifying its SHA-256 (a corrupt file is not kept)."""
     with _client(url) as client:
         job = client.get_job(job_id)
         if out.is_dir():
-            out = out / f"policy-{job.id}.pt"
-        saved = client.download_model(job.id, out)
+            out = out / f"policy-{job.id}{SUFFIXES[model_format]}"
+        saved = client.download_model(job.id, out, model_format=model_format)
     typer.echo(f"saved {saved.path} ({saved.size_bytes} bytes, sha256 {saved.sha256})")
 
 

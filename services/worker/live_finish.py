@@ -237,19 +237,23 @@ def finish_online(runner: LiveRunner) -> dict[str, Any]:
         "POST", f"/hf-sessions/{runner.learner.hf_session_id}/export", json={}
     )
     decoding = decoding_accuracy(_decisions(runner))
+    files = exported["files"]
     with runner.runtime.sessions() as db:
         n_labels = (
             db.query(FeedbackLabel).filter(FeedbackLabel.session_id == runner.session_id).count()
         )
-        artifact = Artifact(
-            kind="model",
-            relpath=exported["relpath"],
-            sha256=exported["sha256"],
-            size_bytes=exported["size_bytes"],
-            owner_id=runner.context.submitter_id,
-            job_id=runner.context.job_id,
-        )
-        db.add(artifact)
+        artifacts = {
+            fmt: Artifact(
+                kind="model",
+                relpath=stored["relpath"],
+                sha256=stored["sha256"],
+                size_bytes=stored["size_bytes"],
+                owner_id=runner.context.submitter_id,
+                job_id=runner.context.job_id,
+            )
+            for fmt, stored in files.items()
+        }
+        db.add_all(artifacts.values())
         db.flush()
         model = HFModel(
             name=f"session {runner.session_id} pi_HF ({n_labels} labels)",
@@ -258,14 +262,18 @@ def finish_online(runner: LiveRunner) -> dict[str, Any]:
             n_labels=n_labels,
             session_id=runner.session_id,
             job_id=runner.context.job_id,
-            torchscript_artifact_id=artifact.id,
+            torchscript_artifact_id=artifacts["torchscript"].id,
+            pt2_artifact_id=artifacts["pt2"].id,
+            onnx_artifact_id=artifacts["onnx"].id,
             metrics={**(exported.get("metrics") or {}), "model_version": exported["model_version"]},
         )
         db.add(model)
         db.commit()
         model_id = model.id
     runner._set_run(hf_model_id=model_id)
-    spl = hf_policy_spl(runner.runtime.store.path(exported["relpath"]), runner.options.task)
+    spl = hf_policy_spl(
+        runner.runtime.store.path(files["torchscript"]["relpath"]), runner.options.task
+    )
     with runner.runtime.sessions() as db:
         row = db.get(HFModel, model_id)
         assert row is not None

@@ -1,10 +1,12 @@
 """Training jobs: ``guided_ppo`` (one run submitted on its own) and ``reproduce_run`` (one
 run of a reproduction). Both execute the learner's run (stage 2 for HF+sparse, then guided
 PPO, Akinola et al. 2020, Algorithm 1) with progress, the SPL curve and checkpoints written
-to the job, and store the trained policy (TorchScript, with its observation normalisation)
-as the job's model: the policy of the best evaluation (as SB3's ``EvalCallback`` keeps),
-whose step and SPL the result gives as ``best_step`` / ``best_spl``; the last policy is a
-second artifact, ``last_model_artifact_id`` in the result (``/api/v1/artifacts/{id}/download``).
+to the job, and store the trained policy (TorchScript, a ``torch.export`` program and ONNX,
+each with its observation normalisation) as the job's model: the policy of the best
+evaluation (as SB3's ``EvalCallback`` keeps), whose step and SPL the result gives as
+``best_step`` / ``best_spl``; the last policy is a second artifact,
+``last_model_artifact_id`` in the result (``/api/v1/artifacts/{id}/download``), and
+``last_model_artifact_ids`` names it in every format.
 
 Resume: the checkpoint lives in the artifact store at ``checkpoint/job-<id>/checkpoint.pt``.
 A job claimed again (after its worker died, or a failed attempt) finds it there and the
@@ -25,6 +27,7 @@ from sqlalchemy import select
 
 from services.core.db.models import Artifact, HFModel
 from services.core.json_values import describe_type, fits_type
+from services.core.model_formats import MODEL_FORMATS, SUFFIXES, ModelFormat
 from services.learner.feedback import HFPolicy
 from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.ppo import Callback, check_settings
@@ -236,26 +239,40 @@ def train_spec(
             last_model_path=last_model_path,
             hf_policy=hf_policy,
             on_label=lambda _record: context.check_stop(),  # cancel during stage 2 too
+            portable=True,
         )
         context.check_stop()
         weights = weights_sha256(model_path)
         last_weights = weights_sha256(last_model_path)
-        model_id = context.store_file(model_path, kind="model", name="policy.pt")
-        last_model_id = context.store_file(last_model_path, kind="model", name="policy_last.pt")
+        best_ids = store_policy_files(context, model_path)
+        last_ids = store_policy_files(context, last_model_path)
     return JobOutcome(
         result={
             **record.to_dict(),
             "model": "best",  # the job's model is the best evaluation's policy
             "weights_sha256": weights,
-            "last_model_artifact_id": last_model_id,
+            "last_model_artifact_id": last_ids["torchscript"],
+            "last_model_artifact_ids": last_ids,
             "last_weights_sha256": last_weights,
         },
         values={
-            "model_artifact_id": model_id,
+            "model_artifact_id": best_ids["torchscript"],
+            "model_pt2_artifact_id": best_ids["pt2"],
+            "model_onnx_artifact_id": best_ids["onnx"],
             "curve": record.curve,
             "steps_done": total_steps,
         },
     )
+
+
+def store_policy_files(context: JobContext, torchscript_path: Path) -> dict[ModelFormat, str]:
+    """Store a policy's TorchScript file and its ``.pt2`` and ONNX files beside it as the
+    job's artifacts; their ids by format."""
+    return {
+        fmt: context.store_file(path, kind="model", name=path.name)
+        for fmt in MODEL_FORMATS
+        for path in [torchscript_path.with_suffix(SUFFIXES[fmt])]
+    }
 
 
 def guided_ppo(context: JobContext) -> JobOutcome:

@@ -80,8 +80,22 @@ def test_previous_revision_upgrades_and_keeps_its_rows(any_db_url: str) -> None:
         sessions = make_session_factory(engine)
         with sessions() as db:
             user_id = _add_user_at_an_old_revision(db)
-            db.add(
-                Job(id="j" * 32, kind="guided_ppo", config={"task": "sssg"}, submitter_id=user_id)
+            db.execute(  # the columns of revision 0001 only (as for the user)
+                insert(Job).values(
+                    id="j" * 32,
+                    kind="guided_ppo",
+                    config={"task": "sssg"},
+                    status="queued",
+                    progress=0.0,
+                    attempts=0,
+                    max_attempts=3,
+                    steps_done=0,
+                    curve=[],
+                    cancel_requested=False,
+                    submitter_id=user_id,
+                    created_at=datetime(2026, 12, 1, tzinfo=UTC),
+                    updated_at=datetime(2026, 12, 1, tzinfo=UTC),
+                )
             )
             db.commit()
         upgrade_database(any_db_url)

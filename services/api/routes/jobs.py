@@ -20,7 +20,7 @@ from sqlalchemy import bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from services.api import audit
-from services.api.crud import JsonPage, PageQuery, get_by_id_or_prefix, get_or_404
+from services.api.crud import JsonPage, PageQuery, get_by_id_or_prefix
 from services.api.deps import (
     DEFAULT_PAGE_LIMIT,
     MAX_PAGE_LIMIT,
@@ -37,7 +37,7 @@ from services.api.deps import (
     get_current_user,
     read_signed_in,
 )
-from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
+from services.api.downloads import CHECKSUM_RESPONSE, FormatQuery, model_response
 from services.api.errors import UnauthorizedError
 from services.api.plots import curve_png
 from services.api.schemas.common import MAX_ROW_ID, NO_NUL_PATTERN, Page
@@ -55,7 +55,6 @@ from services.api.settings import ApiSettings
 from services.core.db.base import utcnow
 from services.core.db.models import (
     JOB_FINAL_STATUSES,
-    Artifact,
     AuditEntry,
     Classifier,
     HFModel,
@@ -456,10 +455,25 @@ def plot(job_id: str, db: DbDep) -> Response:
     response_class=FileResponse,
     responses=CHECKSUM_RESPONSE,
 )
-def model(job_id: str, db: DbDep, store: StoreDep) -> FileResponse:
-    """The trained policy (TorchScript, with its observation normalisation) and its checksum."""
+def model(
+    job_id: str, db: DbDep, store: StoreDep, model_format: FormatQuery = "torchscript"
+) -> FileResponse:
+    """The trained policy as TorchScript, a torch.export program (pt2) or ONNX, each with its
+    observation normalisation, and its checksum."""
     job = get_by_id_or_prefix(db, Job, job_id, "job_id")
     if job.model_artifact_id is None:
         raise NotFoundError(f"job {job.id} ({job.status}) has no model yet", field="job_id")
-    artifact = get_or_404(db, Artifact, job.model_artifact_id, "job_id")
-    return artifact_response(store, artifact, f"policy-{job.id}.pt")
+    ids = {
+        "torchscript": job.model_artifact_id,
+        "pt2": job.model_pt2_artifact_id,
+        "onnx": job.model_onnx_artifact_id,
+    }
+    return model_response(
+        db,
+        store,
+        ids,
+        model_format,
+        what=f"job {job.id}",
+        field="job_id",
+        filename=f"policy-{job.id}",
+    )

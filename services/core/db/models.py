@@ -174,6 +174,13 @@ class Job(Base):
     model_artifact_id: Mapped[str | None] = mapped_column(
         ForeignKey("artifacts.id", ondelete="SET NULL")
     )
+    """The trained model as TorchScript; the next two are the same model in other formats."""
+    model_pt2_artifact_id: Mapped[str | None] = mapped_column(
+        ForeignKey("artifacts.id", ondelete="SET NULL")
+    )
+    model_onnx_artifact_id: Mapped[str | None] = mapped_column(
+        ForeignKey("artifacts.id", ondelete="SET NULL")
+    )
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow, index=True)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow, onupdate=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
@@ -278,6 +285,7 @@ class Classifier(Base):
     job_id: Mapped[str | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
     onnx_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
     torchscript_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
+    pt2_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
     metrics: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
@@ -296,6 +304,7 @@ class HFModel(Base):
     job_id: Mapped[str | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
     torchscript_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
     onnx_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
+    pt2_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
     metrics: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
