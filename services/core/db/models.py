@@ -1,4 +1,5 @@
-"""Every table of the platform (SQLAlchemy 2 declarative models).
+"""The platform's tables (SQLAlchemy 2 declarative models); the live-session tables are in
+:mod:`services.core.db.live`, which builds on these (Alembic's ``env.py`` imports both).
 
 Integer ids for rows only the api creates; 32-hex ids (:func:`~services.core.db.base.new_id`)
 for jobs and artifacts, which workers on other hosts create too. Timestamps are UTC and
@@ -326,8 +327,3 @@ class FeedbackLabel(Base):
     shown_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     decoded_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
-
-
-# The live-session tables (issue 10) live in their own module; importing it here registers
-# them on the same metadata, so every user of the models (and Alembic) sees them.
-from services.core.db import live as _live  # noqa: E402, F401
