@@ -203,45 +203,6 @@ def demo(
             tmp.cleanup()
 
 
-def bench_loop(
-    out: Annotated[Path, typer.Option(help="Output folder; writes loop.json.")],
-    qualities: Annotated[str, typer.Option(help="Virtual-subject qualities (comma list).")] = (
-        "0.4,0.7,1.0"
-    ),
-    labels: Annotated[int, typer.Option(min=1, help="Labels per accelerated session.")] = 1000,
-    calibration_actions: Annotated[int, typer.Option(min=20)] = 600,
-    paced_actions: Annotated[
-        int, typer.Option(min=0, help="Actions of the paced session (0: skip it).")
-    ] = 1000,
-    period_s: Annotated[float, typer.Option(min=0.05, help="Paced seconds per action.")] = 1.5,
-    sweep_seeds: Annotated[int, typer.Option(min=1, help="hf-sweep seeds to compare.")] = 3,
-    max_passes: Annotated[int | None, typer.Option(min=1, help="Calibration passes.")] = None,
-    display: Annotated[
-        bool,
-        typer.Option(
-            help="Watch the paced session on the subject's display page (api + headless "
-            "Chromium): measures action -> frame shown."
-        ),
-    ] = True,
-) -> None:
-    """Closed loop: accelerated sessions per subject quality, a paced session's timeline."""
-    from benchmarks.bench_loop import run_benchmark
-
-    result = run_benchmark(
-        out,
-        qualities=[float(q) for q in qualities.split(",") if q.strip()],
-        labels=labels,
-        calibration_actions=calibration_actions,
-        paced_actions=paced_actions,
-        period_s=period_s,
-        sweep_seeds=sweep_seeds,
-        max_passes=max_passes,
-        display=display,
-    )
-    typer.echo(f"wrote {out / 'loop.json'} ({len(result['accelerated'])} accelerated sessions)")
-
-
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``demo`` and ``bench loop`` to the ``bgrl`` command."""
+    """Add ``demo`` to the ``bgrl`` command."""
     app.command("demo")(demo)
-    bench_app.command("loop")(bench_loop)
