@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import csv
 import functools
+import hashlib
 import io
 import logging
 import math
 import typing
+import zipfile
 from collections.abc import Callable, Iterable
 from typing import Annotated, Any, Literal
 
@@ -37,7 +39,12 @@ from services.api.deps import (
     get_current_user,
     read_signed_in,
 )
-from services.api.downloads import CHECKSUM_RESPONSE, FormatQuery, model_response
+from services.api.downloads import (
+    CHECKSUM_HEADER,
+    CHECKSUM_RESPONSE,
+    FormatQuery,
+    model_response,
+)
 from services.api.errors import UnauthorizedError
 from services.api.plots import curve_png
 from services.api.schemas.common import MAX_ROW_ID, NO_NUL_PATTERN, Page
@@ -52,6 +59,7 @@ from services.api.schemas.jobs import (
     JobStatus,
 )
 from services.api.settings import ApiSettings
+from services.core.artifacts import TENSORBOARD_KIND, job_folder
 from services.core.db.base import utcnow
 from services.core.db.models import (
     JOB_FINAL_STATUSES,
@@ -447,6 +455,43 @@ def plot(job_id: str, db: DbDep) -> Response:
     hf_spl = (job.result or {}).get("hf_policy_spl")
     hf_line = float(hf_spl) if isinstance(hf_spl, int | float) and math.isfinite(hf_spl) else None
     return Response(curve_png(job.curve, title, hf_policy_spl=hf_line), media_type="image/png")
+
+
+@router.get(
+    "/{job_id}/tensorboard",
+    dependencies=SIGNED_IN,
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"application/zip": {}},
+            "headers": {CHECKSUM_HEADER: {"description": "SHA-256 of the zip (hex)."}},
+        }
+    },
+)
+def tensorboard(job_id: str, db: DbDep, store: StoreDep) -> Response:
+    """The training job's TensorBoard event files as a zip (``job-<id>/events...``), as they
+    are now: unzip and run ``tensorboard --logdir`` on the folder. Scalars use CleanRL's
+    names (``losses/...``, ``charts/episodic_return``, ``charts/SPL``, ...)."""
+    job = get_by_id_or_prefix(db, Job, job_id, "job_id")
+    folder = store.path(job_folder(TENSORBOARD_KIND, job.id))
+    events = sorted(p for p in folder.glob("events.out.tfevents.*") if p.is_file())
+    if not events:
+        raise NotFoundError(
+            f"job {job.id} ({job.status}) has no TensorBoard events", field="job_id"
+        )
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for path in events:
+            archive.write(path, f"job-{job.id}/{path.name}")
+    data = buffer.getvalue()
+    return Response(
+        data,
+        media_type="application/zip",
+        headers={
+            "Content-Disposition": f'attachment; filename="job-{job.id}-tensorboard.zip"',
+            CHECKSUM_HEADER: hashlib.sha256(data).hexdigest(),
+        },
+    )
 
 
 @router.get(
