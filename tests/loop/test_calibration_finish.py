@@ -89,7 +89,7 @@ CRASHES: dict[str, Callable[[pytest.MonkeyPatch], None]] = {
         live_finish.RunFinish, "recording_rows", p
     ),
     "after the rows, before the job is sent": lambda p: _die_before(live_finish, "enqueue_job", p),
-    "after the job was sent": lambda p: _die_after(live_session, "finish_calibration", p),
+    "after the job was sent": lambda p: _die_after(live_finish.RunFinish, "calibration", p),
     "after the run was marked completed": lambda p: _die_after(LiveRunner, "finish", p),
 }
 
