@@ -1,8 +1,8 @@
 """Trained models in every format: a job's policy, a classifier and an HF model also as a
 ``torch.export`` program (``.pt2``), a job's policy also as ONNX.
 
-Revision ID: 0007
-Revises: 0006
+Revision ID: 0008
+Revises: 0007
 Create Date: 2026-12-03
 """
 
@@ -11,8 +11,8 @@ from __future__ import annotations
 import sqlalchemy as sa
 from alembic import op
 
-revision = "0007"
-down_revision = "0006"
+revision = "0008"
+down_revision = "0007"
 branch_labels = None
 depends_on = None
 
