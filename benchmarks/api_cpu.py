@@ -22,6 +22,7 @@ from urllib.parse import urlencode
 from fastapi import FastAPI
 from pydantic import SecretStr
 
+from benchmarks.api_data import ADMIN_EMAIL, PG_SKIP_REASON, postgres_schema, store_jobs
 from services.api.app import create_app
 from services.api.settings import ApiSettings
 from services.core.db.migrate import upgrade_database
@@ -193,7 +194,6 @@ def main(argv: list[str] | None = None) -> None:
     import tempfile
 
     from benchmarks.api_load import BARE_ROUTE, JOBS_ROUTE
-    from benchmarks.bench_api import ADMIN_EMAIL, PG_SKIP_REASON, postgres_schema, store_jobs
 
     parser = argparse.ArgumentParser(prog="python -m benchmarks.api_cpu")
     parser.add_argument("--jobs-stored", type=int, default=1000)

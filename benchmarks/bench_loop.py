@@ -36,16 +36,16 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.browser import CHROMIUM, CHROMIUM_ARGS
-from services.cli.demo import (
-    _free_port,
-    _lab_session,
-    _live_run,
-    _run,
-    _wait_healthy,
+from services.cli.closed_loop import (
     cpu_seconds,
+    free_port,
     job_runtime,
+    lab_session,
+    live_run,
     run_latencies,
+    run_to_end,
     start_services,
+    wait_healthy,
 )
 
 DISPLAY_OPEN_TIMEOUT_S = 180.0
@@ -71,7 +71,7 @@ def _classifier(
     from services.worker.calibration import eeg_calibration
     from services.worker.live_session import live_session
 
-    session_id = _lab_session(runtime, "calibration", subject_id)
+    session_id = lab_session(runtime, "calibration", subject_id)
     options: dict[str, Any] = {
         "accelerated": True,
         "virtual_quality": quality,
@@ -79,9 +79,9 @@ def _classifier(
     }
     if max_passes is not None:
         options["calibration_max_passes"] = max_passes
-    _, job_id = _live_run(runtime, session_id, "calibration", options)
-    calibration = _run(runtime, job_id, live_session)
-    return _run(runtime, calibration["calibration_job_id"], eeg_calibration)
+    _, job_id = live_run(runtime, session_id, "calibration", options)
+    calibration = run_to_end(runtime, job_id, live_session)
+    return run_to_end(runtime, calibration["calibration_job_id"], eeg_calibration)
 
 
 def display_unavailable() -> str | None:
@@ -104,7 +104,7 @@ def start_api(services: BenchServices, database_url: str) -> tuple[str, Any, str
     from services.cli.serve import Child
 
     password = hashlib.sha256(f"bench-display:{services.token}".encode()).hexdigest()[:32]
-    port = _free_port()
+    port = free_port()
     env = {
         "BGRL_DATA_DIR": str(services.folder),
         "BGRL_DATABASE_URL": database_url,
@@ -122,7 +122,7 @@ def start_api(services: BenchServices, database_url: str) -> tuple[str, Any, str
     child.start()
     url = f"http://127.0.0.1:{port}"
     try:
-        _wait_healthy(url)
+        wait_healthy(url)
         answer = httpx.post(
             f"{url}/api/v1/auth/token",
             data={"username": BENCH_ADMIN, "password": password},
@@ -309,16 +309,16 @@ def run_benchmark(
             subject_id = _subject(runtime, f"BENCH-{k}-{secrets.token_hex(2)}")
             trained = _classifier(runtime, subject_id, quality, calibration_actions, max_passes)
             classifiers[quality] = trained["classifier_id"]
-            session_id = _lab_session(runtime, "online", subject_id)
+            session_id = lab_session(runtime, "online", subject_id)
             options = {
                 "accelerated": True,
                 "virtual_quality": quality,
                 "classifier_id": trained["classifier_id"],
                 "label_budget": labels,
             }
-            run_id, job_id = _live_run(runtime, session_id, "online", options)
+            run_id, job_id = live_run(runtime, session_id, "online", options)
             t, cpu_before = time.perf_counter(), cpu_seconds(children)
-            online = _run(runtime, job_id, live_session)
+            online = run_to_end(runtime, job_id, live_session)
             online_s = time.perf_counter() - t
             cpu_per_label = _cpu_ms_per(cpu_before, cpu_seconds(children), online["labels"])
             accuracy = online["decoding_accuracy"]
@@ -402,16 +402,16 @@ def paced_session(
     from services.worker.live_session import live_session
 
     started_at, load_start = _utc_now(), os.getloadavg()[0]
-    session_id = _lab_session(runtime, "online", subject_id)
+    session_id = lab_session(runtime, "online", subject_id)
     page, display_result = None, {"reason": "--no-display"}
     if display:
         page, display_result = _open_display(runtime, services, session_id)
     options = {"accelerated": False, "virtual_quality": quality, "classifier_id": classifier_id,
                "label_budget": actions, "n_actions": actions, "period_s": period_s}  # fmt: skip
-    run_id, job_id = _live_run(runtime, session_id, "online", options)
+    run_id, job_id = live_run(runtime, session_id, "online", options)
     cpu_before = cpu_seconds(services.children)
     try:
-        online = _run(runtime, job_id, live_session)
+        online = run_to_end(runtime, job_id, live_session)
         cpu_after = cpu_seconds(services.children)
         if page is not None:
             display_result["frames_reported"] = _frames_reported(runtime, run_id)

@@ -2,19 +2,15 @@
 
 from __future__ import annotations
 
-from services.core.errors import ServiceError
+from services.core.errors import ForbiddenError, ServiceError
+
+__all__ = ["ForbiddenError", "TooManyRequestsError", "UnauthorizedError"]
 
 
 class UnauthorizedError(ServiceError):
     """No valid credentials: a missing, malformed, expired or revoked token, or a bad login."""
 
     status_code = 401
-
-
-class ForbiddenError(ServiceError):
-    """Valid credentials whose role does not allow this request."""
-
-    status_code = 403
 
 
 class TooManyRequestsError(ServiceError):

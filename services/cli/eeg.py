@@ -1,4 +1,5 @@
-"""``bgrl eeg ...`` (calibration, quality sweep) and ``bgrl bench eeg``."""
+"""``bgrl eeg ...``: calibration (the quality sweep and ``bgrl bench eeg`` are
+:mod:`benchmarks.commands`)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from services.cli.paths import output_folder, refuse_file
+from services.cli.paths import refuse_file
 from services.eeg.training_config import DECODERS
 
 eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject quality.")
@@ -149,95 +150,6 @@ def _event_labels(pairs: list[str]):
     return EventLabels(codes=codes, descriptions=descriptions)
 
 
-@eeg_app.command("quality-sweep")
-def quality_sweep_command(
-    out: Annotated[Path, typer.Option(help="Folder for quality_sweep.json, .csv and .png.")] = Path(
-        "benchmarks/results"
-    ),
-    qualities: Annotated[
-        list[float] | None,
-        typer.Option(
-            "--quality",
-            min=0.0,
-            help="Quality levels (repeatable); above 1 extrapolates the generator's ErrP.",
-        ),
-    ] = None,
-    seeds: Annotated[int, typer.Option(min=1, help="Subjects (seeds) per quality level.")] = 5,
-    actions: Annotated[int, typer.Option(min=60, help="Actions per calibration session.")] = 600,
-    error_rate: Annotated[float, typer.Option(min=0.05, max=0.95)] = 0.3,
-    max_passes: Annotated[int, typer.Option(min=1, help="Training passes cap per run.")] = 150,
-    jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
-    decoders: Annotated[
-        str,
-        typer.Option(
-            help="Comma-separated decoders trained on each split (eegnet, lda, xdawn_rg)."
-        ),
-    ] = ",".join(DECODERS),
-) -> None:
-    """Simulate and calibrate virtual subjects per quality level: every decoder on the same
-    splits; writes quality_sweep.json, .csv and .png and prints the table."""
-    from benchmarks.bench_eeg import (
-        DEFAULT_QUALITIES,
-        format_sweep_table,
-        quality_sweep,
-        write_sweep_outputs,
-    )
-    from services.eeg.calibration import TrainingConfig
-
-    names = tuple(d.strip() for d in decoders.split(",") if d.strip())
-    try:
-        TrainingConfig(decoders=names)
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc), param_hint="--decoders") from exc
-    output_folder(out)
-    result = quality_sweep(
-        qualities or list(DEFAULT_QUALITIES),
-        n_seeds=seeds,
-        n_actions=actions,
-        error_rate=error_rate,
-        max_passes=max_passes,
-        jobs=jobs,
-        partial_path=out / "quality_sweep.partial.json",
-        decoders=names,
-    )
-    paths = write_sweep_outputs(result, out)
-    typer.echo(format_sweep_table(result))
-    typer.echo("wrote " + ", ".join(str(p) for p in paths))
-
-
-def bench_eeg(
-    out: Annotated[Path, typer.Option(help="Folder for eeg.json.")] = Path("benchmarks/results"),
-    actions: Annotated[int, typer.Option(min=10, help="Actions in the live LSL replay.")] = 500,
-    speed: Annotated[float, typer.Option(min=0.5, help="Replay speed (x real time).")] = 3.0,
-    minutes: Annotated[
-        float, typer.Option(min=0.5, help="Recording length for the offline and memory figures.")
-    ] = 20.0,
-    memory_only: Annotated[
-        bool,
-        typer.Option(
-            "--memory-only", help="Only the peak-memory figures (writes eeg_memory.json)."
-        ),
-    ] = False,
-) -> None:
-    """Peak memory of simulate / calibrate / service reading, decision latency (live LSL
-    replay), offline preprocessing speed, training time."""
-    from benchmarks.bench_eeg import bench_memory, run_benchmark
-    from services.core.files import finite_or_null, write_results_json
-
-    output_folder(out)
-    if memory_only:
-        memory = bench_memory(minutes)
-        path = write_results_json(out / "eeg_memory.json", memory)
-        typer.echo(json.dumps(finite_or_null(memory), indent=2))
-        typer.echo(f"wrote {path}")
-        return
-    result = run_benchmark(n_actions=actions, speed=speed, offline_minutes=minutes)
-    path = write_results_json(out / "eeg.json", result)
-    typer.echo(json.dumps(result["summary"], indent=2))
-    typer.echo(f"wrote {path}")
-
-
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bgrl eeg`` and ``bgrl bench eeg``."""
+    """Add ``bgrl eeg`` (its quality sweep: benchmarks.commands)."""
     app.add_typer(eeg_app, name="eeg")
-    bench_app.command("eeg")(bench_eeg)

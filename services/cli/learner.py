@@ -1,10 +1,8 @@
-"""``bgrl reproduce`` (the paper's simulated-feedback experiment), ``bgrl bench learner`` and
-``bgrl bench sweep``."""
+"""``bgrl reproduce`` (the paper's simulated-feedback experiment), ``hf-sweep`` and ``compare``."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -347,59 +345,6 @@ def hf_sweep(
     _exit_on_failures(failures, out / "hf_policies.json")
 
 
-def bench_learner(
-    out: Annotated[Path, typer.Option(help="Output folder; writes learner.json.")],
-    steps: Annotated[
-        int, typer.Option(min=256, help="Env steps per throughput measurement.")
-    ] = 4096,
-    target_steps: Annotated[
-        int, typer.Option(min=2000, help="Budget of the time-to-0.7-SPL runs.")
-    ] = 40_000,
-    target_seeds: Annotated[
-        int, typer.Option(min=1, help="Seeds per method of the time-to-0.7-SPL runs.")
-    ] = 3,
-) -> None:
-    """PPO throughput vs Stable-Baselines3, Fhat update rate, HF+sparse time to 0.7 SPL."""
-    from benchmarks.bench_learner import run_benchmark
-
-    output_folder(out)
-    result = run_benchmark(out, steps=steps, target_steps=target_steps, target_seeds=target_seeds)
-    typer.echo(json.dumps(result["figures"], indent=1))
-
-
-def bench_sweep(
-    out: Annotated[Path, typer.Option(help="Output folder; writes sweep.json.")],
-    seeds: Annotated[
-        int, typer.Option(min=1, help="Seeds of the Fig. 3 sweep (10 runs a seed).")
-    ] = 2,
-    steps: Annotated[int, typer.Option(min=256, help="Env steps per run.")] = 4096,
-    sb3_runs: Annotated[
-        int, typer.Option(min=1, help="RL runs of the sweep also trained by SB3 PPO.")
-    ] = 2,
-) -> None:
-    """One sweep three ways in one process: runs alone, in lockstep, and SB3 PPO.
-
-    Runs per CPU-hour, env steps per CPU-second and the ratios; the full Fig. 3 (100 runs x
-    40k steps) extrapolated on 2 cores; peak memory. Writes OUT/sweep.json.
-    """
-    from benchmarks.bench_sweep import run
-    from services.core.files import write_results_json
-
-    output_folder(out)  # before the minutes of measuring
-    with tqdm(total=4, desc="bench sweep", unit="part") as bar:
-
-        def progress(message: str) -> None:
-            bar.set_postfix_str(message)
-            bar.update(1)
-
-        result = run(seeds=seeds, steps=steps, sb3_runs=sb3_runs, progress=progress)
-    result["command"] = (
-        f"bgrl bench sweep --out {out} --seeds {seeds} --steps {steps} --sb3-runs {sb3_runs}"
-    )
-    write_results_json(out / "sweep.json", result, indent=1)
-    typer.echo(json.dumps(result["figures"], indent=1))
-
-
 def compare(
     folders: Annotated[list[Path], typer.Argument(help="`bgrl reproduce` output folders.")],
     out: Annotated[Path, typer.Option(help="Output folder (compare.md/json, plots).")],
@@ -419,9 +364,7 @@ def compare(
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``reproduce``, ``hf-sweep``, ``compare``, ``bench learner`` and ``bench sweep``."""
+    """Add ``reproduce``, ``hf-sweep`` and ``compare``."""
     app.command("reproduce")(reproduce)
     app.command("hf-sweep")(hf_sweep)
     app.command("compare")(compare)
-    bench_app.command("learner")(bench_learner)
-    bench_app.command("sweep")(bench_sweep)

@@ -1,7 +1,9 @@
 """Entry point of the ``bgrl`` command (the composition root).
 
 Each service contributes its commands through a ``register(app, bench_app)`` function in
-its own module under ``services/cli``; this file only assembles them.
+its own module under ``services/cli``, and the benchmarks (a layer above the CLI) theirs
+through :func:`benchmarks.commands.register`; this file only assembles them (the one import
+of ``benchmarks`` from ``services``, allowed by name in pyproject's import contract).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import Annotated
 
 import typer
 
+from benchmarks import commands as benchmark_commands
 from services.cli import (
     backup,
     bids,
@@ -38,6 +41,7 @@ app.add_typer(bench_app, name="bench")
 
 for module in (serve, worker, learner, sim, eeg, subject, platform, users, demo, bids, backup):
     module.register(app, bench_app)
+benchmark_commands.register(app, bench_app)
 
 
 @bench_app.command("all")

@@ -1,5 +1,4 @@
-"""``bgrl login``, ``bgrl jobs ...``, ``bgrl models pull`` (the platform api from a shell) and
-``bgrl bench api``."""
+"""``bgrl login``, ``bgrl jobs ...``, ``bgrl models pull``: the platform api from a shell."""
 
 from __future__ import annotations
 
@@ -25,6 +24,7 @@ from services.client.config import (
     save_credentials,
 )
 from services.client.schemas import JobKind, JobStatus
+from services.core.model_formats import SUFFIXES, ModelFormat
 from services.core.settings import SettingsError, load_settings
 
 jobs_app = typer.Typer(
@@ -397,123 +397,30 @@ def pull(
         str,
         typer.Argument(help="A finished guided_ppo job's id, or a unique prefix (6 or more)."),
     ],
-    out: Annotated[Path, typer.Option(help="Where to save the TorchScript policy (.pt).")],
+    out: Annotated[
+        Path, typer.Option(help="Where to save the policy (a folder: policy-<job id>.<ending>).")
+    ],
+    model_format: Annotated[
+        ModelFormat,
+        typer.Option(
+            "--format",
+            help="torchscript (.pt, torch.jit.load), pt2 (torch.export.load) or onnx "
+            "(onnxruntime); each holds the observation normalisation.",
+        ),
+    ] = "torchscript",
     url: UrlOption = None,
 ) -> None:
     """Download a job's trained policy, verifying its SHA-256 (a corrupt file is not kept)."""
     with _client(url) as client:
         job = client.get_job(job_id)
         if out.is_dir():
-            out = out / f"policy-{job.id}.pt"
-        saved = client.download_model(job.id, out)
+            out = out / f"policy-{job.id}{SUFFIXES[model_format]}"
+        saved = client.download_model(job.id, out, model_format=model_format)
     typer.echo(f"saved {saved.path} ({saved.size_bytes} bytes, sha256 {saved.sha256})")
 
 
-def bench_api(
-    out: Annotated[Path, typer.Option(help="Folder for api.json.")],
-    rate: Annotated[float, typer.Option(min=1, help="Requests/s of each route.")] = 200.0,
-    light_rate: Annotated[
-        float, typer.Option(min=1, help="Requests/s of the second, lighter load.")
-    ] = 25.0,
-    duration: Annotated[float, typer.Option(min=1, help="Seconds of load per route.")] = 30.0,
-    blocks: Annotated[int, typer.Option(min=1, help="Alternating blocks per route.")] = 6,
-    jobs_stored: Annotated[int, typer.Option(min=50, help="Jobs in the database.")] = 1000,
-    batch: Annotated[
-        int, typer.Option(min=1, help="Throughput jobs per worker in each phase.")
-    ] = 2,
-    probes: Annotated[int, typer.Option(min=1, help="Queue-latency probe jobs per phase.")] = 5,
-    job_method: Annotated[
-        str, typer.Option(help="Method of the throughput jobs (rl_sparse, rl_rich, hf_sparse).")
-    ] = "hf_sparse",
-    job_steps: Annotated[int, typer.Option(min=128, help="total_steps of each job.")] = 2000,
-    jobs: Annotated[bool, typer.Option(help="Also measure job throughput (slow).")] = True,
-    api_workers: Annotated[
-        int | None,
-        typer.Option(
-            min=1,
-            max=64,
-            help="Api processes under the read load (default: as `bgrl up` runs them on "
-            "each database: 1 on SQLite, one per core up to 4 on PostgreSQL).",
-        ),
-    ] = None,
-) -> None:
-    """Api reads under load (SQLite, PostgreSQL) vs a bare route, each load level on a
-    fresh api; CPU per request in process; api RSS; job throughput with 1 and 2 workers
-    and queue latency; writes OUT/api.json."""
-    import time
-
-    from tqdm import tqdm
-
-    from benchmarks import bench_api as bench
-
-    with tqdm(desc="bench api", unit="part") as bar:
-
-        def progress(message: str) -> None:
-            bar.set_postfix_str(message)
-            bar.update(1)
-
-        started = time.perf_counter()
-        result = bench.run(
-            rate=rate,
-            light_rate=light_rate,
-            duration_s=duration,
-            blocks=blocks,
-            jobs_stored=jobs_stored,
-            batch=batch,
-            probes=probes,
-            job_method=job_method,
-            job_steps=job_steps,
-            jobs=jobs,
-            api_workers=api_workers,
-            progress=progress,
-        )
-    result["command"] = (
-        f"bgrl bench api --out {out} --rate {rate:g} --light-rate {light_rate:g} "
-        f"--duration {duration:g} --blocks {blocks} "
-        f"--jobs-stored {jobs_stored} --batch {batch} --probes {probes} "
-        f"--job-method {job_method} --job-steps {job_steps}"
-        f"{'' if api_workers is None else f' --api-workers {api_workers}'}"
-        f"{'' if jobs else ' --no-jobs'}"
-    )
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "api.json"
-    path.write_text(json.dumps(result, indent=2) + "\n")
-    for name, reads in result["reads"].items():
-        if "skipped" in reads:
-            typer.echo(f"{name}: skipped ({reads['skipped']})")
-            continue
-        for level in (reads["load"], reads["light_load"]):
-            jobs_route, bare = (level["routes"][r] for r in (bench.JOBS_ROUTE, bench.BARE_ROUTE))
-            ratio = level["jobs_p99_to_bare_p99"]
-            typer.echo(
-                f"{name} at {level['rate_per_s']:g} req/s: GET {bench.JOBS_ROUTE} p50 "
-                f"{jobs_route['p50_ms']:.1f} ms p99 {jobs_route['p99_ms']:.1f} ms "
-                f"({jobs_route['errors']} errors) vs {bench.BARE_ROUTE} p50 "
-                f"{bare['p50_ms']:.1f} ms p99 {bare['p99_ms']:.1f} ms ({bare['errors']} "
-                f"errors); p99 ratio {'-' if ratio is None else f'{ratio:.2f}'}; aim met: "
-                f"{level['meets_aim']}; api RSS {level['api_rss_mb']['idle']:.0f} -> "
-                f"{level['api_rss_mb']['after_load']:.0f} MiB"
-            )
-        cpu = reads["cpu_ms_per_request_in_process"]
-        typer.echo(
-            f"{name}: CPU per request in process: "
-            + ", ".join(f"GET {route} {ms:.2f} ms" for route, ms in cpu.items())
-        )
-    tp = result["throughput"]
-    if tp is None:
-        typer.echo(f"wrote {path} in {time.perf_counter() - started:.0f} s")
-        return
-    typer.echo(
-        f"jobs/min: 1 worker {tp['workers_1']['jobs_per_minute']:.1f}, 2 workers "
-        f"{tp['workers_2']['jobs_per_minute']:.1f} (x{tp['speedup_2_workers']:.2f}); queue "
-        f"latency p50 {tp['queue_latency_idle_ms']['p50_ms']:.0f} ms p99 "
-        f"{tp['queue_latency_idle_ms']['p99_ms']:.0f} ms\n"
-        f"wrote {path} in {time.perf_counter() - started:.0f} s"
-    )
-
-
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``login``, ``jobs``, ``models`` and ``bench api``."""
+    """Add ``login``, ``jobs`` and ``models``."""
     app.command("login")(login)
     jobs_app.command("submit")(submit)
     jobs_app.command("list")(list_jobs)
@@ -525,4 +432,3 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     models_app.command("pull")(pull)
     app.add_typer(jobs_app, name="jobs")
     app.add_typer(models_app, name="models")
-    bench_app.command("api")(bench_api)

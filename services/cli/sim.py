@@ -1,17 +1,14 @@
-"""``bgrl sim ...`` commands and ``bgrl bench sim``."""
+"""``bgrl sim ...`` commands."""
 
 from __future__ import annotations
 
 import json
-import math
-import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from tqdm import tqdm
 
-from services.cli.paths import output_file, output_folder
+from services.cli.paths import output_file
 
 sim_app = typer.Typer(help="The navigation simulator: map images, marker stream, checks.")
 
@@ -146,70 +143,6 @@ def markers(
     inlet.close_stream()
 
 
-def bench_sim(
-    out: Annotated[Path, typer.Option(help="Folder for sim.json.")],
-    env_steps: Annotated[int, typer.Option(min=100, help="Env steps measured in total.")] = 20_000,
-    rounds: Annotated[int, typer.Option(min=1, help="Interleaved env/ray-cast rounds.")] = 10,
-    frames: Annotated[int, typer.Option(min=1, help="Frames rendered.")] = 60,
-    oracle_queries: Annotated[int, typer.Option(min=1, help="Oracle queries timed.")] = 2_000,
-    service_steps: Annotated[int, typer.Option(min=1, help="Steps through the HTTP app.")] = 300,
-    seed: Annotated[int, typer.Option(min=0, help="Seed of actions and query poses.")] = 0,
-) -> None:
-    """Sim costs against peers in the same run; writes OUT/sim.json.
-
-    Env steps/s vs raw rayTestBatch, frame and top-down render times, oracle build and
-    query times, HTTP step overhead.
-    """
-    from benchmarks import bench_sim as bench
-    from services.core.files import write_results_json
-
-    output_folder(out)  # before the minutes of measuring
-    total = rounds + math.ceil(frames / 10) + 3
-    with tqdm(total=total, desc="bench sim", unit="part") as bar:
-
-        def progress(message: str) -> None:
-            bar.set_postfix_str(message)
-            bar.update(1)
-
-        started = time.perf_counter()
-        result = bench.run(
-            env_steps=env_steps,
-            rounds=rounds,
-            frames=frames,
-            oracle_queries=oracle_queries,
-            service_steps=service_steps,
-            seed=seed,
-            progress=progress,
-        )
-    result["command"] = (
-        f"bgrl bench sim --out {out} --env-steps {env_steps} --rounds {rounds} "
-        f"--frames {frames} --oracle-queries {oracle_queries} --service-steps {service_steps} "
-        f"--seed {seed}"
-    )
-    path = write_results_json(out / "sim.json", result)
-    env, render, oracle, service = (
-        result["env_step"],
-        result["render"],
-        result["oracle"],
-        result["service"],
-    )
-    typer.echo(
-        f"env {env['env_steps_per_s']:.0f} steps/s vs rayTestBatch "
-        f"{env['raycast_batches_per_s']:.0f}/s: ratio {env['ratio_env_to_raycast']:.2f} "
-        f"(aim >= {env['aim_ratio']})\n"
-        f"frame 320x240 {render['camera_frame_ms']['mean']:.1f} ms, top-down "
-        f"{render['top_down_ms']['mean']:.1f} ms\n"
-        f"oracle build {oracle['build_cold_s']:.2f} s (cache load {oracle['cache_load_s']:.2f} s), "
-        f"query {oracle['optimal_actions_us']:.0f} us (optimal actions), "
-        f"{oracle['cost_to_go_us']:.0f} us (cost-to-go)\n"
-        f"HTTP step {service['http_step_ms']:.2f} ms vs GET /health "
-        f"{service['http_health_ms']:.2f} ms vs direct env step "
-        f"{service['direct_env_step_ms']:.3f} ms\n"
-        f"wrote {path} in {time.perf_counter() - started:.0f} s"
-    )
-
-
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bgrl sim ...`` and ``bgrl bench sim``."""
+    """Add ``bgrl sim ...``."""
     app.add_typer(sim_app, name="sim")
-    bench_app.command("sim")(bench_sim)

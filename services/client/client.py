@@ -53,6 +53,7 @@ from services.client.schemas import (
     Subject,
     User,
 )
+from services.core.model_formats import ModelFormat
 
 API = "/api/v1"
 CHECKSUM_HEADER = "X-Checksum-Sha256"
@@ -361,10 +362,17 @@ class PlatformClient:
 
     # -- models, classifiers and artifacts ------------------------------------------------
 
-    def download_model(self, job_id: str, path: str | os.PathLike[str]) -> DownloadedFile:
-        """Save a finished training job's policy (TorchScript with its observation
-        normalisation) to ``path``, verifying ``X-Checksum-Sha256``."""
-        return self._download(f"{API}/jobs/{_segment(job_id, 'job_id')}/model", Path(path))
+    def download_model(
+        self,
+        job_id: str,
+        path: str | os.PathLike[str],
+        *,
+        model_format: ModelFormat = "torchscript",
+    ) -> DownloadedFile:
+        """Save a finished training job's policy (TorchScript, a torch.export program or ONNX,
+        with its observation normalisation) to ``path``, verifying ``X-Checksum-Sha256``."""
+        route = f"{API}/jobs/{_segment(job_id, 'job_id')}/model"
+        return self._download(route, Path(path), format=model_format)
 
     def list_hf_models(
         self, *, task: str | None = None, limit: int = 50, offset: int = 0
@@ -381,9 +389,10 @@ class PlatformClient:
         hf_model_id: int,
         path: str | os.PathLike[str],
         *,
-        model_format: Literal["torchscript", "onnx"] = "torchscript",
+        model_format: ModelFormat = "torchscript",
     ) -> DownloadedFile:
-        """Save a human-feedback policy as TorchScript or ONNX, verifying its checksum."""
+        """Save a human-feedback policy as TorchScript, a torch.export program (pt2) or ONNX,
+        verifying its checksum."""
         return self._download(
             f"{API}/hf-models/{hf_model_id}/download", Path(path), format=model_format
         )
@@ -405,9 +414,10 @@ class PlatformClient:
         classifier_id: int,
         path: str | os.PathLike[str],
         *,
-        model_format: Literal["onnx", "torchscript"] = "onnx",
+        model_format: ModelFormat = "onnx",
     ) -> DownloadedFile:
-        """Save an ErrP classifier as ONNX or TorchScript, verifying its checksum."""
+        """Save an ErrP classifier as ONNX, TorchScript or a torch.export program (pt2),
+        verifying its checksum."""
         return self._download(
             f"{API}/classifiers/{classifier_id}/download", Path(path), format=model_format
         )

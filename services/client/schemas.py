@@ -172,6 +172,7 @@ class HFModel(ApiObject):
     job_id: str | None
     torchscript_artifact_id: str | None
     onnx_artifact_id: str | None
+    pt2_artifact_id: str | None
     metrics: dict[str, Any] = Field(default_factory=dict)
     created_at: datetime
 
@@ -186,5 +187,6 @@ class Classifier(ApiObject):
     job_id: str | None
     onnx_artifact_id: str | None
     torchscript_artifact_id: str | None
+    pt2_artifact_id: str | None
     metrics: dict[str, Any] = Field(default_factory=dict)
     created_at: datetime

@@ -31,6 +31,16 @@ _UNSAFE_NAME_CHARS = re.compile(r"[^A-Za-z0-9._-]+")
 _KIND = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 
 
+TENSORBOARD_KIND = "tensorboard"
+"""Folder kind of a training job's TensorBoard event files (:func:`job_folder`)."""
+
+
+def job_folder(kind: str, job_id: str) -> str:
+    """The store's folder (relative path) of a job's ``kind`` files that are rewritten as
+    the job runs (its checkpoint, its TensorBoard event files)."""
+    return f"{kind}/job-{job_id}"
+
+
 @dataclass(frozen=True)
 class StoredFile:
     """Where a stored file lives (relative to the store's root), its SHA-256 and size."""

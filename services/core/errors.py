@@ -58,3 +58,9 @@ class InsufficientStorageError(ServiceError):
     """The data disk is (nearly) full: nothing was stored (see :mod:`services.core.disk`)."""
 
     status_code = 507
+
+
+class ForbiddenError(ServiceError):
+    """Valid credentials (or none needed to say so) that do not allow this request."""
+
+    status_code = 403

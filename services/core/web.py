@@ -3,7 +3,7 @@
 :func:`create_service_app` gives each service the same body-size limit (answered with a
 JSON 413), the same JSON error bodies (:class:`~services.core.errors.ServiceError`,
 validation errors that name the field and never echo a value JSON cannot carry), a request
-id on every request and log line, and ``GET /health``.
+id on every request and log line, ``GET /health`` and ``GET /metrics`` (Prometheus).
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from fastapi import APIRouter, FastAPI, Request, params
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
 from fastapi.responses import JSONResponse, Response
+from prometheus_client.registry import Collector
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.body_limit import MAX_BODY_SIZE_SCOPE_KEY, RequestBodyLimitMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -29,6 +30,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from services.core.errors import ServiceError
 from services.core.gc_pauses import frozen_after_startup
 from services.core.logging import request_id
+from services.core.metrics import MetricsGuard, add_metrics, token_guard
 from services.core.websockets import CLOSE_UNAUTHORIZED
 
 log = logging.getLogger("bgrl.http")
@@ -258,6 +260,8 @@ def create_service_app(
     routers: Sequence[APIRouter] = (),
     health: Callable[[Request], dict[str, Any]] | None = None,
     service_token: str | None = None,
+    metrics_guard: MetricsGuard | None = None,
+    metrics_collectors: Sequence[Collector] = (),
 ) -> FastAPI:
     """A FastAPI app with the platform's limits, error bodies, request ids and health route;
     once ``lifespan`` has started, the objects start-up built are frozen out of the garbage
@@ -265,6 +269,9 @@ def create_service_app(
 
     ``health`` (optional) adds service-specific fields to ``GET /health``; with
     ``service_token`` every other route requires it in the ``X-Service-Token`` header.
+    Every request's latency is measured and ``GET /metrics`` serves it in Prometheus' format
+    (:mod:`services.core.metrics`) to whom ``metrics_guard`` lets through (default: the
+    internal token only), with the series of ``metrics_collectors``.
     """
     app = FastAPI(
         title=title, summary=summary, version=version, lifespan=frozen_after_startup(lifespan)
@@ -313,6 +320,9 @@ def create_service_app(
 
     for router in routers:
         app.include_router(router)
+    add_metrics(
+        app, name, metrics_guard or token_guard(service_token), collectors=metrics_collectors
+    )
     # the last added is the outermost: request id, then JSON 413, then the limit itself
     app.add_middleware(RequestBodyLimitMiddleware, max_body_size=max_body_size)
     app.add_middleware(_JsonBodyLimit)

@@ -15,16 +15,19 @@ On disk (``save(dir)``)::
     dir/classifier.json    architecture, preprocessing params, channels, rate, metrics
     dir/model.pt           the decoder's state dict
     dir/model.torchscript.pt  TorchScript: epochs in volts (n, n_chans, n_times) -> P(error)
+    dir/model.pt2          the same as a torch.export program (``export_pt2``;
+                           ``torch.export.load(path).module()``; float32 epochs, any batch)
     dir/model.onnx         the same graph as ONNX (``export_onnx``; input "epochs", output
                            "p_error", dynamic batch), for runtimes without torch (EEGNet
                            and WindowMeanLDA)
+
+Each file holds the decoder with its input scaling (epochs in volts go in) and the
+classifier's description (``classifier.json``'s content) as ``bgrl_meta.json``.
 """
 
 from __future__ import annotations
 
 import json
-import logging
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -34,15 +37,18 @@ import torch
 from torch import nn
 
 from services.core.files import write_bytes_atomic
+from services.core.model_formats import SUFFIXES
 from services.eeg.classical import WindowMeanLDA
 from services.eeg.eegnet import EEGNet, count_parameters
 from services.eeg.preprocessing import PreprocessingParams
 from services.eeg.riemannian import XdawnRiemann
+from services.model_export import export_program, save_onnx, save_pt2
 
 CONFIG_FILE = "classifier.json"
 STATE_FILE = "model.pt"
 TORCHSCRIPT_FILE = "model.torchscript.pt"
-ONNX_FILE = "model.onnx"
+PT2_FILE = "model" + SUFFIXES["pt2"]
+ONNX_FILE = "model" + SUFFIXES["onnx"]
 FORMAT_VERSION = 1
 ARCHITECTURES: dict[str, type[EEGNet] | type[WindowMeanLDA] | type[XdawnRiemann]] = {
     "EEGNet": EEGNet,
@@ -54,24 +60,6 @@ ONNX_ARCHITECTURES = frozenset({"EEGNet", "WindowMeanLDA"})
 """Architectures with an ONNX form (XdawnRiemann's matrix logarithm needs an
 eigendecomposition, which ONNX lacks)."""
 Decoder = EEGNet | WindowMeanLDA | XdawnRiemann
-
-# Library notices that say nothing about the classifier, filtered where they arise (only
-# these messages): torch 2.13 deprecates TorchScript, which is still the portable format
-# asked for (libtorch loads it without Python); the ONNX exporter warns about a pytree API
-# it uses itself, and logs that torchvision (not used here) is missing.
-warnings.filterwarnings(
-    "ignore", message=r"`torch\.jit\.script` is deprecated", category=DeprecationWarning
-)
-warnings.filterwarnings(
-    "ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated", category=FutureWarning
-)
-
-
-def _not_torchvision_notice(record: logging.LogRecord) -> bool:
-    return "torchvision is not installed" not in record.getMessage()
-
-
-logging.getLogger("torch.onnx._internal.exporter._registration").addFilter(_not_torchvision_notice)
 
 
 class ErrorProbability(nn.Module):
@@ -227,6 +215,16 @@ class ErrPClassifier:
         write_bytes_atomic(directory / CONFIG_FILE, json.dumps(self.to_config(), indent=2).encode())
         return directory
 
+    def _program(self) -> torch.export.ExportedProgram:
+        """The P(error) module traced by ``torch.export`` for any batch size."""
+        example = torch.zeros((2, *self.epoch_shape), dtype=torch.float32)
+        return export_program(self._proba, example)
+
+    def export_pt2(self, directory: str | Path) -> Path:
+        """Write ``model.pt2``, a ``torch.export`` program (float32 epochs in volts ->
+        P(error), any batch size), to ``directory``; every decoder has this form."""
+        return save_pt2(self._program(), Path(directory) / PT2_FILE, self.to_config())
+
     def export_onnx(self, directory: str | Path) -> Path:
         """Write ``model.onnx`` (epochs in volts -> P(error), any batch size) to ``directory``.
 
@@ -239,21 +237,13 @@ class ErrPClassifier:
                 f"a {self.architecture} classifier has no ONNX form (its matrix logarithm "
                 "needs an eigendecomposition, which ONNX lacks); use its TorchScript file"
             )
-        path = Path(directory) / ONNX_FILE
-        path.parent.mkdir(parents=True, exist_ok=True)
-        example = torch.zeros((2, *self.epoch_shape), dtype=torch.float32)
-        batch = torch.export.Dim("batch", min=1)
-        program = torch.onnx.export(
-            self._proba.eval(),
-            (example,),
-            input_names=["epochs"],
-            output_names=["p_error"],
-            dynamic_shapes={"x": {0: batch}},
-            dynamo=True,
-            verbose=False,
+        return save_onnx(
+            self._program(),
+            Path(directory) / ONNX_FILE,
+            self.to_config(),
+            input_name="epochs",
+            output_name="p_error",
         )
-        program.save(str(path))
-        return path
 
     @classmethod
     def load(cls, directory: str | Path) -> ErrPClassifier:

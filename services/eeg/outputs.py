@@ -14,7 +14,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from services.core.files import write_results_json
-from services.eeg.classifier import CONFIG_FILE, ONNX_FILE, STATE_FILE, TORCHSCRIPT_FILE
+from services.eeg.classifier import (
+    CONFIG_FILE,
+    ONNX_FILE,
+    PT2_FILE,
+    STATE_FILE,
+    TORCHSCRIPT_FILE,
+)
 
 if TYPE_CHECKING:
     from services.eeg.calibration import CalibrationResult
@@ -26,6 +32,7 @@ ARTEFACTS = frozenset(
         CONFIG_FILE,
         STATE_FILE,
         TORCHSCRIPT_FILE,
+        PT2_FILE,
         ONNX_FILE,
         HISTORY_FILE,
         "report.png",
@@ -38,13 +45,15 @@ ARTEFACTS = frozenset(
 def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: bool) -> Path:
     """Write the artefacts to a temporary sibling of ``out`` and move them in.
 
-    With ``onnx``, ``model.onnx`` is written when the kept decoder has an ONNX form
+    The classifier is written as TorchScript and as a ``torch.export`` program (``model.pt2``);
+    with ``onnx``, ``model.onnx`` too when the kept decoder has an ONNX form
     (:attr:`~services.eeg.classifier.ErrPClassifier.exports_onnx`).
     """
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
     try:
         result.classifier.save(staging)
+        result.classifier.export_pt2(staging)
         if onnx and result.classifier.exports_onnx:
             result.classifier.export_onnx(staging)
         write_results_json(staging / HISTORY_FILE, result.history, indent=None)

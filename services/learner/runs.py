@@ -34,6 +34,7 @@ from services.learner.feedback import (
 from services.learner.feedback_buffer import FeedbackRecord
 from services.learner.feedback_sources import OracleFeedbackSource
 from services.learner.hf_methods import PAPER_METHOD, get_method
+from services.learner.policy_files import write_beside_torchscript
 from services.learner.ppo import Callback, TrainResult, train, train_lockstep
 from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
 from services.learner.specs import N_VSSG_EVAL_STARTS, TASK_ENV_IDS, RunSpec
@@ -203,13 +204,16 @@ def run_one(
     last_model_path: str | Path | None = None,
     hf_policy: HFPolicy | None = None,
     on_label: Callable[[FeedbackRecord], None] | None = None,
+    portable: bool = False,
 ) -> RunRecord:
     """Execute one run (stage 2 for hf_sparse, then stage 3) and return its record.
 
     ``callback``, ``checkpoint_path`` and ``checkpoint_every`` go to :func:`train` (a job
     worker reports progress, stops on cancel and resumes from the checkpoint); with
     ``model_path`` the policy of the best evaluation (``record.best_step``) is exported
-    there as TorchScript, with ``last_model_path`` the last one. A given
+    there as TorchScript, with ``last_model_path`` the last one; with ``portable``, each also
+    as a ``torch.export`` program and ONNX beside it (``.pt2``, ``.onnx``:
+    :mod:`~services.learner.policy_files`). A given
     ``hf_policy`` (e.g. learned from a subject's decoded EEG in an online session) guides
     an hf_sparse run instead of stage 2's simulated feedback; ``on_label`` goes to stage 2's
     label collection (see :func:`learn_hf_policy`).
@@ -225,8 +229,12 @@ def run_one(
     )
     if model_path is not None:
         result.export_torchscript(model_path, which="best")
+        if portable:
+            write_beside_torchscript(result.best_policy(), Path(model_path))
     if last_model_path is not None:
         result.export_torchscript(last_model_path, which="last")
+        if portable:
+            write_beside_torchscript(result.agent, Path(last_model_path))
     return run_record(spec, result, guidance, time.perf_counter() - start)
 
 

@@ -1,7 +1,7 @@
 """``eeg_calibration`` jobs: train the ErrP classifier on a stored calibration recording.
 
 The recording is read from the artifact store, calibrated by the EEG pipeline
-(:func:`services.eeg.calibration.calibrate`), and every file it writes (weights, TorchScript,
+(:func:`services.eeg.calibration.calibrate`), and every file it writes (weights, TorchScript, .pt2,
 ONNX, metrics, history, report) becomes an artifact of the job; a ``classifiers`` row links
 them to the recording and its subject.
 """
@@ -17,7 +17,7 @@ from sqlalchemy import select
 from services.core.db.models import Artifact, Classifier, LabSession, Recording
 from services.core.web import jsonable
 from services.eeg.calibration import TrainingConfig, calibrate
-from services.eeg.classifier import ONNX_FILE, TORCHSCRIPT_FILE
+from services.eeg.classifier import ONNX_FILE, PT2_FILE, TORCHSCRIPT_FILE
 from services.eeg.io import RecordingError, read_recording
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome
 
@@ -86,6 +86,7 @@ def eeg_calibration(context: JobContext) -> JobOutcome:
             job_id=context.job_id,
             onnx_artifact_id=artifacts.get(ONNX_FILE),
             torchscript_artifact_id=artifacts.get(TORCHSCRIPT_FILE),
+            pt2_artifact_id=artifacts.get(PT2_FILE),
             metrics=metrics,
         )
         session.add(classifier)
@@ -93,5 +94,9 @@ def eeg_calibration(context: JobContext) -> JobOutcome:
         classifier_id = classifier.id
     return JobOutcome(
         result={"classifier_id": classifier_id, "metrics": metrics, "artifacts": artifacts},
-        values={"model_artifact_id": artifacts.get(TORCHSCRIPT_FILE)},
+        values={
+            "model_artifact_id": artifacts.get(TORCHSCRIPT_FILE),
+            "model_pt2_artifact_id": artifacts.get(PT2_FILE),
+            "model_onnx_artifact_id": artifacts.get(ONNX_FILE),
+        },
     )

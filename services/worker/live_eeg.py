@@ -32,7 +32,12 @@ from services.eeg.settings import EEGSettings
 from services.eeg.store import ClassifierStore
 from services.eeg.virtual_ingest import VirtualIngestClient
 from services.eeg.virtual_source import VirtualEEGSource
-from services.worker.live_services import ServiceCallError, ServiceClient
+from services.worker.live_services import (
+    OutcomeUnknownError,
+    ServiceCallError,
+    ServiceClient,
+    retry_while_down,
+)
 from services.worker.runtime import JobConfigError, Runtime
 
 logger = logging.getLogger(__name__)
@@ -78,6 +83,17 @@ def install_classifier(runtime: Runtime, classifier_id: int) -> str:
     return eeg_id
 
 
+def _attach_may_succeed_later(exc: Exception) -> bool:
+    """Whether attaching to the EEG service is worth another try after ``exc``: not after a
+    refusal of the request itself (400, 404, 422), nor after a call whose outcome is unknown
+    (never repeated blindly)."""
+    if isinstance(exc, ServiceCallError):
+        return exc.status_code not in (400, 404, 422)
+    if isinstance(exc, OutcomeUnknownError):
+        return False
+    return isinstance(exc, OSError | RuntimeError | WebSocketException)
+
+
 class EegDecoder:
     """Feeds the EEG service and asks it for the decision on each marker."""
 
@@ -116,21 +132,14 @@ class EegDecoder:
 
     # ------------------------------------------------------------------ attach
     def attach(self) -> None:
-        """Connect the source to the EEG service (retrying while it is down)."""
-        deadline = time.monotonic() + self.retry_s
-        backoff = 0.1
-        while True:
-            try:
-                self._attach_once()
-                return
-            except (OSError, ServiceCallError, RuntimeError, WebSocketException) as exc:
-                if isinstance(exc, ServiceCallError) and exc.status_code in (400, 404, 422):
-                    raise
-                if time.monotonic() + backoff > deadline:
-                    raise
-                logger.warning("EEG service: %s; re-attaching", exc)
-                time.sleep(backoff)
-                backoff = min(backoff * 2, 2.0)
+        """Connect the source to the EEG service (retrying while it is down: its calls are
+        idempotent, the ingest socket is opened anew)."""
+        retry_while_down(
+            self._attach_once,
+            what=f"the EEG service at {self.eeg.base_url} cannot be attached",
+            retry_s=self.retry_s,
+            retryable=_attach_may_succeed_later,
+        )
 
     def _attach_once(self) -> None:
         if self.source is None:
@@ -141,7 +150,7 @@ class EegDecoder:
             }
             if self.channel_map:
                 attach["channel_map"] = self.channel_map
-            self.eeg.call("POST", "/live", json=attach)
+            self.eeg.call("POST", "/live", json=attach, idempotent=True)  # replaces the source
             self._start_recording()
             time.sleep(WARMUP_S)  # the first marker must find data (and a settled filter)
             return
@@ -166,7 +175,9 @@ class EegDecoder:
         if self.recording is None:
             return
         try:
-            self.eeg.call("POST", "/live/recording", json={"name": self.recording})
+            self.eeg.call(  # sent again: 409, and the recording goes on
+                "POST", "/live/recording", json={"name": self.recording}, idempotent=True
+            )
         except ServiceCallError as exc:
             if exc.status_code != 409:
                 raise
@@ -227,7 +238,9 @@ class EegDecoder:
         re-attaches and rejects the epoch."""
         try:
             epoch_end = self._feed_marker(marker)
-            feedback = self.eeg.call("POST", "/live/markers", json=marker.model_dump(mode="json"))
+            feedback = self.eeg.call(  # a decision is computed again from the same epoch
+                "POST", "/live/markers", json=marker.model_dump(mode="json"), idempotent=True
+            )
             decided = local_clock()
         except ServiceCallError as exc:
             if exc.status_code != 409:  # 409: no live source (the EEG service restarted)

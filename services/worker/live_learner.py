@@ -106,8 +106,8 @@ class LearnerLink:
         if next_observation is not None:
             body["next_observation"] = next_observation
         try:
-            answer = self.client.call(
-                "POST", f"/hf-sessions/{self.hf_session_id}/labels", json=body
+            answer = self.client.call(  # idempotent by marker_id (a repeat: duplicate)
+                "POST", f"/hf-sessions/{self.hf_session_id}/labels", json=body, idempotent=True
             )
         except ServiceCallError as exc:
             if exc.status_code == 409:

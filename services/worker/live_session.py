@@ -45,12 +45,7 @@ from services.core.live import DEFAULT_ACTIONS, ONLINE_ACTIONS_PER_LABEL, LiveOp
 from services.core.markers import ActionMarker
 from services.core.settings import load_settings
 from services.worker.live_eeg import EegDecoder, install_classifier
-from services.worker.live_finish import (
-    finish_calibration,
-    finish_online,
-    finish_test,
-    stored_calibration_recording,
-)
+from services.worker.live_finish import RunFinish
 from services.worker.live_learner import LearnerLink
 from services.worker.live_services import (
     LiveSettings,
@@ -124,6 +119,9 @@ class LiveRunner:
         self.stored_recording: dict[str, Any] | None = None
         """The EEG service's stored live recording of a calibration (``RecordingPublic``)."""
         self.last_progress = 0.0
+        self.finishing = RunFinish(
+            context, self.run_id, self.session_id, options, self.services, self._set_run
+        )
 
     # ----------------------------------------------------------------- helpers
     def _set_run(self, **values: Any) -> None:
@@ -369,7 +367,7 @@ class LiveRunner:
     def run(self) -> JobOutcome:
         total = self.total_actions()
         if self.mode == "calibration" and self.done:
-            self.stored_recording = stored_calibration_recording(self)
+            self.stored_recording = self.finishing.stored_calibration_recording(self.recording_name)
         if self.stored_recording is not None:
             # an earlier attempt ended the session and had its recording stored: finish it
             # (recording anew under the run's name would store a second, empty recording)
@@ -440,11 +438,11 @@ class LiveRunner:
 
     def finish(self, stopped: bool) -> JobOutcome:
         if self.mode == "calibration":
-            result = finish_calibration(self)
+            result = self.finishing.calibration(self.stored_recording)
         elif self.mode == "test":
-            result = finish_test(self)
+            result = self.finishing.test(self.done)
         else:
-            result = finish_online(self)
+            result = self.finishing.online(self.done, self.learner.hf_session_id)
             result["prepared_labels"] = self.learner.prepared_labels
         result["stopped_on_command"] = stopped
         status = "stopped" if stopped else "completed"

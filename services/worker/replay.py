@@ -8,9 +8,9 @@ decoding path (:class:`~services.eeg.live.LiveIngest` and
 accepted decision becomes a label of a fresh online HF session
 (:class:`~services.learner.service.session.HFSession`, the learner service's own class, with
 the original run's task, map, seed and label budget), in step order, on the state and action
-stored with the marker. The resulting pi_HF is exported (TorchScript) as a new ``hf_models``
-row linked to the original session, with the comparison: decisions that agree with the
-original ones, the label accuracy, both policies' SPL.
+stored with the marker. The resulting pi_HF is exported (TorchScript, .pt2, ONNX) as a new
+``hf_models`` row linked to the original session, with the comparison: decisions that agree
+with the original ones, the label accuracy, both policies' SPL.
 
 With the session's own classifier and an accelerated virtual-subject run, the replay decodes
 the same samples with the same code, so its labels are the original's and Fhat is trained
@@ -31,12 +31,13 @@ from sqlalchemy import select
 from services.core.db.live import LiveRun
 from services.core.db.models import Artifact, HFModel
 from services.core.markers import ActionMarker
+from services.core.model_formats import SUFFIXES
 from services.eeg.classifier import ErrPClassifier
 from services.eeg.live import LiveIngest
 from services.eeg.live_session import LiveSession
 from services.learner.feedback import FeedbackConfig
 from services.learner.hf_methods import PAPER_METHOD
-from services.learner.service.export import torchscript_bytes
+from services.learner.service.export import policy_files
 from services.learner.service.session import HFSession, SessionSpec
 from services.sim.registry import resolve_map
 from services.worker.live_eeg import EPOCH_END_S
@@ -220,10 +221,13 @@ def session_replay(context: JobContext) -> JobOutcome:
         "model_version": hf.model_version,
         "metrics": metrics,
     }
+    artifact_ids: dict[str, str] = {}
     with tempfile.TemporaryDirectory(prefix="bgrl-replay-") as tmp:
-        path = Path(tmp) / f"hf_policy_replay_session{session_id}.pt"
-        path.write_bytes(torchscript_bytes(hf.learner.model, meta))
-        artifact_id = context.store_file(path, kind="model", name=path.name)
+        for fmt, data in policy_files(hf.learner.model, meta).items():
+            path = Path(tmp) / f"hf_policy_replay_session{session_id}{SUFFIXES[fmt]}"
+            path.write_bytes(data)
+            artifact_ids[fmt] = context.store_file(path, kind="model", name=path.name)
+    artifact_id = artifact_ids["torchscript"]
     with runtime.sessions() as db:
         relpath = db.scalar(select(Artifact.relpath).where(Artifact.id == artifact_id))
         original = db.get(HFModel, run.hf_model_id) if run.hf_model_id else None
@@ -249,6 +253,8 @@ def session_replay(context: JobContext) -> JobOutcome:
             session_id=session_id,
             job_id=context.job_id,
             torchscript_artifact_id=artifact_id,
+            pt2_artifact_id=artifact_ids["pt2"],
+            onnx_artifact_id=artifact_ids["onnx"],
             metrics={
                 **metrics,
                 "model_version": hf.model_version,
@@ -272,5 +278,9 @@ def session_replay(context: JobContext) -> JobOutcome:
             "eeg_source": stream.source,
             "comparison": comparison,
         },
-        values={"model_artifact_id": artifact_id},
+        values={
+            "model_artifact_id": artifact_id,
+            "model_pt2_artifact_id": artifact_ids["pt2"],
+            "model_onnx_artifact_id": artifact_ids["onnx"],
+        },
     )

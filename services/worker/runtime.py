@@ -22,7 +22,7 @@ from celery import Celery
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.core.artifacts import ArtifactStore, sha256_file
+from services.core.artifacts import ArtifactStore, job_folder, sha256_file
 from services.core.db import jobs as job_rows
 from services.core.db.models import JOB_FINAL_STATUSES, Artifact, Job
 from services.core.db.session import make_engine, make_session_factory
@@ -209,7 +209,7 @@ class JobContext:
 
     def job_dir(self, kind: str) -> Path:
         """This job's folder of ``kind`` files in the artifact store (created)."""
-        folder = self.runtime.store.path(f"{kind}/job-{self.job_id}")
+        folder = self.runtime.store.path(job_folder(kind, self.job_id))
         folder.mkdir(parents=True, exist_ok=True)
         return folder
 

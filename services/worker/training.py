@@ -1,10 +1,18 @@
 """Training jobs: ``guided_ppo`` (one run submitted on its own) and ``reproduce_run`` (one
 run of a reproduction). Both execute the learner's run (stage 2 for HF+sparse, then guided
 PPO, Akinola et al. 2020, Algorithm 1) with progress, the SPL curve and checkpoints written
-to the job, and store the trained policy (TorchScript, with its observation normalisation)
-as the job's model: the policy of the best evaluation (as SB3's ``EvalCallback`` keeps),
-whose step and SPL the result gives as ``best_step`` / ``best_spl``; the last policy is a
-second artifact, ``last_model_artifact_id`` in the result (``/api/v1/artifacts/{id}/download``).
+to the job, and store the trained policy (TorchScript, a ``torch.export`` program and ONNX,
+each with its observation normalisation) as the job's model: the policy of the best
+evaluation (as SB3's ``EvalCallback`` keeps), whose step and SPL the result gives as
+``best_step`` / ``best_spl``; the last policy is a second artifact,
+``last_model_artifact_id`` in the result (``/api/v1/artifacts/{id}/download``), and
+``last_model_artifact_ids`` names it in every format.
+
+TensorBoard: every update's metrics (CleanRL's names: ``losses/value_loss``,
+``charts/episodic_return``, ``charts/SPS``, ...) and every evaluation's SPL
+(``charts/SPL``) are written as TensorBoard event files to ``tensorboard/job-<id>/`` in the
+artifact store as the job runs (``GET /api/v1/jobs/{id}/tensorboard`` zips them; view with
+``tensorboard --logdir``). A resumed attempt adds its own event file there.
 
 Resume: the checkpoint lives in the artifact store at ``checkpoint/job-<id>/checkpoint.pt``.
 A job claimed again (after its worker died, or a failed attempt) finds it there and the
@@ -22,9 +30,12 @@ from typing import Any
 
 import torch
 from sqlalchemy import select
+from torch.utils.tensorboard import SummaryWriter
 
+from services.core.artifacts import TENSORBOARD_KIND
 from services.core.db.models import Artifact, HFModel
 from services.core.json_values import describe_type, fits_type
+from services.core.model_formats import MODEL_FORMATS, SUFFIXES, ModelFormat
 from services.learner.feedback import HFPolicy
 from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.ppo import Callback, check_settings
@@ -37,6 +48,10 @@ from services.worker.runtime import JobConfigError, JobContext, JobOutcome
 
 PROGRESS_EVERY_S = 1.0
 """Progress (steps done) is written at most this often; every evaluation is written."""
+SPL_TAG = "charts/SPL"
+"""TensorBoard tag of the greedy policy's SPL at each evaluation."""
+TENSORBOARD_FLUSH_S = 5
+"""The TensorBoard event files are flushed at least this often (and at every evaluation)."""
 GUIDED_PPO_FIELDS = frozenset(
     {
         "task", "method", "accuracy", "seed", "total_steps", "ppo", "hf_treatment", "n_labels",
@@ -46,7 +61,8 @@ GUIDED_PPO_FIELDS = frozenset(
 
 
 class JobProgress(Callback):
-    """Writes steps done, progress and the SPL curve to the job row.
+    """Writes steps done, progress and the SPL curve to the job row, and every update's
+    metrics and evaluation's SPL to ``writer`` (TensorBoard) when given.
 
     On cancel (or a lost lease) it raises :class:`JobStoppedError` at the next step, which
     leaves training at once: returning False would finish the rollout, the update and the
@@ -54,10 +70,17 @@ class JobProgress(Callback):
     checkpoint stays in the store.
     """
 
-    def __init__(self, context: JobContext, total_steps: int, curve: list[list[float]]) -> None:
+    def __init__(
+        self,
+        context: JobContext,
+        total_steps: int,
+        curve: list[list[float]],
+        writer: SummaryWriter | None = None,
+    ) -> None:
         self.context = context
         self.total_steps = total_steps
         self.curve = curve
+        self.writer = writer
         self.last_write = 0.0
 
     def on_step(self, global_step: int, info: dict[str, Any]) -> bool:
@@ -65,6 +88,9 @@ class JobProgress(Callback):
         return True
 
     def on_update(self, global_step: int, metrics: dict[str, float]) -> bool:
+        if self.writer is not None:
+            for name, value in metrics.items():
+                self.writer.add_scalar(name, value, global_step)
         now = time.monotonic()
         if now - self.last_write >= PROGRESS_EVERY_S:
             self.last_write = now
@@ -74,6 +100,9 @@ class JobProgress(Callback):
         return True
 
     def on_eval(self, global_step: int, spl: float) -> bool:
+        if self.writer is not None:
+            self.writer.add_scalar(SPL_TAG, spl, global_step)
+            self.writer.flush()
         self.curve.append([int(global_step), float(spl)])
         self.context.update(
             steps_done=global_step,
@@ -224,38 +253,53 @@ def train_spec(
         context.update(resumed_from_step=step, steps_done=step, curve=curve)
     context.watch_checkpoint(checkpoint)
     context.check_stop()
-    with tempfile.TemporaryDirectory(prefix="bgrl-job-") as work_dir:
+    writer = SummaryWriter(str(context.job_dir(TENSORBOARD_KIND)), flush_secs=TENSORBOARD_FLUSH_S)
+    with writer, tempfile.TemporaryDirectory(prefix="bgrl-job-") as work_dir:
         model_path = Path(work_dir) / "policy.pt"
         last_model_path = Path(work_dir) / "policy_last.pt"
         record: RunRecord = run_one(
             spec,
-            callback=JobProgress(context, total_steps, curve),
+            callback=JobProgress(context, total_steps, curve, writer),
             checkpoint_path=checkpoint,
             checkpoint_every=checkpoint_every,
             model_path=model_path,
             last_model_path=last_model_path,
             hf_policy=hf_policy,
             on_label=lambda _record: context.check_stop(),  # cancel during stage 2 too
+            portable=True,
         )
         context.check_stop()
         weights = weights_sha256(model_path)
         last_weights = weights_sha256(last_model_path)
-        model_id = context.store_file(model_path, kind="model", name="policy.pt")
-        last_model_id = context.store_file(last_model_path, kind="model", name="policy_last.pt")
+        best_ids = store_policy_files(context, model_path)
+        last_ids = store_policy_files(context, last_model_path)
     return JobOutcome(
         result={
             **record.to_dict(),
             "model": "best",  # the job's model is the best evaluation's policy
             "weights_sha256": weights,
-            "last_model_artifact_id": last_model_id,
+            "last_model_artifact_id": last_ids["torchscript"],
+            "last_model_artifact_ids": last_ids,
             "last_weights_sha256": last_weights,
         },
         values={
-            "model_artifact_id": model_id,
+            "model_artifact_id": best_ids["torchscript"],
+            "model_pt2_artifact_id": best_ids["pt2"],
+            "model_onnx_artifact_id": best_ids["onnx"],
             "curve": record.curve,
             "steps_done": total_steps,
         },
     )
+
+
+def store_policy_files(context: JobContext, torchscript_path: Path) -> dict[ModelFormat, str]:
+    """Store a policy's TorchScript file and its ``.pt2`` and ONNX files beside it as the
+    job's artifacts; their ids by format."""
+    return {
+        fmt: context.store_file(path, kind="model", name=path.name)
+        for fmt in MODEL_FORMATS
+        for path in [torchscript_path.with_suffix(SUFFIXES[fmt])]
+    }
 
 
 def guided_ppo(context: JobContext) -> JobOutcome:

@@ -61,7 +61,7 @@ def test_empty_database_upgrades_to_head_matching_the_models(any_db_url: str) ->
     upgrade_database(any_db_url)
     engine = make_engine(any_db_url)
     try:
-        assert current_revision(engine) == head_revision() == "0007"
+        assert current_revision(engine) == head_revision() == "0008"
         assert set(inspect(engine).get_table_names()) == TABLES
         with engine.connect() as connection:
             diff = compare_metadata(
@@ -80,12 +80,26 @@ def test_previous_revision_upgrades_and_keeps_its_rows(any_db_url: str) -> None:
         sessions = make_session_factory(engine)
         with sessions() as db:
             user_id = _add_user_at_an_old_revision(db)
-            db.add(
-                Job(id="j" * 32, kind="guided_ppo", config={"task": "sssg"}, submitter_id=user_id)
+            db.execute(  # the columns of revision 0001 only (as for the user)
+                insert(Job).values(
+                    id="j" * 32,
+                    kind="guided_ppo",
+                    config={"task": "sssg"},
+                    status="queued",
+                    progress=0.0,
+                    attempts=0,
+                    max_attempts=3,
+                    steps_done=0,
+                    curve=[],
+                    cancel_requested=False,
+                    submitter_id=user_id,
+                    created_at=datetime(2026, 12, 1, tzinfo=UTC),
+                    updated_at=datetime(2026, 12, 1, tzinfo=UTC),
+                )
             )
             db.commit()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0007"
+        assert current_revision(engine) == "0008"
         with sessions() as db:
             job = db.get(Job, "j" * 32)
             assert (job.config, job.status, job.curve, job.attempts) == (
@@ -112,7 +126,7 @@ def test_revision_0003_upgrades_to_the_shared_login_limit_and_back(any_db_url: s
             db.commit()
         assert "login_attempts" not in inspect(engine).get_table_names()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0007"
+        assert current_revision(engine) == "0008"
         with sessions() as db:
             assert db.scalar(select(User.email)) == "a@lab.test"
             db.add(LoginAttempt(key="k" * 64, at=datetime(2026, 12, 2, tzinfo=UTC)))

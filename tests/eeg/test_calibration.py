@@ -193,6 +193,7 @@ def test_calibration_leaves_process_state_alone_and_is_repeatable(tmp_path) -> N
         "history.json",
         "metrics.json",
         "model.pt",
+        "model.pt2",
         "model.torchscript.pt",
         "notes.txt",
     ]

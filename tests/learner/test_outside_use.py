@@ -143,7 +143,8 @@ def test_exported_pi_hf_takes_float64_single_and_batched_observations(client, tm
     sid = create(client, seed=5, fhat={"validation_fraction": 0.0})["id"]
     for i in range(8):
         assert label(client, sid, i).status_code == 200
-    relpath = client.post(f"/hf-sessions/{sid}/export", json={}).json()["relpath"]
+    exported = client.post(f"/hf-sessions/{sid}/export", json={}).json()
+    relpath = exported["files"]["torchscript"]["relpath"]
     module = torch.jit.load(
         str(PlatformSettings(data_dir=tmp_path).resolved_artifact_dir / relpath)
     )

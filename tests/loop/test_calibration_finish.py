@@ -85,9 +85,11 @@ CRASHES: dict[str, Callable[[pytest.MonkeyPatch], None]] = {
     ),
     "after the EEG service stored it": lambda p: _die_after(EegDecoder, "stop_recording", p),
     "halfway through the copy into the store": _die_before_the_rename,
-    "after the copy, before the rows": lambda p: _die_before(live_finish, "recording_rows", p),
+    "after the copy, before the rows": lambda p: _die_before(
+        live_finish.RunFinish, "recording_rows", p
+    ),
     "after the rows, before the job is sent": lambda p: _die_before(live_finish, "enqueue_job", p),
-    "after the job was sent": lambda p: _die_after(live_session, "finish_calibration", p),
+    "after the job was sent": lambda p: _die_after(live_finish.RunFinish, "calibration", p),
     "after the run was marked completed": lambda p: _die_after(LiveRunner, "finish", p),
 }
 

@@ -3,11 +3,15 @@
 
 from __future__ import annotations
 
+import io
 import threading
 import time
 
 import httpx
+import numpy as np
+import onnxruntime
 import pytest
+import torch
 from sqlalchemy import func, select, update
 
 from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion, LiveRun
@@ -18,6 +22,7 @@ from services.worker.live_services import ServiceClient
 from services.worker.live_session import live_session
 from services.worker.runtime import run_job
 from services.worker.training import guided_ppo
+from tests.api.conftest import make_settings, start_api
 from tests.loop.conftest import LoopPlatform
 from tests.worker.conftest import TINY_PPO
 
@@ -85,6 +90,22 @@ def test_online_session_labels_to_its_budget_and_registers_the_hf_model(
         markers = run.result["actions"]
     assert count(loop, FeedbackLabel, session_id=session_id) == 40
     assert count(loop, LiveModelVersion, run_id=run_id) == 40
+    # the session's pi_HF downloads through the api as ONNX and acts as its TorchScript file
+    settings = make_settings(loop.data_dir, loop.runtime.settings.resolved_database_url)
+    for api in start_api(settings):
+        url = f"/api/v1/hf-models/{model.id}/download"
+        files = {
+            fmt: api.client.get(url, params={"format": fmt}, headers=api.as_("viewer"))
+            for fmt in ("onnx", "torchscript")
+        }
+    assert all(response.status_code == 200 for response in files.values())
+    observations = np.random.default_rng(0).normal(0, 2, (32, 13)).astype(np.float32)
+    onnx = onnxruntime.InferenceSession(files["onnx"].content)
+    (onnx_logits,) = onnx.run(["logits"], {"obs": observations})
+    scripted = torch.jit.load(io.BytesIO(files["torchscript"].content))
+    with torch.no_grad():
+        logits = scripted(torch.from_numpy(observations)).numpy()
+    assert np.abs(onnx_logits - logits).max() < 1e-5
     assert count(loop, LiveMarker, run_id=run_id) == markers
     assert count(loop, LiveDecision, run_id=run_id) == markers
 

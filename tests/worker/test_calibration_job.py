@@ -86,10 +86,17 @@ def test_calibration_job_stores_the_classifier(runtime: Runtime, tmp_path: Path)
         model = session.get(Artifact, job.model_artifact_id)
     assert job.status == "succeeded" and job.attempts == 1
     assert set(job.result["artifacts"]) == {
-        "classifier.json", "history.json", "metrics.json", "model.pt", "model.torchscript.pt"
+        "classifier.json", "history.json", "metrics.json", "model.pt", "model.torchscript.pt",
+        "model.pt2",
     }  # fmt: skip
     assert classifier.recording_id == recording_id and classifier.job_id == job_id
     assert classifier.torchscript_artifact_id == job.model_artifact_id
+    assert (
+        classifier.pt2_artifact_id
+        == job.model_pt2_artifact_id
+        == job.result["artifacts"]["model.pt2"]
+    )
+    assert classifier.onnx_artifact_id is job.model_onnx_artifact_id is None  # onnx: False
     assert classifier.metrics["n_epochs"] == 60
     assert model.sha256 == sha256_file(runtime.store.path(model.relpath))
 

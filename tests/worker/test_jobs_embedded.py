@@ -65,6 +65,21 @@ def test_guided_ppo_lifecycle_and_duplicate_delivery(fs_platform: Platform, work
     extra = {"bgrl_meta.json": ""}
     torch.jit.load(str(last_path), _extra_files=extra)
     assert json.loads(extra["bgrl_meta.json"])["checkpoint"] == "last"
+    # the same two policies as torch.export programs and ONNX, their descriptions inside
+    assert job.result["last_model_artifact_ids"]["torchscript"] == last.id
+    for artifact_id, checkpoint_name in [
+        (job.model_pt2_artifact_id, "best"),
+        (job.result["last_model_artifact_ids"]["pt2"], "last"),
+    ]:
+        program_path = (
+            fs_platform.settings.resolved_artifact_dir / artifact(fs_platform, artifact_id).relpath
+        )
+        extra = {"bgrl_meta.json": ""}
+        program = torch.export.load(str(program_path), extra_files=extra).module()
+        assert json.loads(extra["bgrl_meta.json"])["checkpoint"] == checkpoint_name
+        assert program(torch.zeros(2, 13)).shape == (2, 3)
+    onnx_model = artifact(fs_platform, job.model_onnx_artifact_id)
+    assert onnx_model.relpath.endswith("policy.onnx") and onnx_model.job_id == job_id
     checkpoint = artifact(fs_platform, job.checkpoint_artifact_id)
     assert checkpoint.kind == "checkpoint" and checkpoint.relpath.endswith("checkpoint.pt")
 

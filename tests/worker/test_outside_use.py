@@ -6,6 +6,10 @@ worker's job runner in this process on the same data folder, shared by the modul
 from __future__ import annotations
 
 import hashlib
+import json
+import shutil
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
@@ -350,3 +354,26 @@ def test_bids_export_of_a_session_whose_recording_came_from_other_software(
     assert {types[ch] for ch in CAP_8} == {"EEG"}
     assert types.get("EXG1", "MISC") == "MISC"  # the EDF's EXG channel: MISC, not EEG
     assert ("EXG1" in types) == (fmt == "edf")
+    assert bids_errors(tmp_path / "bids") == []
+
+
+def bids_errors(root: Path) -> list[str]:
+    """The BIDS validator's errors on the dataset at ``root`` (its warnings, such as
+    recommended fields left out, are not errors); skipped where the validator cannot run."""
+    validator = shutil.which("bids-validator-deno") or str(
+        Path(sys.executable).with_name("bids-validator-deno")
+    )
+    if not Path(validator).is_file():
+        pytest.skip("bids-validator-deno is not installed (a dev dependency: pip install it)")
+    done = subprocess.run(
+        [validator, str(root), "--format", "json"], capture_output=True, text=True, timeout=300
+    )
+    try:
+        issues = json.loads(done.stdout)["issues"]["issues"]
+    except (ValueError, KeyError):
+        pytest.skip(f"bids-validator-deno could not run here: {done.stderr[-500:]}")
+    return [
+        f"{issue['code']} {issue.get('location', '')}: {issue.get('issueMessage', '')[:200]}"
+        for issue in issues
+        if issue["severity"] == "error"
+    ]

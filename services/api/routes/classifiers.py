@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query
 from fastapi.responses import FileResponse
@@ -10,18 +10,14 @@ from sqlalchemy import select
 
 from services.api.crud import get_or_404, paginate
 from services.api.deps import DbDep, PageDep, RowId, StoreDep, get_current_user
-from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
+from services.api.downloads import CHECKSUM_RESPONSE, FormatQuery, model_response
 from services.api.schemas.classifiers import ClassifierPublic
 from services.api.schemas.common import MAX_ROW_ID, Page
-from services.core.db.models import Artifact, Classifier
-from services.core.errors import NotFoundError
+from services.core.db.models import Classifier
 
 router = APIRouter(
     prefix="/api/v1/classifiers", tags=["classifiers"], dependencies=[Depends(get_current_user)]
 )
-
-ModelFormat = Literal["onnx", "torchscript"]
-SUFFIXES = {"onnx": ".onnx", "torchscript": ".pt"}
 
 
 @router.get("")
@@ -45,17 +41,22 @@ def read(classifier_id: RowId, db: DbDep) -> ClassifierPublic:
 
 @router.get("/{classifier_id}/download", response_class=FileResponse, responses=CHECKSUM_RESPONSE)
 def download(
-    classifier_id: RowId,
-    db: DbDep,
-    store: StoreDep,
-    model_format: Annotated[ModelFormat, Query(alias="format")] = "onnx",
+    classifier_id: RowId, db: DbDep, store: StoreDep, model_format: FormatQuery = "onnx"
 ) -> FileResponse:
-    """The classifier as ONNX or TorchScript, with ``X-Checksum-Sha256``."""
+    """The classifier as ONNX, TorchScript or a torch.export program (pt2), with
+    ``X-Checksum-Sha256``: preprocessed epochs in volts in, P(error) out."""
     clf = get_or_404(db, Classifier, classifier_id, "classifier_id")
-    artifact_id = clf.onnx_artifact_id if model_format == "onnx" else clf.torchscript_artifact_id
-    if artifact_id is None:
-        raise NotFoundError(
-            f"classifier {classifier_id} has no {model_format} file", field="format"
-        )
-    artifact = get_or_404(db, Artifact, artifact_id, "classifier_id")
-    return artifact_response(store, artifact, f"classifier-{clf.id}{SUFFIXES[model_format]}")
+    ids = {
+        "torchscript": clf.torchscript_artifact_id,
+        "pt2": clf.pt2_artifact_id,
+        "onnx": clf.onnx_artifact_id,
+    }
+    return model_response(
+        db,
+        store,
+        ids,
+        model_format,
+        what=f"classifier {classifier_id}",
+        field="classifier_id",
+        filename=f"classifier-{clf.id}",
+    )

@@ -10,18 +10,14 @@ from sqlalchemy import select
 
 from services.api.crud import get_or_404, paginate
 from services.api.deps import DbDep, PageDep, RowId, StoreDep, get_current_user
-from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
+from services.api.downloads import CHECKSUM_RESPONSE, FormatQuery, model_response
 from services.api.schemas.common import Page
 from services.api.schemas.hf_models import HFModelPublic
-from services.core.db.models import Artifact, HFModel
-from services.core.errors import NotFoundError
+from services.core.db.models import HFModel
 
 router = APIRouter(
     prefix="/api/v1/hf-models", tags=["hf-models"], dependencies=[Depends(get_current_user)]
 )
-
-ModelFormat = Literal["torchscript", "onnx"]
-SUFFIXES = {"onnx": ".onnx", "torchscript": ".pt"}
 
 
 @router.get("")
@@ -43,17 +39,23 @@ def read(hf_model_id: RowId, db: DbDep) -> HFModelPublic:
 
 @router.get("/{hf_model_id}/download", response_class=FileResponse, responses=CHECKSUM_RESPONSE)
 def download(
-    hf_model_id: RowId,
-    db: DbDep,
-    store: StoreDep,
-    model_format: Annotated[ModelFormat, Query(alias="format")] = "torchscript",
+    hf_model_id: RowId, db: DbDep, store: StoreDep, model_format: FormatQuery = "torchscript"
 ) -> FileResponse:
-    """The policy as TorchScript or ONNX, with ``X-Checksum-Sha256``."""
+    """The policy as TorchScript, a torch.export program (pt2) or ONNX, with
+    ``X-Checksum-Sha256``: raw float observations in, Fhat's logits out (greedy pi_HF: their
+    argmax)."""
     model = get_or_404(db, HFModel, hf_model_id, "hf_model_id")
-    artifact_id = (
-        model.torchscript_artifact_id if model_format == "torchscript" else model.onnx_artifact_id
+    ids = {
+        "torchscript": model.torchscript_artifact_id,
+        "pt2": model.pt2_artifact_id,
+        "onnx": model.onnx_artifact_id,
+    }
+    return model_response(
+        db,
+        store,
+        ids,
+        model_format,
+        what=f"HF model {hf_model_id}",
+        field="hf_model_id",
+        filename=f"hf-model-{model.id}",
     )
-    if artifact_id is None:
-        raise NotFoundError(f"HF model {hf_model_id} has no {model_format} file", field="format")
-    artifact = get_or_404(db, Artifact, artifact_id, "hf_model_id")
-    return artifact_response(store, artifact, f"hf-model-{model.id}{SUFFIXES[model_format]}")

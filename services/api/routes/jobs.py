@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import csv
 import functools
+import hashlib
 import io
 import logging
 import math
 import typing
+import zipfile
 from collections.abc import Callable, Iterable
 from typing import Annotated, Any, Literal
 
@@ -20,7 +22,7 @@ from sqlalchemy import bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from services.api import audit
-from services.api.crud import JsonPage, PageQuery, get_by_id_or_prefix, get_or_404
+from services.api.crud import JsonPage, PageQuery, get_by_id_or_prefix
 from services.api.deps import (
     DEFAULT_PAGE_LIMIT,
     MAX_PAGE_LIMIT,
@@ -37,7 +39,12 @@ from services.api.deps import (
     get_current_user,
     read_signed_in,
 )
-from services.api.downloads import CHECKSUM_RESPONSE, artifact_response
+from services.api.downloads import (
+    CHECKSUM_HEADER,
+    CHECKSUM_RESPONSE,
+    FormatQuery,
+    model_response,
+)
 from services.api.errors import UnauthorizedError
 from services.api.plots import curve_png
 from services.api.schemas.common import MAX_ROW_ID, NO_NUL_PATTERN, Page
@@ -52,10 +59,10 @@ from services.api.schemas.jobs import (
     JobStatus,
 )
 from services.api.settings import ApiSettings
+from services.core.artifacts import TENSORBOARD_KIND, job_folder
 from services.core.db.base import utcnow
 from services.core.db.models import (
     JOB_FINAL_STATUSES,
-    Artifact,
     AuditEntry,
     Classifier,
     HFModel,
@@ -451,15 +458,67 @@ def plot(job_id: str, db: DbDep) -> Response:
 
 
 @router.get(
+    "/{job_id}/tensorboard",
+    dependencies=SIGNED_IN,
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"application/zip": {}},
+            "headers": {CHECKSUM_HEADER: {"description": "SHA-256 of the zip (hex)."}},
+        }
+    },
+)
+def tensorboard(job_id: str, db: DbDep, store: StoreDep) -> Response:
+    """The training job's TensorBoard event files as a zip (``job-<id>/events...``), as they
+    are now: unzip and run ``tensorboard --logdir`` on the folder. Scalars use CleanRL's
+    names (``losses/...``, ``charts/episodic_return``, ``charts/SPL``, ...)."""
+    job = get_by_id_or_prefix(db, Job, job_id, "job_id")
+    folder = store.path(job_folder(TENSORBOARD_KIND, job.id))
+    events = sorted(p for p in folder.glob("events.out.tfevents.*") if p.is_file())
+    if not events:
+        raise NotFoundError(
+            f"job {job.id} ({job.status}) has no TensorBoard events", field="job_id"
+        )
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for path in events:
+            archive.write(path, f"job-{job.id}/{path.name}")
+    data = buffer.getvalue()
+    return Response(
+        data,
+        media_type="application/zip",
+        headers={
+            "Content-Disposition": f'attachment; filename="job-{job.id}-tensorboard.zip"',
+            CHECKSUM_HEADER: hashlib.sha256(data).hexdigest(),
+        },
+    )
+
+
+@router.get(
     "/{job_id}/model",
     dependencies=SIGNED_IN,
     response_class=FileResponse,
     responses=CHECKSUM_RESPONSE,
 )
-def model(job_id: str, db: DbDep, store: StoreDep) -> FileResponse:
-    """The trained policy (TorchScript, with its observation normalisation) and its checksum."""
+def model(
+    job_id: str, db: DbDep, store: StoreDep, model_format: FormatQuery = "torchscript"
+) -> FileResponse:
+    """The trained policy as TorchScript, a torch.export program (pt2) or ONNX, each with its
+    observation normalisation, and its checksum."""
     job = get_by_id_or_prefix(db, Job, job_id, "job_id")
     if job.model_artifact_id is None:
         raise NotFoundError(f"job {job.id} ({job.status}) has no model yet", field="job_id")
-    artifact = get_or_404(db, Artifact, job.model_artifact_id, "job_id")
-    return artifact_response(store, artifact, f"policy-{job.id}.pt")
+    ids = {
+        "torchscript": job.model_artifact_id,
+        "pt2": job.model_pt2_artifact_id,
+        "onnx": job.model_onnx_artifact_id,
+    }
+    return model_response(
+        db,
+        store,
+        ids,
+        model_format,
+        what=f"job {job.id}",
+        field="job_id",
+        filename=f"policy-{job.id}",
+    )

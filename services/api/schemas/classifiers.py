@@ -18,5 +18,6 @@ class ClassifierPublic(PublicModel):
     job_id: str | None
     onnx_artifact_id: str | None
     torchscript_artifact_id: str | None
+    pt2_artifact_id: str | None
     metrics: dict[str, Any]
     created_at: datetime

@@ -20,5 +20,6 @@ class HFModelPublic(PublicModel):
     job_id: str | None
     torchscript_artifact_id: str | None
     onnx_artifact_id: str | None
+    pt2_artifact_id: str | None
     metrics: dict[str, Any]
     created_at: datetime

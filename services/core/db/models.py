@@ -1,4 +1,5 @@
-"""Every table of the platform (SQLAlchemy 2 declarative models).
+"""The platform's tables (SQLAlchemy 2 declarative models); the live-session tables are in
+:mod:`services.core.db.live`, which builds on these (Alembic's ``env.py`` imports both).
 
 Integer ids for rows only the api creates; 32-hex ids (:func:`~services.core.db.base.new_id`)
 for jobs and artifacts, which workers on other hosts create too. Timestamps are UTC and
@@ -174,6 +175,13 @@ class Job(Base):
     model_artifact_id: Mapped[str | None] = mapped_column(
         ForeignKey("artifacts.id", ondelete="SET NULL")
     )
+    """The trained model as TorchScript; the next two are the same model in other formats."""
+    model_pt2_artifact_id: Mapped[str | None] = mapped_column(
+        ForeignKey("artifacts.id", ondelete="SET NULL")
+    )
+    model_onnx_artifact_id: Mapped[str | None] = mapped_column(
+        ForeignKey("artifacts.id", ondelete="SET NULL")
+    )
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow, index=True)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow, onupdate=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
@@ -278,6 +286,7 @@ class Classifier(Base):
     job_id: Mapped[str | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
     onnx_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
     torchscript_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
+    pt2_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
     metrics: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
@@ -296,6 +305,7 @@ class HFModel(Base):
     job_id: Mapped[str | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
     torchscript_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
     onnx_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
+    pt2_artifact_id: Mapped[str | None] = mapped_column(ForeignKey("artifacts.id"))
     metrics: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
@@ -317,8 +327,3 @@ class FeedbackLabel(Base):
     shown_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     decoded_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
-
-
-# The live-session tables (issue 10) live in their own module; importing it here registers
-# them on the same metadata, so every user of the models (and Alembic) sees them.
-from services.core.db import live as _live  # noqa: E402, F401

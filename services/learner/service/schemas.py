@@ -9,6 +9,7 @@ from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
 from services.core.feedback import is_error
 from services.core.hf_methods import HFMethodName
+from services.core.model_formats import ModelFormat
 from services.core.schemas import ActionValue, Seed, StrictRequest
 from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.sim.env import OBS_SIZE
@@ -224,11 +225,18 @@ class ExportRequest(StrictRequest):
     """Export the greedy pi_HF (no options yet: an empty object)."""
 
 
-class ExportPublic(BaseModel):
-    """Where the TorchScript pi_HF was stored in the platform's artifact store."""
+class ExportedFile(BaseModel):
+    """One file of an exported pi_HF in the platform's artifact store."""
 
     relpath: str
     sha256: str
     size_bytes: int
+
+
+class ExportPublic(BaseModel):
+    """Where the pi_HF was stored in the platform's artifact store, one file a format
+    (``torchscript``, ``pt2``, ``onnx``)."""
+
+    files: dict[ModelFormat, ExportedFile]
     model_version: int
     metrics: dict[str, Any]

@@ -36,12 +36,13 @@ import torch
 
 from services.core.artifacts import ArtifactStore, StoredFile
 from services.core.files import write_bytes_atomic, write_json_atomic
+from services.core.model_formats import SUFFIXES, ModelFormat
 from services.learner.service.errors import (
     HFSessionNotFoundError,
     InvalidRequestError,
     SessionLimitError,
 )
-from services.learner.service.export import torchscript_bytes
+from services.learner.service.export import policy_files
 from services.learner.service.journal import JOURNAL_FILE, SessionJournal, read_journal
 from services.learner.service.prepared import PreparedLabel, prepare
 from services.learner.service.session import HFSession, LabelOutcome, SessionSpec
@@ -365,8 +366,11 @@ class SessionStore:
             session.load_state_dict(restored.state_dict())
             raise
 
-    def export(self, session: HFSession) -> tuple[StoredFile, int, dict[str, Any]]:
-        """Store the TorchScript greedy pi_HF in the artifact store (kind ``model``)."""
+    def export(
+        self, session: HFSession
+    ) -> tuple[dict[ModelFormat, StoredFile], int, dict[str, Any]]:
+        """Store the greedy pi_HF in the artifact store (kind ``model``) in every format
+        (TorchScript, ``.pt2``, ONNX)."""
         with session.lock:
             version = session.model_version
             metrics = session.model_metrics()
@@ -377,11 +381,14 @@ class SessionStore:
                 "model_version": version,
                 "metrics": metrics,
             }
-            data = torchscript_bytes(session.learner.model, meta)
-        stored = self.artifacts.put_bytes(
-            data, kind="model", name=f"hf_policy_{session.id}_v{version}.pt"
-        )
-        logger.info("HF session %s exported as %s", session.id, stored.relpath)
+            files = policy_files(session.learner.model, meta)
+        stored = {
+            fmt: self.artifacts.put_bytes(
+                data, kind="model", name=f"hf_policy_{session.id}_v{version}{SUFFIXES[fmt]}"
+            )
+            for fmt, data in files.items()
+        }
+        logger.info("HF session %s exported as %s", session.id, stored["torchscript"].relpath)
         return stored, version, metrics
 
 

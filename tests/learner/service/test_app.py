@@ -216,7 +216,8 @@ def test_budget_409_and_marker_ids_counted_once(client):
     assert all(torch.equal(v, weights[k]) for k, v in session.learner.model.state_dict().items())
 
 
-def test_export_is_torchscript_acting_like_the_greedy_policy(client, tmp_path):
+def test_export_is_torchscript_pt2_and_onnx_acting_like_the_greedy_policy(client, tmp_path):
+    ort = pytest.importorskip("onnxruntime", reason="onnxruntime runs the ONNX file")
     sid = create(client, seed=5, fhat={"validation_fraction": 0.0})["id"]
     for i in range(12):
         assert label(client, sid, i).status_code == 200
@@ -224,11 +225,15 @@ def test_export_is_torchscript_acting_like_the_greedy_policy(client, tmp_path):
     assert response.status_code == 200, response.text
     body = response.json()
     assert body["model_version"] == 12 and body["metrics"]["training_labels"] == 12
-    path = PlatformSettings(data_dir=tmp_path).resolved_artifact_dir / body["relpath"]
-    data = path.read_bytes()
-    assert body["relpath"].startswith("model/")
-    assert body["size_bytes"] == len(data)
-    assert body["sha256"] == hashlib.sha256(data).hexdigest()
+    assert set(body["files"]) == {"torchscript", "pt2", "onnx"}
+    paths = {}
+    for fmt, stored in body["files"].items():
+        paths[fmt] = PlatformSettings(data_dir=tmp_path).resolved_artifact_dir / stored["relpath"]
+        data = paths[fmt].read_bytes()
+        assert stored["relpath"].startswith("model/")
+        assert stored["size_bytes"] == len(data)
+        assert stored["sha256"] == hashlib.sha256(data).hexdigest()
+    path = paths["torchscript"]
 
     extra = {"bgrl_meta.json": ""}
     module = torch.jit.load(str(path), _extra_files=extra)
@@ -248,6 +253,17 @@ def test_export_is_torchscript_acting_like_the_greedy_policy(client, tmp_path):
     session = client.app.state.store.get(sid)
     logits = session.learner.model(torch.tensor(observations)).detach()
     assert torch.equal(module(torch.tensor(observations)), logits)
+
+    program_extra = {"bgrl_meta.json": ""}
+    program = torch.export.load(str(paths["pt2"]), extra_files=program_extra).module()
+    assert json.loads(program_extra["bgrl_meta.json"]) == meta
+    onnx = ort.InferenceSession(str(paths["onnx"]))
+    assert json.loads(onnx.get_modelmeta().custom_metadata_map["bgrl_meta.json"]) == meta
+    obs = torch.tensor(observations, dtype=torch.float32)
+    assert (program(obs) - logits).abs().max() < 1e-5
+    (onnx_logits,) = onnx.run(["logits"], {"obs": obs.numpy()})
+    assert abs(onnx_logits - logits.numpy()).max() < 1e-5
+    assert torch.equal(program(obs).argmax(-1), torch.tensor(greedy))
 
     assert client.post(f"/hf-sessions/{sid}/export", json={"x": 1}).status_code == 422
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import Connection
 
-from services.core.db import models  # noqa: F401  (registers every table on the metadata)
+from services.core.db import live, models  # noqa: F401  (register every table on the metadata)
 from services.core.db.base import Base
 from services.core.db.session import make_engine
 

@@ -1,11 +1,17 @@
-"""pi_HF: the next action in a state, and its TorchScript export."""
+"""pi_HF: the next action in a state, and its export (TorchScript, .pt2, ONNX)."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, BackgroundTasks
 
 from services.learner.service.deps import SessionDep, StoreDep
-from services.learner.service.schemas import ActPublic, ActRequest, ExportPublic, ExportRequest
+from services.learner.service.schemas import (
+    ActPublic,
+    ActRequest,
+    ExportedFile,
+    ExportPublic,
+    ExportRequest,
+)
 
 router = APIRouter(prefix="/hf-sessions/{session_id}", tags=["policy"])
 
@@ -24,12 +30,14 @@ def act(
 
 @router.post("/export")
 def export(body: ExportRequest, session: SessionDep, store: StoreDep) -> ExportPublic:
-    """Write the greedy pi_HF as TorchScript into the platform's artifact store."""
+    """Write the greedy pi_HF as TorchScript, ``.pt2`` and ONNX into the platform's artifact
+    store."""
     stored, version, metrics = store.export(session)
     return ExportPublic(
-        relpath=stored.relpath,
-        sha256=stored.sha256,
-        size_bytes=stored.size_bytes,
+        files={
+            fmt: ExportedFile(relpath=f.relpath, sha256=f.sha256, size_bytes=f.size_bytes)
+            for fmt, f in stored.items()
+        },
         model_version=version,
         metrics=metrics,
     )
