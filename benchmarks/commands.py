@@ -364,12 +364,59 @@ def bench_loop(
     typer.echo(f"wrote {out / 'loop.json'} ({len(result['accelerated'])} accelerated sessions)")
 
 
+def bench_soak(
+    out: Annotated[
+        Path, typer.Option(help="Folder for soak.json, soak_rss.png and the run's soak-* folder.")
+    ],
+    minutes: Annotated[float, typer.Option(min=0.5, help="Minutes under load and faults.")] = 5,
+    kill_every: Annotated[
+        float, typer.Option(min=2, help="Seconds between two SIGKILLs of a random process.")
+    ] = 20,
+    job_every: Annotated[float, typer.Option(min=1, help="Seconds between two new jobs.")] = 10,
+    drain: Annotated[
+        float, typer.Option(min=0, help="Seconds the jobs get to end after the load.")
+    ] = 300,
+    job_steps: Annotated[
+        int, typer.Option(min=256, help="Env steps of each guided-PPO job.")
+    ] = 1024,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of which process is killed.")] = 0,
+) -> None:
+    """Soak with faults: bgrl up under a steady load while random processes are SIGKILLed;
+    writes OUT/soak.json (jobs submitted/succeeded/failed/lost, orphans, restarts per kind,
+    p99 of reads, RSS growth per hour) and OUT/soak_rss.png."""
+    from benchmarks.bench_soak import run_soak
+    from services.core.files import write_results_json
+
+    output_folder(out)
+    report = run_soak(
+        out.resolve(),
+        minutes=minutes,
+        kill_every_s=kill_every,
+        job_every_s=job_every,
+        drain_s=drain,
+        seed=seed,
+        job_steps=job_steps,
+        progress=lambda message: typer.echo(message, err=True),
+    )
+    write_results_json(out / "soak.json", report)
+    jobs = report["jobs"]
+    typer.echo(
+        f"jobs: {jobs['submitted']} submitted, {jobs['succeeded']} succeeded, "
+        f"{jobs['failed_with_reason']} failed with a reason, {jobs['lost']} lost; "
+        f"orphans: {report['orphans']}; restarts: {report['restarts']}; "
+        f"reads p99 {report['reads']['p99_ms']} ms; {out / 'soak.json'}"
+    )
+    if jobs["lost"] or report["orphans"]:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bgrl bench sim|eeg|learner|sweep|api|loop`` and ``bgrl eeg quality-sweep``."""
+    """Add ``bgrl bench sim|eeg|learner|sweep|api|loop|soak`` and ``bgrl eeg quality-sweep``."""
     bench_app.command("sim")(bench_sim)
     bench_app.command("eeg")(bench_eeg)
     bench_app.command("learner")(bench_learner)
     bench_app.command("sweep")(bench_sweep)
     bench_app.command("api")(bench_api)
     bench_app.command("loop")(bench_loop)
+    bench_app.command("soak")(bench_soak)
     eeg_app.command("quality-sweep")(quality_sweep_command)
