@@ -9,7 +9,10 @@ cross-entropy, Adam, early stopping on the validation loss:
 higher validation accuracy is kept (EEGNet, then the sLDA, on a tie): it is the
 classifier, and its test metrics are the calibration's (test accuracy, balanced accuracy,
 ROC AUC, confusion matrix: :mod:`services.eeg.metrics`); ``metrics["decoders"]`` has every
-decoder's. ``calibrate(..., out_dir=DIR)`` writes the classifier, ``metrics.json``,
+decoder's. The kept decoder's P(error) is calibrated on the validation epochs (Platt scaling,
+:mod:`services.eeg.posterior`): the classifier carries the calibration, ``metrics["calibration"]``
+has its fit and the test epochs' expected calibration error and reliability bins.
+``calibrate(..., out_dir=DIR)`` writes the classifier, ``metrics.json``,
 ``history.json`` and the calibration report (:mod:`services.eeg.outputs`).
 
 Words: an *epoch* is one EEG trial (the window after an action); a *pass* is one sweep of
@@ -38,6 +41,7 @@ from services.eeg.classifier import ErrPClassifier
 from services.eeg.decoders import fit_decoders, select_decoder
 from services.eeg.metrics import classification_metrics, roc_auc
 from services.eeg.outputs import HISTORY_FILE, METRICS_FILE, write_outputs
+from services.eeg.posterior import calibration_report, fit_platt
 from services.eeg.preprocessing import EpochSet, PreprocessingParams, epochs_from_raw
 from services.eeg.split import SPLIT_FRACTIONS, Split, stratified_split
 from services.eeg.training_config import DECODERS, CalibrationCancelled, TrainingConfig
@@ -157,6 +161,7 @@ def train_classifier(
     kept = select_decoder(decoders)
     eegnet = fits.get("eegnet")
     test_proba = fits[kept].test_proba
+    posterior = fit_platt(y_all[split.val], fits[kept].val_proba)
     metrics = classification_metrics(y_all[split.test], test_proba)
     metrics.update(
         {
@@ -174,10 +179,12 @@ def train_classifier(
             "seed": seed,
             "synthetic": epochs.synthetic,
             "training_config": asdict(config),
+            "calibration": calibration_report(posterior, y_all[split.test], test_proba),
         }
     )
     classifier = fits[kept].classifier
     classifier.metrics = metrics
+    classifier.calibration = posterior
     history = eegnet.history if eegnet else {"train_loss": [], "val_loss": [], "val_accuracy": []}
     return CalibrationResult(
         classifier=classifier,

@@ -12,7 +12,9 @@ the same sampling rate; :meth:`ErrPClassifier.check_compatible` enforces it.
 
 On disk (``save(dir)``)::
 
-    dir/classifier.json    architecture, preprocessing params, channels, rate, metrics
+    dir/classifier.json    architecture, preprocessing params, channels, rate, metrics and
+                           the posterior calibration (``calibration``; absent in classifiers
+                           calibrated before it existed)
     dir/model.pt           the decoder's state dict
     dir/model.torchscript.pt  TorchScript: epochs in volts (n, n_chans, n_times) -> P(error)
     dir/model.pt2          the same as a torch.export program (``export_pt2``;
@@ -40,6 +42,7 @@ from services.core.files import write_bytes_atomic
 from services.core.model_formats import SUFFIXES
 from services.eeg.classical import WindowMeanLDA
 from services.eeg.eegnet import EEGNet, count_parameters
+from services.eeg.posterior import PosteriorCalibration
 from services.eeg.preprocessing import PreprocessingParams
 from services.eeg.riemannian import XdawnRiemann
 from services.model_export import export_program, save_onnx, save_pt2
@@ -94,6 +97,10 @@ class ErrPClassifier:
         Calibration metrics (``test_accuracy``, ``balanced_accuracy``, ``roc_auc``, ...).
     synthetic : bool
         True when trained on virtual-subject data.
+    calibration : PosteriorCalibration | None
+        Platt scaling of P(error) fitted on the calibration's validation epochs
+        (:mod:`services.eeg.posterior`); :meth:`posterior` and :meth:`log_likelihood_ratio`
+        need it.
     """
 
     def __init__(
@@ -106,6 +113,7 @@ class ErrPClassifier:
         metrics: dict[str, Any] | None = None,
         *,
         synthetic: bool = False,
+        calibration: PosteriorCalibration | None = None,
     ) -> None:
         if model.n_chans != len(ch_names) or model.n_times != params.n_times_epoch:
             raise ValueError(
@@ -119,6 +127,7 @@ class ErrPClassifier:
         self.input_scale = float(input_scale)
         self.metrics: dict[str, Any] = dict(metrics or {})
         self.synthetic = synthetic
+        self.calibration = calibration
         self._proba = ErrorProbability(self.model, self.input_scale).eval()
 
     @property
@@ -187,6 +196,32 @@ class ErrPClassifier:
         with torch.inference_mode():
             return self._proba(torch.from_numpy(X)).double().numpy()
 
+    def _posterior_calibration(self) -> PosteriorCalibration:
+        if self.calibration is None:
+            raise ValueError(
+                "this classifier has no posterior calibration (it was calibrated before "
+                "calibrated outputs existed): calibrate it again"
+            )
+        return self.calibration
+
+    def posterior(self, X: np.ndarray) -> np.ndarray:
+        """Calibrated P(error | epoch) per epoch, at the calibration session's error rate."""
+        return self._posterior_calibration().posterior(self.predict_proba(X))
+
+    def log_likelihood_ratio(self, X: np.ndarray) -> np.ndarray:
+        """``log P(epoch | error) / P(epoch | correct)`` per epoch: the soft label stage 2
+        takes (:meth:`PosteriorCalibration.log_likelihood_ratio
+        <services.eeg.posterior.PosteriorCalibration.log_likelihood_ratio>`)."""
+        return self._posterior_calibration().log_likelihood_ratio(self.predict_proba(X))
+
+    def decode_epoch(self, epoch: np.ndarray) -> tuple[float, float | None]:
+        """One epoch's raw P(error) (whose threshold gives the hard label) and its
+        log-likelihood ratio (None without a posterior calibration)."""
+        p_error = self.predict_proba(epoch)[:1]
+        if self.calibration is None:
+            return float(p_error[0]), None
+        return float(p_error[0]), float(self.calibration.log_likelihood_ratio(p_error)[0])
+
     def predict(self, X: np.ndarray, threshold: float = 0.5) -> np.ndarray:
         """1 (error) where P(error) >= ``threshold``, else 0 (correct)."""
         return (self.predict_proba(X) >= threshold).astype(np.int64)
@@ -204,6 +239,7 @@ class ErrPClassifier:
             "input_scale": self.input_scale,
             "synthetic": self.synthetic,
             "metrics": self.metrics,
+            "calibration": None if self.calibration is None else self.calibration.to_dict(),
         }
 
     def save(self, directory: str | Path) -> Path:
@@ -272,4 +308,9 @@ class ErrPClassifier:
             config["input_scale"],
             config["metrics"],
             synthetic=config["synthetic"],
+            calibration=(
+                None
+                if config.get("calibration") is None
+                else PosteriorCalibration.from_dict(config["calibration"])
+            ),
         )

@@ -37,6 +37,9 @@ class DecoderFit:
     """Validation and test metrics, ``n_params`` and the decoder's own facts (CV, ...)."""
     test_proba: np.ndarray
     """P(error) on the test epochs (in ``split.test`` order)."""
+    val_proba: np.ndarray
+    """P(error) on the validation epochs (in ``split.val`` order): the posterior calibration
+    is fitted on them (:mod:`services.eeg.posterior`)."""
     history: dict[str, list[float]] = field(default_factory=dict)
     """EEGNet's per-pass curves (empty for the others)."""
     facts: dict[str, Any] = field(default_factory=dict)
@@ -86,7 +89,12 @@ def fit_decoders(
             )
             metrics["n_params"] = count_parameters(eegnet.model)
             fits[name] = DecoderFit(
-                bind(eegnet.model), metrics, eegnet.test_proba, eegnet.history, eegnet.facts
+                bind(eegnet.model),
+                metrics,
+                eegnet.test_proba,
+                eegnet.val_proba,
+                eegnet.history,
+                eegnet.facts,
             )
             continue
         if should_stop is not None and should_stop():
@@ -104,9 +112,8 @@ def fit_decoders(
             own = {"n_filters": model.n_filters}
         classifier = bind(model)
         test_proba = classifier.predict_proba(epochs.X[split.test])
-        metrics = validation_and_test_metrics(
-            y_val, classifier.predict_proba(epochs.X[split.val]), y_test, test_proba
-        )
+        val_proba = classifier.predict_proba(epochs.X[split.val])
+        metrics = validation_and_test_metrics(y_val, val_proba, y_test, test_proba)
         metrics.update(
             {
                 "n_params": count_parameters(model),
@@ -116,7 +123,7 @@ def fit_decoders(
                 **own,
             }
         )
-        fits[name] = DecoderFit(classifier, metrics, test_proba)
+        fits[name] = DecoderFit(classifier, metrics, test_proba, val_proba)
     return fits
 
 

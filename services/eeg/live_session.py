@@ -146,10 +146,11 @@ class LiveSession:
             return Feedback(status="rejected", reason=NO_CLASSIFIER, **common)
         if not result.ok:
             return Feedback(status="rejected", reason=result.reason, **common)
-        p_error = float(self.classifier.predict_proba(result.epoch)[0])
+        p_error, log_likelihood_ratio = self.classifier.decode_epoch(result.epoch)
         return Feedback(
             status="ok",
             p_error=p_error,
+            log_likelihood_ratio=log_likelihood_ratio,
             feedback="error" if is_error(p_error) else "correct",
             **common,
         )

@@ -1,4 +1,5 @@
-"""Calibration report: ErrP grand averages, topographies, training curves, confusion matrix.
+"""Calibration report: ErrP grand averages, topographies, training curves, confusion matrix,
+and the reliability diagram of the calibrated P(error) (:mod:`services.eeg.posterior`).
 
 Writes ``report.png`` and a small ``report.html`` (metrics table + the figure). Figures are
 drawn with matplotlib's Agg canvas (no display needed). Reports of virtual-subject data say
@@ -53,14 +54,14 @@ def _topomap_info(epochs: EpochSet):
 
 
 def draw_report(result: CalibrationResult) -> Figure:
-    """The calibration report figure (2 x 3 panels)."""
+    """The calibration report figure (2 x 4 panels)."""
     import mne
 
     epochs, metrics, history = result.epochs, result.metrics, result.history
     times_ms = _epoch_times(epochs) * 1e3
-    fig = Figure(figsize=(15, 8.5), layout="constrained")
+    fig = Figure(figsize=(20, 8.5), layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(2, 3)
+    axes = fig.subplots(2, 4)
     tag = "SYNTHETIC (virtual subject) - " if epochs.synthetic else ""
     kept = DECODER_NAMES.get(metrics.get("decoder", "eegnet"), "EEGNet")
     fig.suptitle(
@@ -84,7 +85,7 @@ def draw_report(result: CalibrationResult) -> Figure:
 
     info = _topomap_info(epochs)
     diff_all = (epochs.X[epochs.y == 1].mean(0) - epochs.X[epochs.y == 0].mean(0)) * 1e6
-    for ax, pick in zip(axes[0, 1:], (np.argmin, np.argmax), strict=True):
+    for ax, pick in zip(axes[0, 1:3], (np.argmin, np.argmax), strict=True):
         if info is None or diff_ref is None:
             ax.axis("off")
             ax.text(0.5, 0.5, "no topography: channels not in biosemi64", ha="center")
@@ -139,7 +140,49 @@ def draw_report(result: CalibrationResult) -> Figure:
         ylabel="true",
         title=f"Test confusion matrix (n={cm.sum()})",
     )
+    _draw_reliability(axes[0, 3], axes[1, 3], result)
     return fig
+
+
+def _draw_reliability(diagram, histogram, result: CalibrationResult) -> None:
+    """Reliability diagram (raw and calibrated P(error) on the test epochs) and the
+    calibrated posterior's histogram per true class."""
+    calibration = result.metrics.get("calibration")
+    if calibration is None or result.classifier.calibration is None:
+        for ax in (diagram, histogram):
+            ax.axis("off")
+            ax.text(0.5, 0.5, "no posterior calibration", ha="center")
+        return
+    diagram.plot([0, 1], [0, 1], color="k", lw=0.6, ls=":", label="perfectly calibrated")
+    for key, label, color in (
+        ("test_reliability_raw", f"raw (ECE {calibration['test_ece_raw']:.3f})", "C7"),
+        ("test_reliability", f"calibrated (ECE {calibration['test_ece']:.3f})", "C3"),
+    ):
+        rows = calibration[key]
+        diagram.plot(
+            [r["mean_p_error"] for r in rows],
+            [r["error_fraction"] for r in rows],
+            "o-",
+            color=color,
+            label=label,
+        )
+    diagram.set(
+        xlabel="predicted P(error)",
+        ylabel="fraction of errors",
+        xlim=(0, 1),
+        ylim=(0, 1),
+        title=f"Reliability on the test epochs (Platt fit on {calibration['n_fit']} validation)",
+    )
+    diagram.legend(fontsize=7)
+    y_test = result.epochs.y[result.split.test]
+    posterior = result.classifier.calibration.posterior(result.test_proba)
+    bins = np.linspace(0, 1, 11)
+    histogram.hist(posterior[y_test == 0], bins=bins, alpha=0.6, label="correct", color="C0")
+    histogram.hist(posterior[y_test == 1], bins=bins, alpha=0.6, label="error", color="C3")
+    histogram.set(
+        xlabel="calibrated P(error | epoch)", ylabel="test epochs", title="Calibrated posterior"
+    )
+    histogram.legend(fontsize=8)
 
 
 def write_report(result: CalibrationResult, out_dir: str | Path) -> tuple[Path, Path]:
@@ -164,6 +207,17 @@ def write_report(result: CalibrationResult, out_dir: str | Path) -> tuple[Path, 
         "passes_run",
         "train_seconds",
         "seed",
+    )
+    calibration = m.get("calibration") or {}
+    posterior_rows = "".join(
+        f"<tr><th>{label}</th><td>{calibration[k]:.3f}</td></tr>"
+        for k, label in (
+            ("slope", "Platt slope"),
+            ("intercept", "Platt intercept"),
+            ("test_ece_raw", "test ECE, raw P(error)"),
+            ("test_ece", "test ECE, calibrated"),
+        )
+        if isinstance(calibration.get(k), float)
     )
     rows = "\n".join(
         f"<tr><th>{k}</th><td>{v:.3f}</td></tr>"
@@ -196,7 +250,8 @@ def write_report(result: CalibrationResult, out_dir: str | Path) -> tuple[Path, 
     page.write_text(
         "<!doctype html><html><head><meta charset='utf-8'><title>ErrP calibration report"
         f"</title></head><body><h1>ErrP calibration report</h1>{banner}"
-        f"<table>{rows}</table>{decoders}<p>Confusion matrix (rows true, columns predicted; "
+        f"<table>{rows}{posterior_rows}</table>{decoders}"
+        "<p>Confusion matrix (rows true, columns predicted; "
         f"correct, error): {html.escape(str(m['confusion_matrix']))}</p>"
         f"<img src='{REPORT_PNG}' alt='calibration report figure' style='max-width:100%'>"
         "</body></html>"

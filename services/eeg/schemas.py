@@ -124,6 +124,11 @@ class Feedback(BaseModel):
     status: Literal["ok", "rejected"]
     p_error: float | None = None
     feedback: Literal["correct", "error"] | None = None
+    log_likelihood_ratio: float | None = Field(
+        None,
+        description="log P(epoch | error) / P(epoch | correct) from the classifier's "
+        "calibrated posterior: the soft label (null without a calibration, or when rejected).",
+    )
     reason: str | None = None
     onset: float | None = None
     step: int | None = None

@@ -64,10 +64,11 @@ def classify_epoch(
             f"(|x| <= {MAX_EPOCH_VOLTS:g})",
             field="epoch",
         )
-    p_error = float(clf.predict_proba(X)[0])
+    p_error, log_likelihood_ratio = clf.decode_epoch(X)
     return Feedback(
         status="ok",
         p_error=p_error,
+        log_likelihood_ratio=log_likelihood_ratio,
         feedback="error" if is_error(p_error) else "correct",
         classifier_id=classifier_id,
         synthetic=clf.synthetic,
