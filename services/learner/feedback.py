@@ -26,6 +26,13 @@ Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
 * :func:`collect_feedback` takes labels from any
   :class:`~services.learner.feedback_sources.FeedbackSource` (the noisy oracle, decoded EEG,
   stored labels).
+* ``FeedbackConfig.label_channel`` says how a label enters Fhat's update: ``hard``, the
+  thresholded label under the label-noise model (g, b) (the paper); ``soft``, the decoder's
+  calibrated likelihood ratio ``lambda = P(epoch | error) / P(epoch | correct)``. A soft
+  label is a "correct" label whose per-label accuracy is ``r = 1 / (1 + lambda)`` (P(correct |
+  epoch) at even odds): the likelihood of the epoch given that the action is optimal with
+  probability p is proportional to ``r p + (1 - r)(1 - p)``, which is the hard label's
+  ``g p + (1 - b)(1 - p)`` with g = b = r; the paper's BCE takes r as its target.
 """
 
 from __future__ import annotations
@@ -41,9 +48,10 @@ import torch
 from torch import nn
 
 from services.core.actions import N_ACTIONS
+from services.core.feedback import LABEL_CHANNELS
 from services.learner.collection import CollectionRule, HFPolicy
-from services.learner.feedback_buffer import FeedbackRecord, FeedbackReplayBuffer
-from services.learner.feedback_sources import FeedbackSource
+from services.learner.feedback_buffer import NO_SOFT_LABEL, FeedbackRecord, FeedbackReplayBuffer
+from services.learner.feedback_sources import FeedbackSource, unpack_label
 from services.learner.hf_methods import (
     DEFAULT_ASSUMED_ACCURACY,
     FhatEnsemble,
@@ -90,9 +98,16 @@ class FeedbackConfig:
     kernel_bandwidth: float = 0.1
     """``kernel`` prior: bandwidth h of the Gaussian kernel on the normalised observations
     (per dimension, on [-1, 1]; :mod:`services.learner.kernel_prior`)."""
+    label_channel: str = "hard"
+    """``hard``: the thresholded label under the noise model; ``soft``: the decoder's
+    calibrated likelihood ratio (each label must carry one)."""
 
     def __post_init__(self) -> None:
         get_method(self.method)  # ValueError naming the known methods
+        if self.label_channel not in LABEL_CHANNELS:
+            raise ValueError(
+                f"unknown label_channel {self.label_channel!r}; expected one of {LABEL_CHANNELS}"
+            )
         for name in ("good_accuracy", "bad_accuracy"):
             value = getattr(self, name)
             if value is not None and not 0.0 <= value <= 1.0:
@@ -203,9 +218,16 @@ class FeedbackLearner:
         obs: torch.Tensor,
         actions: torch.Tensor,
         labels: torch.Tensor,
+        p_correct: torch.Tensor | None = None,
     ) -> float:
+        good: float | torch.Tensor
+        bad: float | torch.Tensor
         good, bad = self.config.noise_model
         likelihood = self.method.likelihood
+        if p_correct is not None:
+            # a soft label: "correct" at per-label accuracy r (the BCE's target is r itself)
+            labels = p_correct if likelihood == "bce" else torch.ones_like(p_correct)
+            good = bad = p_correct
         if self.kernel is not None:
             rows = np.array([self.buffer.size]) if indices is None else indices
             log_q = torch.log_softmax(self.model(obs), dim=-1)
@@ -232,10 +254,31 @@ class FeedbackLearner:
         pi_HF, softmax(beta * P(optimal)))."""
         return self.collection.action(obs, rng)
 
+    @property
+    def soft(self) -> bool:
+        """True on the ``soft`` label channel."""
+        return self.config.label_channel == "soft"
+
     def add(
-        self, obs: np.ndarray, action: int, label: bool, optimal: bool | None = None
+        self,
+        obs: np.ndarray,
+        action: int,
+        label: bool,
+        optimal: bool | None = None,
+        log_likelihood_ratio: float | None = None,
     ) -> FeedbackRecord:
-        """Route a label to validation or training; a training label triggers 1 + K_HF steps."""
+        """Route a label to validation or training; a training label triggers 1 + K_HF steps.
+
+        ``log_likelihood_ratio`` (``log P(epoch | error) / P(epoch | correct)``) is the soft
+        label: required on the ``soft`` channel, recorded but unused on the ``hard`` one.
+        """
+        if self.soft and log_likelihood_ratio is None:
+            raise ValueError(
+                "the soft label channel needs each label's log-likelihood ratio (a calibrated "
+                "decoder's); this label is hard only (the noisy oracle gives hard labels)"
+            )
+        if log_likelihood_ratio is not None and not np.isfinite(log_likelihood_ratio):
+            raise ValueError(f"log_likelihood_ratio must be finite, got {log_likelihood_ratio}")
         obs = np.asarray(obs, dtype=np.float32)
         is_validation = bool(self.rng.random() < self.config.validation_fraction)
         record = FeedbackRecord(
@@ -244,6 +287,9 @@ class FeedbackLearner:
             label=bool(label),
             optimal=None if optimal is None else bool(optimal),
             validation=is_validation,
+            log_likelihood_ratio=(
+                None if log_likelihood_ratio is None else float(log_likelihood_ratio)
+            ),
         )
         if is_validation:
             self.validation.append(record)
@@ -252,20 +298,27 @@ class FeedbackLearner:
             self.bootstrap[self.buffer.size] = 2.0 * self.ensemble_rng.integers(
                 0, 2, self.config.ensemble_size
             )
+        p_correct = None
+        if self.soft:
+            assert log_likelihood_ratio is not None
+            p_correct = soft_label(log_likelihood_ratio)
         if self.kernel is not None:
-            self.kernel.add(self.model.normalizer(torch.from_numpy(obs)).numpy(), action, label)
+            x = self.model.normalizer(torch.from_numpy(obs)).numpy()
+            self.kernel.add(x, action, label, p_correct)
         self._step(
             None,
             torch.from_numpy(obs[None]),
             torch.tensor([int(action)]),
             torch.tensor([float(label)]),
+            None if p_correct is None else torch.tensor([p_correct], dtype=torch.float32),
         )
-        self.buffer.add(obs, action, label)
+        self.buffer.add(obs, action, label, NO_SOFT_LABEL if p_correct is None else p_correct)
         for _ in range(self.config.replay_updates):
             indices = self.buffer.sample_indices(
                 self.rng, self.config.batch_size, self.config.newest_fraction
             )
-            self._step(indices, *self.buffer.tensors(indices))
+            soft = self.buffer.soft_tensor(indices) if self.soft else None
+            self._step(indices, *self.buffer.tensors(indices), soft)
         return record
 
     def state_dict(self) -> dict[str, Any]:
@@ -420,6 +473,17 @@ class HFResult:
         }
 
 
+SOFT_LABEL_FLOOR = 1e-6
+"""A soft label's P(correct | epoch) is kept within [floor, 1 - floor] (a log-likelihood
+ratio beyond +-13.8), so that no single epoch is certain evidence."""
+
+
+def soft_label(log_likelihood_ratio: float) -> float:
+    """P(correct | epoch) at even odds, ``1 / (1 + lambda)``, from ``log lambda``."""
+    p = 1.0 / (1.0 + np.exp(np.clip(log_likelihood_ratio, -700.0, 700.0)))
+    return float(np.clip(p, SOFT_LABEL_FLOOR, 1.0 - SOFT_LABEL_FLOOR))
+
+
 def sampling_rng(seed: int) -> np.random.Generator:
     """The generator pi_HF samples its actions from while labels of seed ``seed`` are collected.
 
@@ -489,7 +553,8 @@ def collect_feedback(
         n_steps += 1
         label = source.feedback(obs, action, optimal)
         if label is not None:
-            record = learner.add(obs, action, label, optimal)
+            correct, log_likelihood_ratio = unpack_label(label)
+            record = learner.add(obs, action, correct, optimal, log_likelihood_ratio)
             records.append(record)
             if on_label is not None:
                 on_label(record)

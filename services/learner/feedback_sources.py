@@ -3,12 +3,18 @@
 The noisy Dijkstra oracle (:class:`OracleFeedbackSource`, simulation), decoded EEG feedback
 from a queue or callable (:class:`StreamFeedbackSource`) and stored labels
 (:class:`ReplayFeedbackSource`); :func:`services.learner.feedback.collect_feedback` takes any.
+A source answers a bool (a hard label) or a :class:`DecodedLabel` (the hard label and the
+decoder's calibrated evidence, which the ``soft`` label channel reads); the end-to-end
+source of the virtual subject and its decoder lives outside the learner
+(``services.cli.e2e_feedback``), which must not import the EEG pipeline.
 """
 
 from __future__ import annotations
 
+import math
 import queue
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
@@ -17,16 +23,45 @@ if TYPE_CHECKING:
     from services.learner.feedback_buffer import FeedbackRecord
 
 
+@dataclass(frozen=True)
+class DecodedLabel:
+    """A decoded epoch's feedback: the hard decision and the evidence it was taken from."""
+
+    correct: bool
+    """The thresholded decision (P(error) < 0.5): the hard label."""
+    log_likelihood_ratio: float
+    """``log P(epoch | error) / P(epoch | correct)`` from the decoder's calibrated posterior:
+    the soft label (> 0 speaks for an error)."""
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.log_likelihood_ratio):
+            raise ValueError(
+                f"log_likelihood_ratio must be finite, got {self.log_likelihood_ratio}"
+            )
+
+
+Label = bool | DecodedLabel
+"""What a source answers for a labelled step."""
+
+
+def unpack_label(label: Label) -> tuple[bool, float | None]:
+    """(hard label, log-likelihood ratio or None for a label without evidence)."""
+    if isinstance(label, DecodedLabel):
+        return label.correct, label.log_likelihood_ratio
+    return bool(label), None
+
+
 @runtime_checkable
 class FeedbackSource(Protocol):
     """Anything that judges the action just taken.
 
-    ``feedback(obs, action, optimal)`` returns True (correct), False (error) or None (no
-    label for this step, e.g. a rejected EEG epoch). ``optimal`` is the oracle's truth when
-    the caller knows it (simulation), else None.
+    ``feedback(obs, action, optimal)`` returns True (correct), False (error), a
+    :class:`DecodedLabel` (a decoder's decision with its likelihood ratio) or None (no label
+    for this step, e.g. a rejected EEG epoch). ``optimal`` is the oracle's truth when the
+    caller knows it (simulation), else None.
     """
 
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None: ...
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> Label | None: ...
 
 
 class OracleFeedbackSource:
@@ -100,19 +135,27 @@ class StreamFeedbackSource:
 class ReplayFeedbackSource:
     """Stored labels replayed in order (reproduces a recorded session in a seeded env)."""
 
-    def __init__(self, labels: Iterable[bool | None]) -> None:
+    def __init__(self, labels: Iterable[Label | None]) -> None:
         self.labels = list(labels)
         self.position = 0
 
     @classmethod
     def from_records(cls, records: Sequence[FeedbackRecord]) -> ReplayFeedbackSource:
-        """Replay the labels of a previous session's records."""
-        return cls(r.label for r in records)
+        """Replay the labels of a previous session's records (with their likelihood ratio
+        where they had one)."""
+        return cls(
+            r.label
+            if r.log_likelihood_ratio is None
+            else DecodedLabel(r.label, r.log_likelihood_ratio)
+            for r in records
+        )
 
-    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> bool | None:
+    def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> Label | None:
         """The next stored label; raises when the recording is exhausted."""
         if self.position >= len(self.labels):
             raise IndexError(f"all {len(self.labels)} stored labels have been replayed")
         label = self.labels[self.position]
         self.position += 1
-        return None if label is None else bool(label)
+        if label is None or isinstance(label, DecodedLabel):
+            return label
+        return bool(label)

@@ -117,8 +117,11 @@ def optimality(logits: torch.Tensor, likelihood: str) -> torch.Tensor:
     return torch.sigmoid(logits)
 
 
-def p_judged_correct(p_optimal: torch.Tensor, good: float, bad: float) -> torch.Tensor:
-    """P(label says correct) = g p + (1 - b)(1 - p): the label-noise model applied to p."""
+def p_judged_correct(
+    p_optimal: torch.Tensor, good: float | torch.Tensor, bad: float | torch.Tensor
+) -> torch.Tensor:
+    """P(label says correct) = g p + (1 - b)(1 - p): the label-noise model applied to p
+    (g and b may be per-label tensors: a soft label is a "correct" one with g = b = r)."""
     return good * p_optimal + (1.0 - bad) * (1.0 - p_optimal)
 
 
@@ -127,8 +130,8 @@ def label_nll(
     actions: torch.Tensor,
     labels: torch.Tensor,
     likelihood: str,
-    good: float,
-    bad: float,
+    good: float | torch.Tensor,
+    bad: float | torch.Tensor,
 ) -> torch.Tensor:
     """Negative log-likelihood of each label, shape ``logits.shape[:-1]``.
 
@@ -150,8 +153,8 @@ def mean_label_loss(
     actions: torch.Tensor,
     labels: torch.Tensor,
     likelihood: str,
-    good: float,
-    bad: float,
+    good: float | torch.Tensor,
+    bad: float | torch.Tensor,
 ) -> torch.Tensor:
     """Mean of :func:`label_nll` over the labels (for ``bce`` exactly the paper's BCE loss,
     ``binary_cross_entropy_with_logits`` with its mean reduction, bit for bit)."""

@@ -14,6 +14,9 @@ every optimal action ``k`` given all training labels ``(s_j, a_j, f_j)``:
 bandwidth. ``P(f | a, k)`` is the categorical method's noisy-label likelihood: g / 1 - g when
 ``a = k``, 1 - b / b otherwise. ``softmax(E[i])`` is the posterior of the optimal action at
 ``s_i`` (Nadaraya-Watson weighting of the evidence; Fhat's own label counts with weight 1).
+A soft label (``soft`` channel) is a "correct" label of per-label accuracy
+``r = P(correct | epoch)`` at even odds: ``P(x | a, k)`` is proportional to r when
+``a = k`` and to 1 - r otherwise.
 The ``categorical_kernel`` method trains Fhat toward it with cross-entropy, so Fhat stays the
 13 -> 16 -> 3 MLP and pi_HF its argmax; no label is spent and nothing but the observation
 enters. The cost per label is one pass over the stored labels (O(N n_obs)).
@@ -74,13 +77,17 @@ class KernelEvidence:
         squared = np.mean((self.x[: self.size] - x) ** 2, axis=1)
         return np.exp(-squared / (2.0 * self.bandwidth**2))
 
-    def add(self, x: np.ndarray, action: int, label: bool) -> None:
+    def add(self, x: np.ndarray, action: int, label: bool, p_correct: float | None = None) -> None:
         """Add one training label at the normalised observation ``x``: its evidence reaches
-        every stored state, theirs reaches it."""
+        every stored state, theirs reaches it. A soft label gives ``p_correct`` (P(correct |
+        epoch) at even odds) and is read as a "correct" label of that accuracy."""
         if self.size == len(self.x):
             raise OverflowError(f"kernel evidence is full ({self.size} labels)")
         x = np.asarray(x, dtype=np.float64)
-        own = label_log_likelihood(action, label, self.good, self.bad)
+        if p_correct is None:
+            own = label_log_likelihood(action, label, self.good, self.bad)
+        else:
+            own = label_log_likelihood(action, True, p_correct, p_correct)
         w = self.weights(x)
         n = self.size
         self.evidence[:n] += w[:, None] * own

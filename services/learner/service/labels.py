@@ -25,6 +25,8 @@ class LabelRecord:
     """Held out for validation (never trained on)."""
     model_version: int
     """Model version after this label."""
+    log_likelihood_ratio: float | None = None
+    """The classifier's log P(epoch | error) / P(epoch | correct), when sent."""
 
 
 class LabelTable:
@@ -45,6 +47,7 @@ class LabelTable:
         self._oracle = np.full(capacity, -1, dtype=np.int8)  # -1 unknown, 0 error, 1 correct
         self._validation = np.zeros(capacity, dtype=np.bool_)
         self._version = np.zeros(capacity, dtype=np.int64)
+        self._llr = np.full(capacity, np.nan, dtype=np.float64)
         self.n_known = 0
         """Labels with the oracle's truth."""
         self.n_agree = 0
@@ -69,6 +72,9 @@ class LabelTable:
         self._oracle[i] = -1 if record.oracle_correct is None else int(record.oracle_correct)
         self._validation[i] = record.validation
         self._version[i] = record.model_version
+        self._llr[i] = (
+            math.nan if record.log_likelihood_ratio is None else record.log_likelihood_ratio
+        )
         self.records.append(record)
         self._by_marker[record.marker_id] = record
         if record.oracle_correct is not None:
@@ -90,9 +96,12 @@ class LabelTable:
         """Replace the labels with those of :meth:`state_dict`."""
         n = len(state["marker_id"])
         self.__init__(len(self._action), self._obs.shape[1])  # type: ignore[misc]
-        columns = {name: state[name].numpy() for name in self._columns()}
+        columns = {name: state[name].numpy() for name in self._columns() if name in state}
+        # checkpoints from before soft labels hold no log-likelihood ratios
+        columns.setdefault("log_likelihood_ratio", np.full(n, np.nan))
         for i in range(n):
             p_error = float(columns["p_error"][i])
+            llr = float(columns["log_likelihood_ratio"][i])
             oracle = int(columns["oracle_correct"][i])
             self.append(
                 LabelRecord(
@@ -104,6 +113,7 @@ class LabelTable:
                     oracle_correct=None if oracle < 0 else bool(oracle),
                     validation=bool(columns["validation"][i]),
                     model_version=int(columns["model_version"][i]),
+                    log_likelihood_ratio=None if math.isnan(llr) else llr,
                 )
             )
 
@@ -116,4 +126,5 @@ class LabelTable:
             "oracle_correct": self._oracle,
             "validation": self._validation,
             "model_version": self._version,
+            "log_likelihood_ratio": self._llr,
         }

@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
-from services.core.feedback import is_error
+from services.core.feedback import LabelChannel, is_error
 from services.core.hf_methods import HFMethodName
 from services.core.model_formats import ModelFormat
 from services.core.schemas import ActionValue, Seed, StrictRequest
@@ -67,6 +67,13 @@ class FhatSettings(StrictRequest):
         le=10,
         description="categorical_kernel only: width of the kernel that shares a label's "
         "evidence with nearby states, on the normalised observation (0.1).",
+    )
+
+    label_channel: LabelChannel | None = Field(
+        None,
+        description="How a label enters Fhat: 'hard', the thresholded feedback under the "
+        "label-noise model (the paper); 'soft', the classifier's calibrated "
+        "log_likelihood_ratio, which every label must then carry ('hard' when omitted).",
     )
 
     def overrides(self) -> dict[str, Any]:
@@ -152,6 +159,14 @@ class LabelCreate(StrictRequest):
     feedback: Literal["correct", "error"]
     p_error: float | None = Field(
         None, ge=0, le=1, description="The classifier's P(error), when decoded from EEG."
+    )
+    log_likelihood_ratio: float | None = Field(
+        None,
+        ge=-1e4,
+        le=1e4,
+        description="log P(epoch | error) / P(epoch | correct) from the classifier's "
+        "calibrated posterior (the EEG service's decision carries it): the soft label, "
+        "required by a session on the soft channel, recorded by one on the hard channel.",
     )
     oracle_correct: bool | None = Field(
         None, strict=True, description="The oracle's truth, when known (simulation)."

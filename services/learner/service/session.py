@@ -178,19 +178,23 @@ class HFSession:
         correct: bool,
         p_error: float | None = None,
         oracle_correct: bool | None = None,
+        log_likelihood_ratio: float | None = None,
     ) -> LabelOutcome:
         """Store the label and update Fhat (1 + K_HF steps unless it is held out).
 
         A marker id labelled before changes nothing (``duplicate``) if it carries the same
         label, and raises :class:`MarkerConflictError` if not; a new label once the budget is
-        reached raises :class:`LabelBudgetError`.
+        reached raises :class:`LabelBudgetError`; a session on the soft channel refuses a
+        label without ``log_likelihood_ratio`` (:class:`InvalidRequestError`).
         """
         obs = np.asarray(observation, dtype=np.float32)
-        known = self.check_label(marker_id, obs, action, correct, p_error, oracle_correct)
+        known = self.check_label(
+            marker_id, obs, action, correct, p_error, oracle_correct, log_likelihood_ratio
+        )
         if known is not None:
             return known
-        fed = self.learner.add(obs, action, correct, oracle_correct)
-        return self._record(marker_id, fed, p_error)
+        fed = self.learner.add(obs, action, correct, oracle_correct, log_likelihood_ratio)
+        return self._record(marker_id, fed, p_error, log_likelihood_ratio)
 
     def check_label(
         self,
@@ -200,6 +204,7 @@ class HFSession:
         correct: bool,
         p_error: float | None,
         oracle_correct: bool | None,
+        log_likelihood_ratio: float | None = None,
     ) -> LabelOutcome | None:
         """The ``duplicate`` outcome of a label sent again, None for a new label that fits
         the budget (raises as :meth:`add_label`)."""
@@ -210,7 +215,8 @@ class HFSession:
                 known.correct,
                 known.p_error,
                 known.oracle_correct,
-            ) == (action, correct, p_error, oracle_correct)
+                known.log_likelihood_ratio,
+            ) == (action, correct, p_error, oracle_correct, log_likelihood_ratio)
             if not same:
                 raise MarkerConflictError(
                     f"marker {marker_id!r} was labelled before with a different observation, "
@@ -221,6 +227,12 @@ class HFSession:
         if self.done:
             raise LabelBudgetError(
                 f"session {self.id} has all {self.spec.label_budget} labels of its budget"
+            )
+        if self.learner.soft and log_likelihood_ratio is None:
+            raise InvalidRequestError(
+                f"session {self.id} reads labels on the soft channel: each label needs the "
+                "classifier's log_likelihood_ratio",
+                field="log_likelihood_ratio",
             )
         return None
 
@@ -237,6 +249,7 @@ class HFSession:
         fed: FeedbackRecord,
         p_error: float | None,
         sampled: bool,
+        log_likelihood_ratio: float | None = None,
     ) -> LabelOutcome:
         """Adopt a :meth:`fork` of this session that learned label ``fed`` (and then sampled
         one action if ``sampled``): afterwards the session is exactly what :meth:`add_label`
@@ -244,15 +257,21 @@ class HFSession:
         :meth:`check_label` and that the session did not change since the fork.
         """
         self.learner, self.policy, self.rng = learner, learner.policy, rng
-        outcome = self._record(marker_id, fed, p_error, prepared=True)
+        outcome = self._record(marker_id, fed, p_error, log_likelihood_ratio, prepared=True)
         if sampled:
             self.ops += 1
         return outcome
 
     def _record(
-        self, marker_id: str, fed: FeedbackRecord, p_error: float | None, prepared: bool = False
+        self,
+        marker_id: str,
+        fed: FeedbackRecord,
+        p_error: float | None,
+        log_likelihood_ratio: float | None,
+        prepared: bool = False,
     ) -> LabelOutcome:
-        """Enter a label the learner has learned in the label table."""
+        """Enter a label the learner has learned in the label table (a prepared label's
+        update is the hard one, so its ratio is given here, not taken from ``fed``)."""
         record = LabelRecord(
             marker_id=marker_id,
             observation=fed.obs,
@@ -262,6 +281,7 @@ class HFSession:
             oracle_correct=fed.optimal,
             validation=fed.validation,
             model_version=self.model_version,
+            log_likelihood_ratio=log_likelihood_ratio,
         )
         self.labels.append(record)
         self.ops += 1

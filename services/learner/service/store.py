@@ -205,6 +205,7 @@ class SessionStore:
         correct: bool,
         p_error: float | None = None,
         oracle_correct: bool | None = None,
+        log_likelihood_ratio: float | None = None,
     ) -> tuple[LabelOutcome, int | None]:
         """Add a label and journal it; with ``next_observation`` also sample pi_HF's next
         action from the updated Fhat (unless the budget is full).
@@ -218,7 +219,9 @@ class SessionStore:
         with session.lock:
             prepared = self._prepared.pop(session.id, None)
             obs = np.asarray(observation, dtype=np.float32)
-            outcome = session.check_label(marker_id, obs, action, correct, p_error, oracle_correct)
+            outcome = session.check_label(
+                marker_id, obs, action, correct, p_error, oracle_correct, log_likelihood_ratio
+            )
             if outcome is not None:  # a duplicate
                 return outcome, self._next_action(session, next_observation)
             used = prepared is not None and prepared.matches(
@@ -229,12 +232,24 @@ class SessionStore:
                 ready = prepared.outcomes[correct]
                 sampled = ready.next_action is not None
                 outcome = session.add_forked_label(
-                    marker_id, ready.learner, ready.rng, ready.fed, p_error, sampled
+                    marker_id,
+                    ready.learner,
+                    ready.rng,
+                    ready.fed,
+                    p_error,
+                    sampled,
+                    log_likelihood_ratio,
                 )
                 next_action = ready.next_action
             else:
                 outcome = session.add_label(
-                    marker_id, observation, action, correct, p_error, oracle_correct
+                    marker_id,
+                    observation,
+                    action,
+                    correct,
+                    p_error,
+                    oracle_correct,
+                    log_likelihood_ratio,
                 )
             record = outcome.record
             entry = {
@@ -245,6 +260,7 @@ class SessionStore:
                 "correct": record.correct,
                 "p_error": record.p_error,
                 "oracle_correct": record.oracle_correct,
+                "log_likelihood_ratio": record.log_likelihood_ratio,
             }
             if used and next_action is not None:  # journal both operations, as below
                 self._journal(session, entry, seq=session.ops - 1)
@@ -275,7 +291,8 @@ class SessionStore:
         """
         _check_observations(session, observation, next_observation)
         with session.lock:
-            if session.labels.get(marker_id) is not None or session.done:
+            # a soft label's update needs its ratio, which is not known in advance
+            if session.labels.get(marker_id) is not None or session.done or session.learner.soft:
                 return False
             ops = session.ops
             sample_next = len(session.labels) + 1 < session.spec.label_budget
@@ -411,6 +428,7 @@ def _replay(session: HFSession, entry: dict[str, Any]) -> None:
             correct=entry["correct"],
             p_error=entry["p_error"],
             oracle_correct=entry["oracle_correct"],
+            log_likelihood_ratio=entry.get("log_likelihood_ratio"),  # absent in older journals
         )
     elif entry["op"] == "act":
         session.act(entry["observation"], greedy=False)

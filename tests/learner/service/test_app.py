@@ -32,6 +32,7 @@ PAPER_FHAT = {
     "thompson_period": 20,
     "revisit_window": 24,
     "kernel_bandwidth": 0.1,
+    "label_channel": "hard",
 }
 PLATFORM_FHAT = {**PAPER_FHAT, "method": RECOMMENDED_METHOD}
 """What a session gets by default: the paper's settings with the recommended stage-2 method."""

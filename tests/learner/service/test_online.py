@@ -160,3 +160,41 @@ def test_restart_reloads_identical_state(make_client, tmp_path):
             },
         ).json()
         assert again["duplicate"] is True and again["labels"] == 25
+
+
+def test_a_soft_session_takes_likelihood_ratios_and_survives_a_restart(make_client, tmp_path):
+    """On the soft channel a label needs its log-likelihood ratio (422 naming it without);
+    the ratio is journaled, so a restart replays the same soft updates, and a soft label is
+    never prepared (its update needs the ratio)."""
+    observations = [[float(k + i) % 13 for k in range(10)] + [2.0, 0.5, -0.5] for i in range(12)]
+    with make_client(data_dir=tmp_path) as client:
+        sid = client.post(
+            "/hf-sessions",
+            json={"seed": 4, "label_budget": 50, "fhat": {"label_channel": "soft"}},
+        ).json()["id"]
+        label = {"marker_id": "x", "observation": observations[0], "action": 0}
+        refused = client.post(f"/hf-sessions/{sid}/labels", json={**label, "feedback": "error"})
+        assert refused.status_code == 422 and "log_likelihood_ratio" in refused.text
+        prepared = client.post(f"/hf-sessions/{sid}/labels/prepare", json=label).json()
+        assert prepared == {"prepared": False}
+        for i, obs in enumerate(observations):
+            action = client.post(f"/hf-sessions/{sid}/act", json={"observation": obs}).json()
+            response = client.post(
+                f"/hf-sessions/{sid}/labels",
+                json={
+                    "marker_id": str(i),
+                    "observation": obs,
+                    "action": action["action"],
+                    "feedback": "error" if i % 3 else "correct",
+                    "log_likelihood_ratio": 0.8 if i % 3 else -0.5,
+                },
+            )
+            assert response.status_code == 200, response.text
+        old = client.app.state.store.get(sid)
+        weights = {k: v.clone() for k, v in old.learner.model.state_dict().items()}
+        assert old.labels.records[-1].log_likelihood_ratio == 0.8
+    with make_client(data_dir=tmp_path) as client:
+        new = client.app.state.store.get(sid)
+        assert new.learner.soft and len(new.labels) == len(observations)
+        for name, tensor in weights.items():
+            assert torch.equal(new.learner.model.state_dict()[name], tensor), name

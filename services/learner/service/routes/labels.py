@@ -39,6 +39,7 @@ def add_label(
         action=body.action,
         correct=body.feedback == "correct",
         p_error=body.p_error,
+        log_likelihood_ratio=body.log_likelihood_ratio,
         oracle_correct=body.oracle_correct,
     )
     after.add_task(store.persist, session)
