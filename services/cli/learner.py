@@ -9,6 +9,14 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 from tqdm import tqdm
 
+from services.cli.feedback_options import (
+    DecoderAccuracyOption,
+    DecodersOption,
+    FeedbackOption,
+    LabelChannelOption,
+    feedback_factory,
+    feedback_settings,
+)
 from services.cli.paths import output_folder, refuse_file
 
 if TYPE_CHECKING:
@@ -161,6 +169,10 @@ def reproduce(
             "the same records, several times slower).",
         ),
     ] = False,
+    feedback: FeedbackOption = "oracle",
+    decoder_accuracy: DecoderAccuracyOption = None,
+    label_channel: LabelChannelOption = "hard",
+    decoders: DecodersOption = "eegnet,lda,xdawn_rg",
 ) -> None:
     """Reproduce Fig. 3: RL-sparse, RL-rich, HF+sparse at several C, SSSG and VSSG.
 
@@ -179,7 +191,13 @@ def reproduce(
     from services.learner.hf_methods import get_method
     from services.learner.pool import reproduce as run_reproduction
     from services.learner.pool import validate_maps
-    from services.learner.specs import FULL_SEEDS, QUICK_SEEDS, apply_preset, build_specs
+    from services.learner.specs import (
+        FULL_SEEDS,
+        QUICK_SEEDS,
+        apply_preset,
+        build_specs,
+        with_feedback,
+    )
 
     n_seeds = seeds if seeds is not None else (QUICK_SEEDS if quick else FULL_SEEDS)
     if first_seed + n_seeds - 1 > MAX_SEED:
@@ -188,7 +206,10 @@ def reproduce(
             param_hint="--first-seed",
         )
     task_list, method_list = _entries(tasks, "--tasks"), _entries(methods, "--methods")
-    accuracy_list = _accuracies(accuracies)
+    accuracy_list = feedback_settings(
+        feedback, label_channel, decoder_accuracy, _accuracies(accuracies)
+    )
+    factory = feedback_factory(feedback, decoders, out)
     try:
         treatment_list, overrides, preset_method = apply_preset(
             preset, _entries(treatments, "--treatments"), parse_ppo_overrides(ppo or [])
@@ -206,6 +227,7 @@ def reproduce(
             hf_method=hf_method,
             n_labels=labels,
         )
+        specs = with_feedback(specs, feedback, label_channel)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
     try:
@@ -237,11 +259,15 @@ def reproduce(
                         "preset": preset,
                         "hf_method": hf_method,
                         "labels": labels,
+                        "feedback": feedback,
+                        "label_channel": label_channel,
+                        **({} if factory is None else {"virtual_subject": factory.describe()}),
                     }
                 },
                 on_done=done,
                 on_failure=failed,
                 on_resume=bar.update,
+                feedback_factory=factory,
             )
         except ValueError as exc:  # e.g. the folder holds runs with other settings
             raise typer.BadParameter(str(exc), param_hint="--out") from None
@@ -288,6 +314,10 @@ def hf_sweep(
         str,
         typer.Option(help="Comma-separated stage-2 methods (paper = the paper's Fhat)."),
     ] = "paper",
+    feedback: FeedbackOption = "oracle",
+    decoder_accuracy: DecoderAccuracyOption = None,
+    label_channel: LabelChannelOption = "hard",
+    decoders: DecodersOption = "eegnet,lda,xdawn_rg",
 ) -> None:
     """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs C, labels and method.
 
@@ -299,7 +329,11 @@ def hf_sweep(
     from services.learner.specs import TASK_ENV_IDS
     from services.learner.stage2_report import write_report
 
-    task_list, accuracy_list = _entries(tasks, "--tasks"), _accuracies(accuracies)
+    task_list = _entries(tasks, "--tasks")
+    accuracy_list = feedback_settings(
+        feedback, label_channel, decoder_accuracy, _accuracies(accuracies)
+    )
+    factory = feedback_factory(feedback, decoders, out)
     methods = _entries(method, "--method")
     try:
         budgets = [int(n) for n in _entries(labels, "--labels")]
@@ -330,6 +364,9 @@ def hf_sweep(
             methods=methods,
             workers=workers,
             on_failure=lambda failure: typer.echo(f"run failed: {failure}", err=True),
+            feedback=feedback,
+            label_channel=label_channel,
+            feedback_factory=factory,
         )
     except ValueError as exc:  # e.g. the folder's hf_policies.json is not one
         raise typer.BadParameter(str(exc), param_hint="--out") from None

@@ -114,6 +114,12 @@ class VirtualEEGSource:
         as the offline generator does.
     start_timestamp : float
         Timestamp of the first sample (the LSL clock in real time, any origin otherwise).
+    session : int
+        Which recording session of the subject: the same subject (latency shift, ErrP and
+        background topographies, alpha peak, line-noise gains) in a new realisation of its
+        background, blinks, channel noise and per-trial jitter. Session 0 is the default
+        source's; the end-to-end feedback source calibrates on one session and decodes
+        another (``services.worker.e2e_feedback``).
 
     Sample ``i`` has timestamp ``start_timestamp + i / sfreq``. Thread-safe: markers may be
     added from another thread while samples are generated.
@@ -128,8 +134,11 @@ class VirtualEEGSource:
         channels: Sequence[str] | None = None,
         latency_shift_s: float | None = None,
         start_timestamp: float = 0.0,
+        session: int = 0,
     ) -> None:
         subject = VirtualSubject(quality=quality, seed=seed, latency_shift_s=latency_shift_s)
+        if session < 0:
+            raise ValueError(f"session must be >= 0, got {session}")
         if not math.isfinite(sfreq) or sfreq < MIN_SFREQ:
             raise ValueError(f"sfreq must be a finite rate >= {MIN_SFREQ} Hz, got {sfreq}")
         if not math.isfinite(start_timestamp):
@@ -147,6 +156,7 @@ class VirtualEEGSource:
         rows = np.array([index[ch] for ch in wanted])
         self.quality = subject.quality
         self.seed = seed
+        self.session = int(session)
         self.sfreq = float(sfreq)
         self.start_timestamp = float(start_timestamp)
         self.eeg_ch_names = wanted
@@ -214,7 +224,7 @@ class VirtualEEGSource:
         self._noise_state = (rng.standard_normal((n_all, 1))[rows] * LOCAL_NOISE_UV * 1e-6).astype(
             np.float32
         )
-        self._noise_rng = np.random.default_rng([seed, _STREAM_NOISE])
+        self._noise_rng = self._stream(_STREAM_NOISE)
 
         self._segment = round(SEGMENT_S * self.sfreq)
         self._fade = round(CROSSFADE_S * self.sfreq)
@@ -229,6 +239,12 @@ class VirtualEEGSource:
             f"{SYNTHETIC_TAG} virtual subject live quality={self.quality:g} seed={seed} "
             f"shift={self.latency_shift_s:+.3f}s"
         )
+
+    def _stream(self, *keys: int) -> np.random.Generator:
+        """The random stream ``keys`` of this subject's session (session 0: the seed and
+        the keys alone, as before sessions existed)."""
+        session = [self.session] if self.session else []
+        return np.random.default_rng([self.seed, *keys, *session])
 
     # ------------------------------------------------------------------ clock
     @property
@@ -255,7 +271,7 @@ class VirtualEEGSource:
         already generated is lost (counted in :attr:`late_markers`).
         """
         with self._lock:
-            rng = np.random.default_rng([self.seed, _STREAM_TRIALS, self.n_markers])
+            rng = self._stream(_STREAM_TRIALS, self.n_markers)
             self.n_markers += 1
             onset = self.sample_at(marker.timestamp)
             evoked = np.zeros((len(self.eeg_ch_names), self._window.size), dtype=np.float64)
@@ -329,7 +345,7 @@ class VirtualEEGSource:
     def _segment_data(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Background segment ``k``: channel mix (n_eeg, segment + fade) and blink train."""
         if k not in self._segments:
-            rng = np.random.default_rng([self.seed, _STREAM_BACKGROUND, k])
+            rng = self._stream(_STREAM_BACKGROUND, k)
             n = self._segment + self._fade
             sfreq = self.sfreq
             peak = self._alpha_peak
@@ -344,7 +360,7 @@ class VirtualEEGSource:
                     ),
                 ]
             )
-            blink_rng = np.random.default_rng([self.seed, _STREAM_BLINKS, k])
+            blink_rng = self._stream(_STREAM_BLINKS, k)
             blinks = _blink_train(blink_rng, self._segment, sfreq)
             self._segments[k] = (self._background_mixing @ sources, blinks)
         return self._segments[k]

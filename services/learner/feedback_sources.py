@@ -64,6 +64,35 @@ class FeedbackSource(Protocol):
     def feedback(self, obs: np.ndarray, action: int, optimal: bool | None) -> Label | None: ...
 
 
+@runtime_checkable
+class DecodedFeedbackSource(FeedbackSource, Protocol):
+    """A source whose labels a decoder makes (the virtual subject end to end): what a run
+    records of it and the hard channel's label-noise model."""
+
+    @property
+    def decoder_accuracy(self) -> float:
+        """The decoder's held-out hard accuracy."""
+        ...
+
+    @property
+    def subject_quality(self) -> float:
+        """The (virtual) subject's quality behind it."""
+        ...
+
+    @property
+    def noise_model(self) -> tuple[float, float]:
+        """(P(decoded correct | correct), P(decoded error | error)) on held-out epochs."""
+        ...
+
+
+class FeedbackSourceFactory(Protocol):
+    """Makes the decoded feedback source of run seed ``seed`` whose decoder reaches the
+    target held-out accuracy ``decoder_accuracy`` (picklable: spawned workers call it).
+    ``services.worker.e2e_feedback.VirtualSubjectFactory`` is one."""
+
+    def __call__(self, seed: int, decoder_accuracy: float) -> DecodedFeedbackSource: ...
+
+
 class OracleFeedbackSource:
     """Simulated feedback: the Dijkstra oracle's judgement flipped at the given accuracy.
 

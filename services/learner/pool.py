@@ -10,6 +10,7 @@ alone (``hf_policies.json``).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import multiprocessing
@@ -23,6 +24,7 @@ from typing import Any, Protocol, TypeVar
 from services.core.files import write_json_atomic
 from services.core.lifetime import die_with_parent
 from services.learner.feedback import FeedbackConfig
+from services.learner.feedback_sources import FeedbackSourceFactory
 from services.learner.hf_methods import PAPER_METHOD
 from services.learner.outputs import Results, load_results, save_results, write_outputs
 from services.learner.ppo import PPOConfig, lockstep_key
@@ -223,7 +225,9 @@ def lockstep_batches(
     return batches
 
 
-def _run_batch(batch: RunBatch) -> list[RunRecord | RunFailure]:
+def _run_batch(
+    batch: RunBatch, feedback_factory: FeedbackSourceFactory | None = None
+) -> list[RunRecord | RunFailure]:
     folder = batch.checkpoint_dir
     return run_lockstep(
         batch.specs,
@@ -231,6 +235,7 @@ def _run_batch(batch: RunBatch) -> list[RunRecord | RunFailure]:
         if folder is None
         else [checkpoint_path(folder, s) for s in batch.specs],
         checkpoint_every=CHECKPOINT_EVERY,
+        feedback_factory=feedback_factory,
     )
 
 
@@ -242,17 +247,20 @@ def run_sweep(
     on_result: Callable[[RunRecord], None],
     on_failure: Callable[[RunFailure], None],
     checkpoint_dir: str | Path | None = None,
+    feedback_factory: FeedbackSourceFactory | None = None,
 ) -> None:
     """Every run of ``specs`` over ``workers`` processes: each alone (:func:`run_one`), or
     in lockstep batches (:func:`lockstep_batches`, :func:`run_lockstep`; bit-identical
     records). Each run's record or failure is handed over as it is known (a batch's when
     the batch ends). With ``checkpoint_dir``, lockstep runs write checkpoints there
     (:func:`checkpoint_path`) and resume from them, so a batch interrupted or killed
-    resumes every run; a run's checkpoint is deleted once its record was handed over."""
+    resumes every run; a run's checkpoint is deleted once its record was handed over.
+    ``feedback_factory`` makes the labels of runs with ``virtual_subject`` feedback."""
     if not specs:
         return
     if not lockstep:
-        run_isolated(run_one, specs, workers=workers, on_result=on_result, on_failure=on_failure)
+        run = functools.partial(run_one, feedback_factory=feedback_factory)
+        run_isolated(run, specs, workers=workers, on_result=on_result, on_failure=on_failure)
         return
 
     def batch_done(outcomes: list[RunRecord | RunFailure]) -> None:
@@ -272,9 +280,8 @@ def run_sweep(
     if checkpoint_dir is not None:
         Path(checkpoint_dir).mkdir(parents=True, exist_ok=True)
     batches = lockstep_batches(specs, workers, checkpoint_dir=checkpoint_dir)
-    run_isolated(
-        _run_batch, batches, workers=workers, on_result=batch_done, on_failure=batch_failed
-    )
+    run_batch = functools.partial(_run_batch, feedback_factory=feedback_factory)
+    run_isolated(run_batch, batches, workers=workers, on_result=batch_done, on_failure=batch_failed)
     if checkpoint_dir is not None and not any(Path(checkpoint_dir).iterdir()):
         Path(checkpoint_dir).rmdir()  # every run done: no folder left behind
 
@@ -289,6 +296,7 @@ def reproduce(
     on_done: Callable[[RunRecord], None] | None = None,
     on_failure: Callable[[RunFailure], None] | None = None,
     on_resume: Callable[[int], None] | None = None,
+    feedback_factory: FeedbackSourceFactory | None = None,
 ) -> Results:
     """Run every spec not yet in ``out_dir/results.json`` and write the outputs.
 
@@ -296,6 +304,8 @@ def reproduce(
     (:func:`run_sweep`), checkpointed in ``out_dir/checkpoints`` (a reproduction
     interrupted mid-batch resumes every run from its last checkpoint); False runs each
     alone (the same records).
+    ``feedback_factory`` makes the labels of specs with ``virtual_subject`` feedback
+    (``services.worker.e2e_feedback.VirtualSubjectFactory``).
 
     ``on_done`` is called with each new run's record, ``on_failure`` with each failed run,
     ``on_resume`` once with the number of specs skipped because they are already done
@@ -352,6 +362,7 @@ def reproduce(
         run_sweep(
             pending, workers=workers, lockstep=lockstep, on_result=finished,
             on_failure=failed, checkpoint_dir=out / CHECKPOINT_FOLDER,
+            feedback_factory=feedback_factory,
         )  # fmt: skip
     except KeyboardInterrupt:  # the CSV, summary and plots cover the runs kept so far
         if results.runs:
@@ -372,8 +383,15 @@ def hf_policy_sweep(
     methods: Sequence[str] = (PAPER_METHOD,),
     workers: int = 1,
     on_failure: Callable[[RunFailure], None] | None = None,
+    feedback: str = "oracle",
+    label_channel: str = "hard",
+    feedback_factory: FeedbackSourceFactory | None = None,
 ) -> tuple[list[dict[str, Any]], list[RunFailure]]:
     """:func:`~services.learner.runs.hf_policy_run` over tasks x C x labels x methods x seeds.
+
+    With ``virtual_subject`` feedback the ``accuracies`` are the target accuracies of the
+    subject's decoder (``feedback_factory`` makes the labels), read through
+    ``label_channel``.
 
     Writes ``out_dir/hf_policies.json`` (``{"runs": [...], "failed": [...]}``) after every
     run; runs already there are skipped, failed ones retried (earlier failures of runs this
@@ -381,8 +399,18 @@ def hf_policy_sweep(
     ValueError naming it, before anything runs. Returns (rows, failures), the failures
     of this call and the earlier ones kept.
     """
+    virtual = feedback == "virtual_subject"
     specs = [
-        HFPolicySpec(task, accuracy, seed, n_labels, method)
+        HFPolicySpec(
+            task,
+            None if virtual else accuracy,
+            seed,
+            n_labels,
+            method,
+            feedback,
+            label_channel,
+            accuracy if virtual else None,
+        )
         for seed in range(seeds)
         for method in methods
         for n_labels in labels
@@ -414,7 +442,8 @@ def hf_policy_sweep(
             on_failure(failure)
 
     pending = [s for s in specs if s.key not in done]
-    run_isolated(hf_policy_run, pending, workers=workers, on_result=finished, on_failure=failed)
+    run = functools.partial(hf_policy_run, feedback_factory=feedback_factory)
+    run_isolated(run, pending, workers=workers, on_result=finished, on_failure=failed)
     save()
     return rows, [*kept_failures, *failures]
 
@@ -422,7 +451,11 @@ def hf_policy_sweep(
 def sweep_row_key(row: dict[str, Any]) -> tuple[Any, ...]:
     """The ``HFPolicySpec.key`` of a ``hf_policies.json`` row."""
     method = row.get("method", PAPER_METHOD)
-    return (row["task"], row["accuracy"], row["seed"], row["n_labels"], method)
+    key = (row["task"], row["accuracy"], row["seed"], row["n_labels"], method)
+    feedback = row.get("feedback", "oracle")  # absent in sweeps made before other feedback
+    if feedback == "oracle":
+        return key
+    return (*key, feedback, row["label_channel"], row["decoder_accuracy_target"])
 
 
 def _sweep_spec_key(spec: dict[str, Any]) -> tuple[Any, ...]:

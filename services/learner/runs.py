@@ -32,12 +32,22 @@ from services.learner.feedback import (
     collect_feedback,
 )
 from services.learner.feedback_buffer import FeedbackRecord
-from services.learner.feedback_sources import OracleFeedbackSource
+from services.learner.feedback_sources import (
+    DecodedFeedbackSource,
+    FeedbackSourceFactory,
+    OracleFeedbackSource,
+)
 from services.learner.hf_methods import PAPER_METHOD, get_method
 from services.learner.policy_files import write_beside_torchscript
 from services.learner.ppo import Callback, TrainResult, train, train_lockstep
 from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
-from services.learner.specs import N_VSSG_EVAL_STARTS, TASK_ENV_IDS, RunSpec
+from services.learner.specs import (
+    N_VSSG_EVAL_STARTS,
+    TASK_ENV_IDS,
+    RunSpec,
+    check_decoder_accuracy,
+    check_feedback,
+)
 
 SPL_TARGET = 0.7
 N_HF_PROBE_EPISODES = 20
@@ -73,6 +83,16 @@ class RunRecord:
     keeps beside the last (None in records written before it was kept)."""
     best_spl: float | None = None
     """SPL of that evaluation."""
+    n_labels: int = 0
+    """Labels pi_HF was learned from (0 for a run without stage 2)."""
+    feedback: str | None = None
+    """``oracle`` or ``virtual_subject`` (hf_sparse; None otherwise)."""
+    label_channel: str | None = None
+    """``hard`` or ``soft`` (hf_sparse; None otherwise)."""
+    decoder_accuracy: float | None = None
+    """Held-out hard accuracy of the virtual subject's decoder (None for the oracle)."""
+    subject_quality: float | None = None
+    """The virtual subject's quality knob that gave it (None for the oracle)."""
     environment: dict[str, str] | None = None
     """Python's and the numeric packages' versions and the machine architecture the run had
     (:func:`software_environment`): a run is bit-for-bit repeatable with the same ones only
@@ -172,23 +192,34 @@ def learn_hf_policy(
     *,
     method: str = PAPER_METHOD,
     on_label: Callable[[FeedbackRecord], None] | None = None,
+    source: DecodedFeedbackSource | None = None,
+    label_channel: str = "hard",
 ) -> HFResult:
     """Stage 2 from simulated feedback at accuracy C, on the run's label streams.
 
     ``method`` is the stage-2 method (:mod:`services.learner.hf_methods`); its label-noise
     model is the known C for both classes (the oracle's truth enters only the noise).
+    With a decoded ``source`` (the virtual subject and its decoder) the labels are its own
+    and the noise model its held-out per-class recalls; ``label_channel`` says whether Fhat
+    reads the hard decisions or the likelihood ratios.
 
     The labels depend on ``seed`` only (not on method, treatment or PPO settings), so every
     study guides the runs of one seed with the same pi_HF. ``on_label`` is called after
     each label (a job worker checks for cancel there; raising stops the collection).
     """
     seeds = RunSeeds(seed)
-    source = OracleFeedbackSource(accuracy, seed=seeds.int_seed(Stream.LABEL_NOISE))
+    good, bad = accuracy, accuracy
+    if source is None:
+        source = OracleFeedbackSource(accuracy, seed=seeds.int_seed(Stream.LABEL_NOISE))
+    else:
+        good, bad = source.noise_model
     return collect_feedback(
         env,
         source,
         n_labels,
-        config=FeedbackConfig(method=method, good_accuracy=accuracy, bad_accuracy=accuracy),
+        config=FeedbackConfig(
+            method=method, good_accuracy=good, bad_accuracy=bad, label_channel=label_channel
+        ),
         seed=seeds.int_seed(Stream.LABEL_COLLECTION),
         on_label=on_label,
     )
@@ -205,6 +236,7 @@ def run_one(
     hf_policy: HFPolicy | None = None,
     on_label: Callable[[FeedbackRecord], None] | None = None,
     portable: bool = False,
+    feedback_factory: FeedbackSourceFactory | None = None,
 ) -> RunRecord:
     """Execute one run (stage 2 for hf_sparse, then stage 3) and return its record.
 
@@ -216,10 +248,13 @@ def run_one(
     :mod:`~services.learner.policy_files`). A given
     ``hf_policy`` (e.g. learned from a subject's decoded EEG in an online session) guides
     an hf_sparse run instead of stage 2's simulated feedback; ``on_label`` goes to stage 2's
-    label collection (see :func:`learn_hf_policy`).
+    label collection (see :func:`learn_hf_policy`). A spec with ``virtual_subject`` feedback
+    takes its labels from ``feedback_factory(seed, decoder_accuracy)``.
     """
     start = time.perf_counter()
-    guidance = run_guidance(spec, hf_policy=hf_policy, on_label=on_label)
+    guidance = run_guidance(
+        spec, hf_policy=hf_policy, on_label=on_label, feedback_factory=feedback_factory
+    )
     result = train(
         spec.ppo_config(),
         callback,
@@ -245,6 +280,7 @@ def run_lockstep(
     checkpoint_paths: Sequence[str | Path | None] | None = None,
     checkpoint_every: int = 10,
     hf_policies: Sequence[HFPolicy | None] | None = None,
+    feedback_factory: FeedbackSourceFactory | None = None,
 ) -> list[RunRecord | RunFailure]:
     """Execute runs whose PPO settings allow one lockstep batch
     (:func:`~services.learner.ppo.lockstep.lockstep_key`): stage 2 of each hf_sparse run
@@ -261,7 +297,8 @@ def run_lockstep(
     guided: list[tuple[int, RunGuidance]] = []
     for i, spec in enumerate(specs):
         try:
-            guided.append((i, run_guidance(spec, hf_policy=given[i])))
+            guidance = run_guidance(spec, hf_policy=given[i], feedback_factory=feedback_factory)
+            guided.append((i, guidance))
         except Exception as exc:  # this run fails, the others go on
             outcomes[i] = RunFailure.from_exception(spec, exc)
     start = time.perf_counter()
@@ -291,6 +328,8 @@ class RunGuidance:
     spl: float | None
     summary: dict[str, Any] | None
     seconds: float
+    source: DecodedFeedbackSource | None = None
+    """The decoded feedback source stage 2 took its labels from (None: the noisy oracle)."""
 
 
 def run_guidance(
@@ -298,10 +337,12 @@ def run_guidance(
     *,
     hf_policy: HFPolicy | None = None,
     on_label: Callable[[FeedbackRecord], None] | None = None,
+    feedback_factory: FeedbackSourceFactory | None = None,
 ) -> RunGuidance:
     """The pi_HF that guides a run: ``hf_policy`` if given, else stage 2's from simulated
-    feedback for hf_sparse (:func:`learn_hf_policy`), else none; measured on the run's
-    evaluation starts before RL."""
+    feedback for hf_sparse (:func:`learn_hf_policy`; for ``virtual_subject`` feedback from
+    ``feedback_factory``'s source), else none; measured on the run's evaluation starts
+    before RL."""
     start = time.perf_counter()
     config = spec.ppo_config()
     if hf_policy is not None:
@@ -310,18 +351,20 @@ def run_guidance(
         return RunGuidance(hf_policy, spl, None, time.perf_counter() - start)
     if spec.method != "hf_sparse":
         return RunGuidance(None, None, None, 0.0)
-    assert spec.accuracy is not None  # RunSpec guarantees it for hf_sparse
+    source = decoded_source(spec.feedback, spec.seed, spec.decoder_accuracy, feedback_factory)
     with closing(gym.make(config.env_id, **config.env_kwargs)) as label_env:
         hf = learn_hf_policy(
             label_env,
-            spec.accuracy,
+            spec.accuracy,  # type: ignore[arg-type]  # None only with a source
             spec.seed,
             spec.n_labels,
             method=spec.hf_method or PAPER_METHOD,
             on_label=on_label,
+            source=source,
+            label_channel=spec.label_channel,
         )
         spl = evaluate_spl(label_env, hf.policy.act, config.eval_seeds)
-    return RunGuidance(hf.policy, spl, hf.summary(), time.perf_counter() - start)
+    return RunGuidance(hf.policy, spl, hf.summary(), time.perf_counter() - start, source)
 
 
 def run_record(
@@ -349,8 +392,44 @@ def run_record(
         spec=spec.to_dict(),
         best_step=result.best_step,
         best_spl=float(result.best_spl),
+        **feedback_fields(spec.method == "hf_sparse", spec, guidance.source),
         environment=software_environment(),
     )
+
+
+def decoded_source(
+    feedback: str,
+    seed: int,
+    decoder_accuracy: float | None,
+    factory: FeedbackSourceFactory | None,
+) -> DecodedFeedbackSource | None:
+    """The run's decoded feedback source (None for the noisy oracle's feedback)."""
+    if feedback == "oracle":
+        return None
+    if factory is None:
+        raise ValueError(
+            f"{feedback} feedback needs a feedback-source factory (bgrl reproduce and "
+            "bgrl hf-sweep --feedback virtual_subject supply it)"
+        )
+    assert decoder_accuracy is not None  # the spec guarantees it
+    return factory(seed, decoder_accuracy)
+
+
+def feedback_fields(
+    uses_feedback: bool,
+    spec: RunSpec | HFPolicySpec,
+    source: DecodedFeedbackSource | None,
+) -> dict[str, Any]:
+    """The record-format fields of a run's feedback (docs/reproduction.md, "Record format")."""
+    if not uses_feedback:
+        return {"n_labels": 0}
+    return {
+        "n_labels": spec.n_labels,
+        "feedback": spec.feedback,
+        "label_channel": spec.label_channel,
+        "decoder_accuracy": None if source is None else source.decoder_accuracy,
+        "subject_quality": None if source is None else source.subject_quality,
+    }
 
 
 def software_environment() -> dict[str, str]:
@@ -376,18 +455,26 @@ def software_environment() -> dict[str, str]:
 
 @dataclass(frozen=True)
 class HFPolicySpec:
-    """One stage-2-alone measurement: task, feedback accuracy C, seed, labels, method."""
+    """One stage-2-alone measurement: task, feedback accuracy C, seed, labels, method (and,
+    for the virtual subject's feedback, the target decoder accuracy and the label channel)."""
 
     task: str
-    accuracy: float
+    accuracy: float | None
     seed: int
     n_labels: int = 1000
     method: str = PAPER_METHOD
+    feedback: str = "oracle"
+    label_channel: str = "hard"
+    decoder_accuracy: float | None = None
 
     def __post_init__(self) -> None:
         if self.task not in TASK_ENV_IDS:
             raise ValueError(f"unknown task {self.task!r}; expected one of {sorted(TASK_ENV_IDS)}")
-        if not 0.0 <= self.accuracy <= 1.0:
+        check_feedback(True, self.feedback, self.label_channel)
+        check_decoder_accuracy(self.feedback, self.decoder_accuracy)
+        if (self.feedback == "oracle") != (self.accuracy is not None):
+            raise ValueError("accuracy is required with the oracle's feedback, None otherwise")
+        if self.accuracy is not None and not 0.0 <= self.accuracy <= 1.0:
             raise ValueError(f"accuracy must be in [0, 1], got {self.accuracy}")
         if self.seed < 0 or self.n_labels < 1:
             raise ValueError("seed must be >= 0 and n_labels >= 1")
@@ -395,32 +482,51 @@ class HFPolicySpec:
 
     @property
     def key(self) -> tuple[Any, ...]:
-        """Identity inside a sweep (what resuming matches on)."""
-        return (self.task, self.accuracy, self.seed, self.n_labels, self.method)
+        """Identity inside a sweep (what resuming matches on; the oracle's keys are those
+        of sweeps made before other feedback existed)."""
+        key = (self.task, self.accuracy, self.seed, self.n_labels, self.method)
+        if self.feedback == "oracle":
+            return key
+        return (*key, self.feedback, self.label_channel, self.decoder_accuracy)
 
     @property
     def label(self) -> str:
         """E.g. ``vssg C=0.7 seed=3 labels=1000 paper``."""
-        return (
-            f"{self.task} C={self.accuracy:g} seed={self.seed} labels={self.n_labels} {self.method}"
+        feedback = (
+            f"C={self.accuracy:g}"
+            if self.accuracy is not None
+            else f"subject@{self.decoder_accuracy:g} {self.label_channel}"
         )
+        return f"{self.task} {feedback} seed={self.seed} labels={self.n_labels} {self.method}"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form."""
         return asdict(self)
 
 
-def hf_policy_run(spec: HFPolicySpec) -> dict[str, Any]:
+def hf_policy_run(
+    spec: HFPolicySpec, feedback_factory: FeedbackSourceFactory | None = None
+) -> dict[str, Any]:
     """Stage 2 alone: train pi_HF from simulated feedback and measure it (no RL).
 
     Reports the greedy pi_HF's SPL on the task's evaluation starts (what guides RL), the
     success rate of the *sampling* pi_HF (softmax(beta * sigmoid(Fhat)), 20 episodes from
     the first 20 evaluation starts) and Fhat's validation accuracies: one ``runs`` row of
-    ``hf_policies.json``.
+    ``hf_policies.json``. A spec with ``virtual_subject`` feedback takes its labels from
+    ``feedback_factory`` (as :func:`run_one`).
     """
     start = time.perf_counter()
+    source = decoded_source(spec.feedback, spec.seed, spec.decoder_accuracy, feedback_factory)
     with closing(gym.make(TASK_ENV_IDS[spec.task], reward_mode="sparse")) as env:
-        hf = learn_hf_policy(env, spec.accuracy, spec.seed, spec.n_labels, method=spec.method)
+        hf = learn_hf_policy(
+            env,
+            spec.accuracy,  # type: ignore[arg-type]  # None only with a source
+            spec.seed,
+            spec.n_labels,
+            method=spec.method,
+            source=source,
+            label_channel=spec.label_channel,
+        )
         policy = hf.policy
         greedy_spl = evaluate_spl(env, policy.act, eval_seeds(spec.task, N_VSSG_EVAL_STARTS))
         rng = RunSeeds(spec.seed).generator(Stream.HF_PROBE)
@@ -436,5 +542,7 @@ def hf_policy_run(spec: HFPolicySpec) -> dict[str, Any]:
         "greedy_spl": greedy_spl,
         "sampled_success_rate": float(np.mean(sampled)),
         **hf.summary(),
+        **feedback_fields(True, spec, source),
+        "decoder_accuracy_target": spec.decoder_accuracy,
         "wall_seconds": time.perf_counter() - start,
     }

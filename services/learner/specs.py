@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
+from services.core.feedback import LABEL_CHANNELS
 from services.learner.evaluation import eval_seeds
 from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD, get_method
 from services.learner.ppo import PPOConfig
@@ -34,6 +35,10 @@ QUICK_SEEDS = 2
 FULL_SEEDS = 10
 DEFAULT_LABELS = 1000
 """Labels pi_HF is learned from (every labelled action), the paper's budget."""
+FEEDBACKS = ("oracle", "virtual_subject")
+"""Where an hf_sparse run's labels come from: the noisy oracle at accuracy C (the paper's
+simulated feedback) or the virtual subject decoded by its own calibrated decoder
+(end to end, ``services.worker.e2e_feedback``)."""
 PRESETS = ("paper", "platform")
 """Settings of a reproduction (``bgrl reproduce --preset``, ``reproduce`` jobs): the paper's
 or the platform's recommended ones."""
@@ -45,8 +50,10 @@ RUN_FIXED_PPO_FIELDS = frozenset({"env_id", "env_kwargs", "seed", "eval_seeds", 
 class RunSpec:
     """One run: a task, a method, a seed, and what is held fixed (map, labels, PPO).
 
-    ``accuracy`` (the simulated feedback's C) is required for ``hf_sparse`` and None
-    otherwise; ``hf_treatment`` is ``authors`` or ``truncated_is`` for ``hf_sparse``
+    ``accuracy`` (the simulated feedback's C) is required for ``hf_sparse`` with the
+    ``oracle``'s feedback and None otherwise; ``decoder_accuracy`` (the target held-out
+    accuracy of the virtual subject's decoder) is required for ``virtual_subject`` feedback
+    and None otherwise; ``hf_treatment`` is ``authors`` or ``truncated_is`` for ``hf_sparse``
     (default ``authors``) and None otherwise.
     """
 
@@ -61,16 +68,28 @@ class RunSpec:
     hf_method: str | None = None
     """Stage-2 method that learns pi_HF (:mod:`services.learner.hf_methods`): ``paper`` by
     default for hf_sparse, None otherwise."""
+    feedback: str = "oracle"
+    """Where the labels come from (:data:`FEEDBACKS`)."""
+    label_channel: str = "hard"
+    """How stage 2 reads a label: ``hard`` or ``soft`` (virtual_subject feedback only)."""
+    decoder_accuracy: float | None = None
+    """virtual_subject feedback: the target held-out accuracy of the subject's decoder."""
 
     def __post_init__(self) -> None:
         if self.task not in TASK_ENV_IDS:
             raise ValueError(f"unknown task {self.task!r}; expected one of {sorted(TASK_ENV_IDS)}")
         if self.method not in METHODS:
             raise ValueError(f"unknown method {self.method!r}; expected one of {METHODS}")
-        if (self.method == "hf_sparse") != (self.accuracy is not None):
-            raise ValueError("accuracy is required for hf_sparse and must be None otherwise")
+        check_feedback(self.method == "hf_sparse", self.feedback, self.label_channel)
+        oracle = self.method == "hf_sparse" and self.feedback == "oracle"
+        if oracle != (self.accuracy is not None):
+            raise ValueError(
+                "accuracy is required for hf_sparse with the oracle's feedback and must be "
+                "None otherwise"
+            )
         if self.accuracy is not None and not 0.0 <= self.accuracy <= 1.0:
             raise ValueError(f"accuracy must be in [0, 1], got {self.accuracy}")
+        check_decoder_accuracy(self.feedback, self.decoder_accuracy)
         treatment = self.hf_treatment
         if self.method == "hf_sparse":
             treatment = treatment or "authors"
@@ -109,16 +128,23 @@ class RunSpec:
         """Identity of the run inside a reproduction (what resuming matches on); a stage-2
         method other than the paper's is appended, so earlier keys stay as they were."""
         key = (self.task, self.method, self.accuracy, self.seed, self.hf_treatment)
-        return key if self.hf_method in (None, PAPER_METHOD) else (*key, self.hf_method)
+        key = key if self.hf_method in (None, PAPER_METHOD) else (*key, self.hf_method)
+        if self.feedback == "oracle":
+            return key
+        return (*key, self.feedback, self.label_channel, self.decoder_accuracy)
 
     @property
     def label(self) -> str:
         """Short human-readable name, e.g. ``vssg hf_sparse C=0.7 [authors] seed=3``."""
         parts = [self.task, self.method]
-        if self.accuracy is not None:
-            parts += [f"C={self.accuracy:g}", f"[{self.hf_treatment}]"]
+        if self.method == "hf_sparse":
+            if self.accuracy is not None:
+                parts.append(f"C={self.accuracy:g}")
+            else:
+                parts.append(f"subject@{self.decoder_accuracy:g} {self.label_channel}")
+            parts.append(f"[{self.hf_treatment}]")
             if self.hf_method != PAPER_METHOD:
-                parts.append(self.hf_method)
+                parts.append(str(self.hf_method))
         return " ".join([*parts, f"seed={self.seed}"])
 
     def ppo_config(self) -> PPOConfig:
@@ -146,6 +172,60 @@ class RunSpec:
     def from_dict(cls, data: Mapping[str, Any]) -> RunSpec:
         """Rebuild from :meth:`to_dict` output (or a ``results.json`` spec)."""
         return cls(**data)
+
+
+def check_feedback(uses_feedback: bool, feedback: str, label_channel: str) -> None:
+    """``ValueError`` for an unknown feedback or channel, feedback other than the oracle's
+    where no labels are used, or the soft channel without a decoder behind it."""
+    if feedback not in FEEDBACKS:
+        raise ValueError(f"unknown feedback {feedback!r}; expected one of {FEEDBACKS}")
+    if label_channel not in LABEL_CHANNELS:
+        raise ValueError(
+            f"unknown label_channel {label_channel!r}; expected one of {LABEL_CHANNELS}"
+        )
+    if not uses_feedback and (feedback, label_channel) != ("oracle", "hard"):
+        raise ValueError("feedback and label_channel apply to hf_sparse only")
+    if label_channel == "soft" and feedback != "virtual_subject":
+        raise ValueError(
+            "the soft label channel needs a decoder's likelihood ratios: use "
+            "feedback virtual_subject (the noisy oracle gives hard labels only)"
+        )
+
+
+def check_decoder_accuracy(feedback: str, decoder_accuracy: float | None) -> None:
+    """``ValueError`` unless ``decoder_accuracy`` is given (in (0.5, 1)) exactly for the
+    virtual subject's feedback."""
+    if (feedback == "virtual_subject") != (decoder_accuracy is not None):
+        raise ValueError(
+            "decoder_accuracy is required for virtual_subject feedback and must be None otherwise"
+        )
+    if decoder_accuracy is not None and not 0.5 < decoder_accuracy < 1.0:
+        raise ValueError(f"decoder_accuracy must be in (0.5, 1), got {decoder_accuracy}")
+
+
+def with_feedback(specs: Sequence[RunSpec], feedback: str, label_channel: str) -> list[RunSpec]:
+    """The specs with their hf_sparse runs' labels from ``feedback`` through
+    ``label_channel``; for ``virtual_subject`` an hf_sparse spec's accuracy becomes the
+    target decoder accuracy (``--accuracies`` lists C for the oracle, the decoder's
+    accuracy for the virtual subject)."""
+    if feedback == "oracle" and label_channel == "hard":
+        return list(specs)
+    out = []
+    for spec in specs:
+        if spec.method != "hf_sparse":
+            out.append(spec)
+            continue
+        virtual = feedback == "virtual_subject"
+        out.append(
+            replace(
+                spec,
+                feedback=feedback,
+                label_channel=label_channel,
+                accuracy=None if virtual else spec.accuracy,
+                decoder_accuracy=spec.accuracy if virtual else None,
+            )
+        )
+    return out
 
 
 def settings_conflict(specs: Sequence[RunSpec]) -> bool:
