@@ -1,5 +1,5 @@
-"""``bgrl eeg ...``: calibration (the quality sweep and ``bgrl bench eeg`` are
-:mod:`benchmarks.commands`)."""
+"""``bgrl eeg ...``: calibration and the bits per label (the quality sweep and ``bgrl bench
+eeg`` are :mod:`benchmarks.commands`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from services.cli.paths import refuse_file
+from services.cli.paths import output_folder, refuse_file
 from services.eeg.training_config import DECODERS
 
 eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject quality.")
@@ -148,6 +148,65 @@ def _event_labels(pairs: list[str]):
         else:
             descriptions[key] = label
     return EventLabels(codes=codes, descriptions=descriptions)
+
+
+@eeg_app.command("information")
+def information_command(
+    out: Annotated[Path, typer.Option(help="Folder for information.json and information.md.")],
+    targets: Annotated[
+        str, typer.Option(help="Comma-separated target held-out accuracies of the decoder.")
+    ] = "0.55,0.6,0.65,0.7,0.8",
+    seeds: Annotated[int, typer.Option(min=1, help="Virtual subjects (seeds 0..n-1).")] = 3,
+    decoders: Annotated[
+        str,
+        typer.Option(
+            help="Decoders each calibration trains (eegnet,lda,xdawn_rg); EEGNet costs ~1 min "
+            "of CPU per calibration and the quality search calibrates ~5 times per target."
+        ),
+    ] = "lda",
+    epochs: Annotated[
+        int, typer.Option(min=200, help="Fresh held-out epochs per subject (half errors).")
+    ] = 4000,
+) -> None:
+    """Bits per label of the hard and the soft channel on the virtual subject (SYNTHETIC).
+
+    For each subject and target accuracy the subject's quality is found (bisection, cached
+    in OUT/virtual_subjects as for `bgrl reproduce --feedback virtual_subject`), its decoder
+    calibrated on its own 600-action session, and on a separate session of fresh epochs:
+    the hard channel's 1 - H(error rate) and I(decision; truth), the soft channel's
+    I(calibrated posterior; truth) with a bootstrap 95 % interval, the Gaussian-score
+    reference, and the subject's trial-to-trial ErrP variability at FCz.
+    """
+    from services.cli.feedback_options import FEEDBACK_CACHE
+    from services.core.files import write_results_json
+    from services.eeg.calibration import TrainingConfig
+    from services.worker.label_information import format_table, measure_subject, summarize
+
+    names = tuple(d.strip() for d in decoders.split(",") if d.strip())
+    try:
+        config = TrainingConfig(decoders=names)
+        target_list = [float(t) for t in targets.split(",") if t.strip()]
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    if not target_list or not all(0.5 < t < 1.0 for t in target_list):
+        raise typer.BadParameter("targets must lie in (0.5, 1)", param_hint="--targets")
+    output_folder(out)
+    rows = []
+    for seed in range(seeds):
+        rows.extend(
+            measure_subject(
+                seed, target_list, config, cache_dir=str(out / FEEDBACK_CACHE), n_epochs=epochs
+            )
+        )
+        write_results_json(out / "information.json", {"rows": rows, "decoders": list(names)})
+    summary = summarize(rows)
+    table = format_table(summary)
+    write_results_json(
+        out / "information.json", {"rows": rows, "summary": summary, "decoders": list(names)}
+    )
+    (out / "information.md").write_text(table + "\n")
+    typer.echo(table)
+    typer.echo(f"wrote {out / 'information.json'} and information.md")
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:

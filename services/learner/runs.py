@@ -116,6 +116,10 @@ class RunRecord:
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"unknown run record fields {sorted(unknown)}")
+        if "feedback" not in data and data.get("spec") is not None:
+            # written before the record format named the feedback: the spec says it
+            spec = RunSpec.from_dict(data["spec"])
+            data = {**feedback_fields(spec.method == "hf_sparse", spec, None), **data}
         return cls(**data)
 
 

@@ -86,7 +86,7 @@ class SubjectRecording:
         self,
         quality: float,
         seed: int,
-        session: Session,
+        session: Session | int,
         params: PreprocessingParams | None = None,
     ) -> None:
         self.params = params or PreprocessingParams()

@@ -31,7 +31,8 @@ def test_run_spec_validates_and_round_trips() -> None:
     assert spec.to_dict() == {
         "task": "vssg", "method": "hf_sparse", "seed": 3, "accuracy": 0.7,
         "hf_treatment": "authors", "n_labels": 1000, "map_path": None,
-        "ppo_overrides": {"n_epochs": 2}, "hf_method": "paper",
+        "ppo_overrides": {"n_epochs": 2}, "hf_method": "paper", "feedback": "oracle",
+        "label_channel": "hard", "decoder_accuracy": None,
     }  # fmt: skip
     assert RunSpec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
     assert spec.label == "vssg hf_sparse C=0.7 [authors] seed=3"
@@ -70,7 +71,14 @@ def test_results_of_earlier_sessions_still_load(study) -> None:
                for r in results.runs)  # fmt: skip
     raw = json.loads((RESULTS / study / "results.json").read_text())["runs"]
     added = {"best_step": None, "best_spl": None, "environment": None}  # newer than these records
-    assert [r.to_dict() for r in results.runs] == [{**run, **added} for run in raw]
+    for run in raw:  # the record format's feedback fields, from each run's spec
+        hf = run["method"] == "hf_sparse"
+        feedback = {"n_labels": run["spec"]["n_labels"] if hf else 0,
+                    "feedback": "oracle" if hf else None,
+                    "label_channel": "hard" if hf else None, "decoder_accuracy": None,
+                    "subject_quality": None}  # fmt: skip
+        run.update({**added, **feedback})
+    assert [r.to_dict() for r in results.runs] == raw
 
 
 def test_steps_to_reach_and_episode_stats() -> None:
