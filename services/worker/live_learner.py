@@ -103,6 +103,8 @@ class LearnerLink:
             "p_error": decision["p_error"],
             "oracle_correct": oracle_correct,
         }
+        if decision.get("log_likelihood_ratio") is not None:  # a calibrated classifier's
+            body["log_likelihood_ratio"] = decision["log_likelihood_ratio"]
         if next_observation is not None:
             body["next_observation"] = next_observation
         try:
