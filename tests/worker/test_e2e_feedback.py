@@ -13,8 +13,10 @@ from services.eeg.calibration import TrainingConfig
 from services.eeg.preprocessing import PreprocessingParams
 from services.eeg.virtual_source import VirtualEEGSource
 from services.learner.feedback_sources import DecodedLabel
+from services.learner.pool import sweep_row_key
 from services.learner.runs import HFPolicySpec, hf_policy_run
 from services.learner.specs import RunSpec, with_feedback
+from services.learner.stage2_report import summary_table
 from services.worker.e2e_feedback import (
     Session,
     SubjectEpochs,
@@ -122,6 +124,8 @@ def test_a_virtual_subject_run_records_its_feedback(toy_subject_factory) -> None
     )
     assert row["decoder_accuracy"] == facts.decoder_accuracy
     assert row["subject_quality"] == facts.quality and row["decoder_accuracy_target"] == 0.8
+    assert sweep_row_key(row) == spec.key  # a sweep resumes past it
+    assert "| categorical | SSSG | subject@0.8 soft | 25 | 1 |" in summary_table([row])
     with pytest.raises(ValueError, match="feedback-source factory"):
         hf_policy_run(spec)
 
