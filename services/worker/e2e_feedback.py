@@ -254,6 +254,8 @@ class QualitySearch:
     facts: DecoderFacts
     target: float
     steps: list[dict[str, float]] = field(default_factory=list)
+    reached: bool = True
+    """False when no quality came within the tolerance (``facts`` is then the closest)."""
 
 
 def _cache_path(cache_dir: Path, seed: int, target: float, config: TrainingConfig) -> Path:
@@ -270,12 +272,14 @@ def find_quality(
     cache_dir: str | Path | None = None,
     epochs: SubjectEpochs | None = None,
     max_steps: int = MAX_BISECTION_STEPS,
+    strict: bool = True,
 ) -> QualitySearch:
     """The quality of subject ``seed`` whose decoder's held-out accuracy is ``target`` within
     ``tolerance``, by bisection on [0, 1] (accuracy rises with quality); cached in
     ``cache_dir`` per subject, target, decoders and training passes.
 
-    ``ValueError`` when no quality gets there (the closest tried is named).
+    When no quality gets there: ``ValueError`` naming the closest tried, or with
+    ``strict=False`` the closest (``reached`` False; not cached).
     """
     if not 0.5 < target < 1.0:
         raise ValueError(f"a target decoding accuracy must be in (0.5, 1), got {target}")
@@ -313,6 +317,8 @@ def find_quality(
             high = quality
     if search is None:
         assert best is not None
+        if not strict:
+            return QualitySearch(best, target, steps, reached=False)
         raise ValueError(
             f"no quality of virtual subject {seed} gives a held-out decoding accuracy of "
             f"{target:g} +- {tolerance:g}: the closest was {best.decoder_accuracy:.3f} at "

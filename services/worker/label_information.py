@@ -131,7 +131,9 @@ def measure_subject(
     channel = epochs.ch_names.index(VARIABILITY_CHANNEL)
     rows = []
     for target in targets:
-        search = find_quality(seed, target, config, cache_dir=cache_dir, epochs=epochs)
+        search = find_quality(
+            seed, target, config, cache_dir=cache_dir, epochs=epochs, strict=False
+        )
         subject = calibrate_subject(epochs, search.facts.quality, config)
         assert subject.classifier.calibration is not None
         X = session.at(search.facts.quality)
@@ -148,6 +150,7 @@ def measure_subject(
                 "subject_quality": search.facts.quality,
                 "decoder": search.facts.decoder,
                 "search_accuracy": search.facts.decoder_accuracy,
+                "target_reached": search.reached,
                 **figures,
                 "test_ece": search.facts.test_ece,
                 "variability": trial_variability(session, search.facts.quality, channel),
@@ -169,6 +172,7 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             {
                 "target_accuracy": target,
                 "subjects": len(group),
+                "reached": sum(bool(r.get("target_reached", True)) for r in group),
                 "accuracy": mean("accuracy"),
                 "subject_quality": mean("subject_quality"),
                 "hard_bits_bsc": mean("hard_bits_bsc"),
@@ -200,7 +204,7 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def format_table(summary: list[dict[str, Any]]) -> str:
     """The markdown table of :func:`summarize`."""
     lines = [
-        "| target acc. | subjects | held-out acc. | quality | hard: 1 - H(err) "
+        "| target acc. | subjects (within 0.02) | held-out acc. | quality | hard: 1 - H(err) "
         "| hard: I(decision; truth) | soft: I(posterior; truth) [95 % CI] | soft / hard "
         "| Gaussian-score soft / hard "
         "| ErrP at FCz (µV) | ErrP trial CV | background SD (µV) | single-trial SNR |",
@@ -208,7 +212,8 @@ def format_table(summary: list[dict[str, Any]]) -> str:
     ]
     for s in summary:
         lines.append(
-            f"| {s['target_accuracy']:.2f} | {s['subjects']} | {s['accuracy']:.3f} "
+            f"| {s['target_accuracy']:.2f} | {s['subjects']} ({s['reached']}) "
+            f"| {s['accuracy']:.3f} "
             f"| {s['subject_quality']:.3f} | {s['hard_bits_bsc']:.4f} "
             f"| {s['hard_information']:.4f} "
             f"| {s['soft_information']:.4f} [{s['soft_information_ci_low']:.4f}, "

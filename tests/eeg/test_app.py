@@ -235,6 +235,7 @@ def test_calibration_job_classifier_and_live_decoding(client, recording):
     assert response.status_code == 200
     p_error = response.json()["p_error"]
     assert response.json()["feedback"] == ("error" if p_error >= 0.5 else "correct")
+    assert isinstance(response.json()["log_likelihood_ratio"], float)  # calibrated posterior
     bad_shape = client.post(url, json={**body, "epoch": epoch[:-1]})
     assert bad_shape.status_code == 422 and "channels x times" in bad_shape.json()["detail"]
     bad_rate = client.post(url, json={**body, "sfreq": 256.0})
