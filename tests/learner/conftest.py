@@ -19,6 +19,7 @@ import pytest
 import torch
 from gymnasium import spaces
 
+from services.learner.networks import ObsNormalizer
 from services.learner.ppo import PPOConfig
 
 torch.set_num_threads(1)  # tiny networks: threads only add contention
@@ -122,6 +123,12 @@ def toy_config(env_id: str = TOY_ENV_ID, **overrides: Any) -> PPOConfig:
         eval_seeds=(0,),
     )
     return replace(base, **overrides)
+
+
+def box_normalizer(n_obs: int = 3) -> ObsNormalizer:
+    """Fhat's fixed normalisation for observations in [-1, 1]^n_obs (toy stage-2 tests)."""
+    space = gym.spaces.Box(low=-np.ones(n_obs, np.float32), high=np.ones(n_obs, np.float32))
+    return ObsNormalizer.from_space(space)
 
 
 @pytest.fixture

@@ -25,11 +25,7 @@ from services.learner.feedback_sources import (
 )
 from services.learner.hf_methods import label_nll
 from services.learner.networks import ObsNormalizer
-
-
-def _normalizer(n_obs: int = 4) -> ObsNormalizer:
-    space = gym.spaces.Box(low=-np.ones(n_obs, np.float32), high=np.ones(n_obs, np.float32))
-    return ObsNormalizer.from_space(space)
+from tests.learner.conftest import box_normalizer
 
 
 def test_normalizer_maps_bounds_to_unit_interval_and_keeps_infinite_dims() -> None:
@@ -43,7 +39,7 @@ def test_normalizer_maps_bounds_to_unit_interval_and_keeps_infinite_dims() -> No
 
 
 def test_loss_only_backpropagates_through_the_taken_action() -> None:
-    model = FeedbackModel(_normalizer(), hidden_size=16)
+    model = FeedbackModel(box_normalizer(4), hidden_size=16)
     obs = torch.rand(8, 4)
     actions = torch.full((8,), 2)
     label_nll(model(obs), actions, torch.ones(8), "bce", 0.6, 0.6).mean().backward()
@@ -73,7 +69,7 @@ def test_replay_buffer_recency_rule() -> None:
 def test_fhat_learns_a_separable_labelling_and_holds_out_validation() -> None:
     """Label: action a is 'correct' iff a == argmax(obs[:3]) (a separable rule)."""
     rng = np.random.default_rng(1)
-    learner = FeedbackLearner(_normalizer(3), FeedbackConfig(replay_updates=2, lr=3e-3), seed=0)
+    learner = FeedbackLearner(box_normalizer(3), FeedbackConfig(replay_updates=2, lr=3e-3), seed=0)
     for _ in range(500):
         obs = rng.uniform(-1, 1, 3).astype(np.float32)
         action = int(rng.integers(3))
@@ -89,7 +85,7 @@ def test_fhat_learns_a_separable_labelling_and_holds_out_validation() -> None:
 
 
 def test_hf_policy_sampling_is_softened_and_greedy_is_argmax() -> None:
-    model = FeedbackModel(_normalizer(), hidden_size=16)
+    model = FeedbackModel(box_normalizer(4), hidden_size=16)
     with torch.no_grad():
         model.output.bias.copy_(torch.tensor([2.0, 0.0, -2.0]))
         model.output.weight.zero_()

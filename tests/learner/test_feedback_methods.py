@@ -25,12 +25,7 @@ from services.learner.hf_methods import (
     most_informative_action,
     p_judged_correct,
 )
-from services.learner.networks import ObsNormalizer
-
-
-def _normalizer(n_obs: int = 3) -> ObsNormalizer:
-    space = gym.spaces.Box(low=-np.ones(n_obs, np.float32), high=np.ones(n_obs, np.float32))
-    return ObsNormalizer.from_space(space)
+from tests.learner.conftest import box_normalizer
 
 
 @pytest.mark.parametrize("method", sorted(HF_METHODS))
@@ -40,7 +35,7 @@ def test_each_method_learns_a_separable_labelling_under_known_noise(method: str)
     config = FeedbackConfig(
         replay_updates=2, lr=3e-3, method=method, good_accuracy=0.8, bad_accuracy=0.8
     )
-    learner = FeedbackLearner(_normalizer(), config, seed=0)
+    learner = FeedbackLearner(box_normalizer(), config, seed=0)
     for _ in range(800):
         obs = rng.uniform(-1, 1, 3).astype(np.float32)
         action = learner.collection_action(obs, rng) if rng.random() < 0.5 else int(rng.integers(3))
@@ -156,12 +151,12 @@ def test_ensemble_learner_resumes_bit_for_bit() -> None:
         (rng.uniform(-1, 1, 3).astype(np.float32), int(rng.integers(3)), bool(rng.integers(2)))
         for _ in range(60)
     ]
-    whole = FeedbackLearner(_normalizer(), config, seed=4)
-    part = FeedbackLearner(_normalizer(), config, seed=4)
+    whole = FeedbackLearner(box_normalizer(), config, seed=4)
+    part = FeedbackLearner(box_normalizer(), config, seed=4)
     actions_whole, actions_part = [], []
     for i, (obs, action, label) in enumerate(data):
         if i == 30:
-            restored = FeedbackLearner(_normalizer(), config, seed=4)
+            restored = FeedbackLearner(box_normalizer(), config, seed=4)
             restored.load_state_dict(part.state_dict())
             part = restored
         actions_whole.append(whole.collection_action(obs, np.random.default_rng(i)))
@@ -192,7 +187,7 @@ def test_method_names_of_the_request_schema_are_the_registry() -> None:
 
 def test_onpolicy_collection_takes_the_argmax_and_samples_only_on_a_revisited_observation() -> None:
     config = FeedbackConfig(method="categorical_onpolicy", revisit_window=3)
-    learner = FeedbackLearner(_normalizer(), config, seed=0)
+    learner = FeedbackLearner(box_normalizer(), config, seed=0)
     with torch.no_grad():  # Fhat prefers action 2 everywhere, clearly but not overwhelmingly
         learner.model.output.weight.zero_()
         learner.model.output.bias.copy_(torch.tensor([0.0, 0.0, 0.3]))
@@ -212,13 +207,13 @@ def test_onpolicy_learner_resumes_with_its_recent_observations() -> None:
     config = FeedbackConfig(replay_updates=2, method="categorical_onpolicy", revisit_window=4)
     rng = np.random.default_rng(3)
     states = [rng.uniform(-1, 1, 3).astype(np.float32) for _ in range(5)]
-    whole = FeedbackLearner(_normalizer(), config, seed=1)
-    part = FeedbackLearner(_normalizer(), config, seed=1)
+    whole = FeedbackLearner(box_normalizer(), config, seed=1)
+    part = FeedbackLearner(box_normalizer(), config, seed=1)
     actions_whole, actions_part = [], []
     for i in range(40):
         obs = states[int(rng.integers(5))]  # few states: revisits happen
         if i == 20:
-            restored = FeedbackLearner(_normalizer(), config, seed=1)
+            restored = FeedbackLearner(box_normalizer(), config, seed=1)
             restored.load_state_dict(part.state_dict())
             part = restored
         actions_whole.append(whole.collection_action(obs, np.random.default_rng(i)))

@@ -4,21 +4,15 @@ from __future__ import annotations
 
 import io
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 from services.learner.feedback import FeedbackConfig, FeedbackLearner, HFPolicy
 from services.learner.kernel_prior import KernelEvidence, label_log_likelihood
-from services.learner.networks import ObsNormalizer
+from tests.learner.conftest import box_normalizer
 
 C = 0.6
-
-
-def _normalizer(n_obs: int = 3) -> ObsNormalizer:
-    space = gym.spaces.Box(low=-np.ones(n_obs, np.float32), high=np.ones(n_obs, np.float32))
-    return ObsNormalizer.from_space(space)
 
 
 def test_label_log_likelihood_is_the_categorical_noisy_label_model() -> None:
@@ -63,7 +57,7 @@ def test_labels_on_one_state_move_a_near_identical_state_and_not_a_far_one() -> 
             validation_fraction=0.0,
             kernel_bandwidth=1.0,
         )
-        learner = FeedbackLearner(_normalizer(), config, seed=0)
+        learner = FeedbackLearner(box_normalizer(), config, seed=0)
         for i in range(40):  # 30 labels at A say 0, 10 at B say 1
             state, action = (a, 0) if i % 4 else (b, 1)
             learner.add(state, action, True)
@@ -80,14 +74,14 @@ def test_kernel_learner_resumes_bit_for_bit_and_saves_plain_tensors() -> None:
         (rng.uniform(-1, 1, 3).astype(np.float32), int(rng.integers(3)), bool(rng.integers(2)))
         for _ in range(40)
     ]
-    whole = FeedbackLearner(_normalizer(), config, seed=2)
-    part = FeedbackLearner(_normalizer(), config, seed=2)
+    whole = FeedbackLearner(box_normalizer(), config, seed=2)
+    part = FeedbackLearner(box_normalizer(), config, seed=2)
     for i, (obs, action, label) in enumerate(data):
         if i == 20:
             buffer = io.BytesIO()
             torch.save(part.state_dict(), buffer)
             buffer.seek(0)
-            restored = FeedbackLearner(_normalizer(), config, seed=2)
+            restored = FeedbackLearner(box_normalizer(), config, seed=2)
             restored.load_state_dict(torch.load(buffer, weights_only=True))
             part = restored
         whole.add(obs, action, label)

@@ -23,12 +23,7 @@ from services.learner.feedback_sources import (
 )
 from services.learner.hf_methods import mean_label_loss
 from services.learner.kernel_prior import KernelEvidence
-from services.learner.networks import ObsNormalizer
-
-
-def _normalizer(n_obs: int = 3) -> ObsNormalizer:
-    space = gym.spaces.Box(low=-np.ones(n_obs, np.float32), high=np.ones(n_obs, np.float32))
-    return ObsNormalizer.from_space(space)
+from tests.learner.conftest import box_normalizer
 
 
 def test_soft_label_is_p_correct_at_even_odds() -> None:
@@ -62,12 +57,12 @@ def test_a_soft_label_with_the_hard_labels_likelihood_ratio_updates_fhat_as_the_
     likelihood ratio (1 - b) / g, an "error" label b / (1 - g)."""
     good, bad = 0.7, 0.6
     hard = FeedbackLearner(
-        _normalizer(),
+        box_normalizer(),
         FeedbackConfig(method=method, good_accuracy=good, bad_accuracy=bad, replay_updates=3),
         seed=4,
     )
     soft = FeedbackLearner(
-        _normalizer(),
+        box_normalizer(),
         FeedbackConfig(method=method, replay_updates=3, label_channel="soft"),
         seed=4,
     )
@@ -87,7 +82,7 @@ def test_soft_labels_that_disagree_with_the_hard_label_move_fhat_the_other_way()
 
     def p_optimal(log_ratio: float) -> float:
         learner = FeedbackLearner(
-            _normalizer(),
+            box_normalizer(),
             FeedbackConfig(
                 method="categorical",
                 label_channel="soft",
@@ -104,7 +99,7 @@ def test_soft_labels_that_disagree_with_the_hard_label_move_fhat_the_other_way()
 
 
 def test_the_soft_channel_refuses_hard_labels() -> None:
-    learner = FeedbackLearner(_normalizer(), FeedbackConfig(label_channel="soft"), seed=0)
+    learner = FeedbackLearner(box_normalizer(), FeedbackConfig(label_channel="soft"), seed=0)
     with pytest.raises(ValueError, match="needs each label's log-likelihood ratio"):
         learner.add(np.zeros(3, np.float32), 0, True)
     with pytest.raises(ValueError, match="finite"):
@@ -141,13 +136,13 @@ def test_soft_collection_replays_and_resumes_bit_for_bit(toy_env_id) -> None:
         (rng.uniform(-1, 1, 3).astype(np.float32), int(rng.integers(3)), float(rng.normal()))
         for _ in range(30)
     ]
-    a = FeedbackLearner(_normalizer(), config, seed=1)
+    a = FeedbackLearner(box_normalizer(), config, seed=1)
     for obs, action, llr in labels[:20]:
         a.add(obs, action, llr < 0, log_likelihood_ratio=llr)
     saved = io.BytesIO()
     torch.save(a.state_dict(), saved)
     saved.seek(0)
-    b = FeedbackLearner(_normalizer(), config, seed=1)
+    b = FeedbackLearner(box_normalizer(), config, seed=1)
     b.load_state_dict(torch.load(saved, weights_only=True))
     for obs, action, llr in labels[20:]:
         a.add(obs, action, llr < 0, log_likelihood_ratio=llr)
