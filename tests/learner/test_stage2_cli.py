@@ -100,3 +100,23 @@ def test_reproduce_hf_method_replaces_the_presets_stage2_method(tmp_path, monkey
     result = CliRunner().invoke(app, [*base, "--hf-method", "nope"])
     assert result.exit_code == 2 and "unknown stage-2 method 'nope'" in result.output
     assert not captured
+
+
+@pytest.mark.parametrize(
+    ("options", "refusal"),
+    [
+        (["--label-channel", "soft"], "soft label channel"),
+        (["--feedback", "virtual_subject"], "give the target accuracies"),
+        (["--feedback", "virtual_subject", "--decoder-accuracy", "0.45"], "not in (0.5, 1)"),
+        (["--decoder-accuracy", "0.6"], "applies to"),
+        (["--feedback", "lab"], "expected one of"),
+        (["--feedback", "virtual_subject", "--decoder-accuracy", "0.6", "--decoders", "x"], "x"),
+    ],
+)
+def test_feedback_options_are_refused_before_anything_runs(tmp_path, options, refusal) -> None:
+    for command in ("reproduce", "hf-sweep"):
+        out = tmp_path / command
+        result = CliRunner().invoke(app, [command, "--out", str(out), *options])
+        assert result.exit_code == 2, result.output
+        assert refusal in " ".join(result.output.split()), result.output
+        assert not out.exists()
