@@ -14,7 +14,7 @@ from services.eeg.preprocessing import PreprocessingParams
 from services.eeg.virtual_source import VirtualEEGSource
 from services.learner.feedback_sources import DecodedLabel
 from services.learner.pool import sweep_row_key
-from services.learner.runs import HFPolicySpec, hf_policy_run
+from services.learner.runs import HFPolicySpec, RunRecord, hf_policy_run, run_lockstep
 from services.learner.specs import RunSpec, with_feedback
 from services.learner.stage2_report import summary_table
 from services.worker.e2e_feedback import (
@@ -128,6 +128,33 @@ def test_a_virtual_subject_run_records_its_feedback(toy_subject_factory) -> None
     assert "| categorical | SSSG | subject@0.8 soft | 25 | 1 |" in summary_table([row])
     with pytest.raises(ValueError, match="feedback-source factory"):
         hf_policy_run(spec)
+
+
+def test_a_lockstep_run_with_the_virtual_subjects_feedback_records_it(toy_subject_factory) -> None:
+    spec = RunSpec(
+        "sssg",
+        "hf_sparse",
+        0,
+        n_labels=20,
+        ppo_overrides={"total_steps": 256},
+        feedback="virtual_subject",
+        label_channel="soft",
+        decoder_accuracy=0.8,
+    )
+    (record,) = run_lockstep([spec], feedback_factory=toy_subject_factory)
+    assert isinstance(record, RunRecord), record
+    facts = toy_subject_factory.subject.facts
+    assert (record.feedback, record.label_channel, record.n_labels) == (
+        "virtual_subject",
+        "soft",
+        20,
+    )
+    assert (record.decoder_accuracy, record.subject_quality) == (
+        facts.decoder_accuracy,
+        facts.quality,
+    )
+    assert record.accuracy is None and record.hf is not None
+    assert RunRecord.from_dict(record.to_dict()) == record
 
 
 def test_specs_take_the_virtual_subjects_feedback() -> None:
