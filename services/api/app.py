@@ -40,7 +40,7 @@ from services.api.routes import (
     tokens,
     users,
 )
-from services.api.security import load_jwt_key
+from services.api.security import dummy_hash, load_jwt_key
 from services.api.settings import ApiSettings
 from services.core.artifacts import ArtifactStore
 from services.core.db.migrate import upgrade_database
@@ -94,8 +94,10 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
         app.state.sessions = make_session_factory(engine)
         app.state.db_slots = asyncio.Semaphore(pool_capacity(engine))
         app.state.store = ArtifactStore(settings.resolved_artifact_dir)
+        await run_in_threadpool(app.state.store.remove_abandoned_parts)  # of a killed api
         app.state.celery = make_celery(settings)
         app.state.jwt_key = load_jwt_key(settings)
+        await run_in_threadpool(dummy_hash)  # not on the first unknown e-mail's login
         await run_in_threadpool(ensure_first_admin, app.state.sessions, settings)
         try:
             yield

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import Annotated, TypeVar
@@ -187,26 +188,68 @@ async def read_signed_in(
         )
 
 
-def websocket_token(websocket: WebSocket, token: str | None) -> str | None:
-    """The user's token of a websocket: ``?token=`` (browsers cannot set headers on
-    websockets) or an ``Authorization: Bearer`` header."""
+WEBSOCKET_PROTOCOL = "bgrl"
+"""The subprotocol a browser offers beside ``bearer.<token>``; the api answers with it
+(a server must name one the client offered, and never the token)."""
+BEARER_PROTOCOL_PREFIX = "bearer."
+"""A websocket subprotocol ``bearer.<token>`` carries the user's token."""
+REVOCATION_CHECK_S = 0.5
+"""An open websocket re-checks its token this often: closed within a second of a revocation."""
+WEBSOCKET_SIGN_IN = (
+    "not signed in: offer the subprotocols 'bgrl' and 'bearer.<token>' "
+    "(Sec-WebSocket-Protocol) or send an Authorization header"
+)
+
+
+def websocket_token(websocket: WebSocket) -> str | None:
+    """The user's token of a websocket: an ``Authorization: Bearer`` header or, from a
+    browser (which cannot set headers on websockets), the subprotocol ``bearer.<token>``.
+    Never the URL: URLs end up in access logs and browser histories."""
     header = websocket.headers.get("authorization", "")
-    if token is None and header.lower().startswith("bearer "):
+    if header.lower().startswith("bearer "):
         return header[7:].strip()
-    return token
+    for protocol in websocket.scope.get("subprotocols", []):
+        if protocol.startswith(BEARER_PROTOCOL_PREFIX):
+            return protocol[len(BEARER_PROTOCOL_PREFIX) :]
+    return None
 
 
-def websocket_sign_in_refusal(
-    db: Session, websocket: WebSocket, token: str | None
-) -> tuple[int, str] | None:
-    """``(close code, reason)`` if the websocket's user is not signed in, else None."""
+def websocket_subprotocol(websocket: WebSocket) -> str | None:
+    """The subprotocol to accept with: ``bgrl`` if the client offered it, else none."""
+    offered = websocket.scope.get("subprotocols", [])
+    return WEBSOCKET_PROTOCOL if WEBSOCKET_PROTOCOL in offered else None
+
+
+def websocket_sign_in_refusal(db: Session, websocket: WebSocket) -> tuple[int, str] | None:
+    """``(close code, reason)`` if the websocket's user is not signed in, else None (a token
+    in the URL is refused, however valid: it has been logged on its way)."""
+    if "token" in websocket.query_params:
+        return CLOSE_UNAUTHORIZED, "a token in the URL is refused (URLs are logged); " + (
+            WEBSOCKET_SIGN_IN.removeprefix("not signed in: ")
+        )
+    token = websocket_token(websocket)
     if not token:
-        return CLOSE_UNAUTHORIZED, "not signed in: pass ?token= or an Authorization header"
+        return CLOSE_UNAUTHORIZED, WEBSOCKET_SIGN_IN
     try:
         authenticate(db, token, websocket.app.state.jwt_key)
     except UnauthorizedError as exc:
         return CLOSE_UNAUTHORIZED, str(exc)
     return None
+
+
+def _signed_out(websocket: WebSocket) -> tuple[int, str] | None:
+    with websocket.app.state.sessions() as db:
+        return websocket_sign_in_refusal(db, websocket)
+
+
+async def until_signed_out(websocket: WebSocket) -> tuple[int, str]:
+    """Wait until the accepted websocket's token stops working (revoked or expired, its
+    account deactivated, its password changed); ``(close code, reason)`` then."""
+    while True:
+        await asyncio.sleep(REVOCATION_CHECK_S)
+        refused = await run_in_threadpool(_signed_out, websocket)
+        if refused is not None:
+            return refused
 
 
 def get_current_user(

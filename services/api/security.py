@@ -42,10 +42,18 @@ def verify_password(password_hash: str, password: str) -> bool:
 _dummy_hashes: dict[int, str] = {}
 
 
+def dummy_hash() -> str:
+    """A hash of no account's password, computed once per hasher (the api computes it at
+    start-up), so that a login for an unknown e-mail costs one verification, as any other."""
+    dummy = _dummy_hashes.get(id(_hasher))
+    if dummy is None:
+        dummy = _dummy_hashes.setdefault(id(_hasher), _hasher.hash("not-a-password"))
+    return dummy
+
+
 def verify_nobody(password: str) -> bool:
     """Spend the time of a real verification (unknown account), so timing tells nothing."""
-    dummy = _dummy_hashes.setdefault(id(_hasher), _hasher.hash("not-a-password"))
-    verify_password(dummy, password)
+    verify_password(dummy_hash(), password)
     return False
 
 

@@ -6,12 +6,13 @@ BGRL_ADMIN_PASSWORD=... uvicorn services.api.app:app --port 8000``.
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
 
 from services.core.platform import PlatformSettings
 
@@ -101,9 +102,37 @@ class ApiSettings(PlatformSettings):
         description="Set by `bgrl up`: the JSON file where it keeps the state of the "
         "processes it supervises; /readyz reports it.",
     )
+    trusted_proxies: list[str] = Field(
+        default_factory=list,
+        description="Addresses or networks of the reverse proxies in front of the api (JSON "
+        'list, e.g. ["10.0.0.5", "10.1.0.0/16"]) whose X-Forwarded-For and '
+        "X-Forwarded-Proto are believed. Default: none, not even loopback; a client's "
+        "address (what the failed-login limit counts by, and what the log shows) is the "
+        "TCP peer's.",
+    )
     migrate_on_start: bool = Field(
         True, description="Run the database migrations when the api starts."
     )
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _addresses(cls, entries: list[str]) -> list[str]:
+        for entry in entries:
+            try:
+                ipaddress.ip_network(entry.strip(), strict=False)
+            except ValueError:
+                raise ValueError(
+                    f"{entry!r} is not an IP address or network (e.g. 10.0.0.5, 10.1.0.0/16)"
+                ) from None
+        return [entry.strip() for entry in entries]
+
+    def uvicorn_proxy_options(self) -> list[str]:
+        """uvicorn's options for :attr:`trusted_proxies`: believe their forwarded headers,
+        or nobody's (uvicorn's own default believes 127.0.0.1: any local process could
+        then claim any address)."""
+        if not self.trusted_proxies:
+            return ["--no-proxy-headers"]
+        return ["--proxy-headers", "--forwarded-allow-ips", ",".join(self.trusted_proxies)]
 
     @property
     def api_dir(self) -> Path:

@@ -311,6 +311,7 @@ def _service_processes(
     if spec.name != "api":  # the internal services are behind no proxy
         cmd = [*cmd, "--no-proxy-headers"]
         return [ProcessSpec(spec.name, spec.name, cmd, env, (fd,), health)]
+    cmd = [*cmd, *settings.uvicorn_proxy_options()]  # type: ignore[attr-defined]  # ApiSettings
     api_env = {
         **env,
         "BGRL_MIGRATE_ON_START": "false",

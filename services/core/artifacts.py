@@ -1,16 +1,22 @@
 """The artifact store: files (recordings, checkpoints, models, results) under one root folder.
 
-Every file is written to a temporary name inside the root, hashed (SHA-256) while it is
-written, then renamed into place, so a reader never sees half a file. Paths handed out are
-relative to the root, which may be a folder shared by several hosts.
+Every file is written to a temporary name inside the root (``.tmp/*.part``, locked by its
+writer while it is written), hashed (SHA-256) while it is written, then renamed into place,
+so a reader never sees half a file; the parts a killed process left behind are removed at
+the next start (:meth:`ArtifactStore.remove_abandoned_parts`). Files are mode 600 in folders
+of mode 700 (recordings are human data). Paths handed out are relative to the root, which
+may be a folder shared by several hosts.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
+import logging
 import os
 import re
+import time
 import uuid
 from collections.abc import AsyncIterable, Iterable
 from dataclasses import dataclass
@@ -23,10 +29,19 @@ from services.core.errors import (
     InsufficientStorageError,
     PayloadTooLargeError,
 )
+from services.core.files import PRIVATE_FILE_MODE, PRIVATE_FOLDER_MODE, private_folder
+
+logger = logging.getLogger(__name__)
 
 CHUNK_BYTES = 1024 * 1024
 FREE_SPACE_CHECK_BYTES = 16 * MB
 """A stream kept inside the disk's reserve is checked again after each this many bytes."""
+TMP_FOLDER = ".tmp"
+PART_SUFFIX = ".part"
+NEW_SUFFIX = ".new"
+"""A part's name for the instant between its creation and its lock."""
+ABANDONED_AFTER_S = 60.0
+"""An unlocked ``.new`` file older than this was left by a process killed in that instant."""
 _UNSAFE_NAME_CHARS = re.compile(r"[^A-Za-z0-9._-]+")
 _KIND = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 
@@ -109,10 +124,17 @@ class _Writer:
         self.size = 0
         self.root = store.root
         self._check_free_space(reserve.expected_bytes if reserve else 0)
-        tmp_dir = store.root / ".tmp"
-        tmp_dir.mkdir(parents=True, exist_ok=True)
-        self.tmp = tmp_dir / f"{uuid.uuid4().hex}.part"
-        self.handle: BinaryIO = self.tmp.open("wb")
+        tmp_dir = store.root / TMP_FOLDER
+        tmp_dir.mkdir(exist_ok=True, mode=PRIVATE_FOLDER_MODE)
+        self.tmp = tmp_dir / f"{uuid.uuid4().hex}{PART_SUFFIX}"
+        # created under another name, locked, then named a part: every part is locked for
+        # as long as its writer lives (the lock, on the file, follows the rename)
+        unlocked = self.tmp.with_suffix(NEW_SUFFIX)
+        fd = os.open(unlocked, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        os.replace(unlocked, self.tmp)
+        self.handle: BinaryIO = os.fdopen(fd, "wb")
+        self.store = store
         self.target = store.path(self.relpath)
 
     def _check_free_space(self, incoming_bytes: int) -> None:
@@ -147,9 +169,9 @@ class _Writer:
         except OSError as exc:
             self._refuse_if_disk_full(exc)
             raise
-        self.handle.close()
-        self.target.parent.mkdir(parents=True, exist_ok=True)
+        self.store.make_folders(self.target.parent)
         os.replace(self.tmp, self.target)
+        self.handle.close()  # after the rename: a part is never unlocked while it is one
         return StoredFile(self.relpath, self.digest.hexdigest(), self.size)
 
     def _refuse_if_disk_full(self, exc: OSError) -> None:
@@ -169,8 +191,45 @@ class ArtifactStore:
     """Files below ``root``, addressed by paths relative to it."""
 
     def __init__(self, root: Path) -> None:
-        self.root = Path(root).resolve()
-        self.root.mkdir(parents=True, exist_ok=True)
+        self.root = private_folder(Path(root).resolve())
+
+    def make_folders(self, folder: Path) -> None:
+        """Create ``folder`` (inside the root) and its missing parents, each mode 700."""
+        missing = []
+        while folder != self.root and not folder.is_dir():
+            missing.append(folder)
+            folder = folder.parent
+        for path in reversed(missing):
+            path.mkdir(exist_ok=True, mode=PRIVATE_FOLDER_MODE)
+
+    def remove_abandoned_parts(self) -> int:
+        """Remove the ``.tmp/*.part`` files of writers that are gone (a process killed
+        mid-upload); how many. A part another process is still writing is left alone: its
+        writer holds a lock on it."""
+        removed = 0
+        tmp_dir = self.root / TMP_FOLDER
+        for part in tmp_dir.glob(f"*{PART_SUFFIX}"):
+            try:
+                fd = os.open(part, os.O_RDONLY)
+            except FileNotFoundError:
+                continue  # renamed into place or removed meanwhile
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                part.unlink(missing_ok=True)
+                removed += 1
+            except BlockingIOError:
+                pass  # its writer is alive
+            finally:
+                os.close(fd)
+        stale_before = time.time() - ABANDONED_AFTER_S
+        for new in tmp_dir.glob(f"*{NEW_SUFFIX}"):
+            with contextlib.suppress(FileNotFoundError):
+                if new.stat().st_mtime < stale_before:
+                    new.unlink()
+                    removed += 1
+        if removed:
+            logger.info("removed %d abandoned partial file(s) from %s", removed, self.root)
+        return removed
 
     def path(self, relpath: str) -> Path:
         """The absolute path of ``relpath``; refuses anything that leaves the root."""

@@ -23,6 +23,21 @@ def finite_or_null(value: Any) -> Any:
     return value
 
 
+PRIVATE_FOLDER_MODE = 0o700
+PRIVATE_FILE_MODE = 0o600
+"""Modes of the platform's data (accounts, human EEG, models): its owner's only."""
+
+
+def private_folder(path: str | Path) -> Path:
+    """``path`` as a folder only its owner may enter (created, with its missing parents, or
+    its mode set to 700 if it exists)."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True, mode=PRIVATE_FOLDER_MODE)
+    if path.stat().st_mode & 0o777 != PRIVATE_FOLDER_MODE:
+        path.chmod(PRIVATE_FOLDER_MODE)
+    return path
+
+
 def _umask() -> int:
     """The process's umask, read without changing it (Linux: /proc; else the usual 022)."""
     try:

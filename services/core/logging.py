@@ -1,4 +1,5 @@
-"""One log format for every service: standard ``logging``, request ids, optional JSON lines.
+"""One log format for every service: standard ``logging``, request ids, optional JSON lines,
+tokens redacted.
 
 :func:`configure_logging` is called once per process (by the app factory or a CLI command);
 :data:`request_id` carries the id of the HTTP request being handled, so every log line
@@ -12,6 +13,7 @@ import contextvars
 import json
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,6 +25,37 @@ request_id: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", d
 """Id of the request being handled in this context (``-`` outside requests)."""
 
 TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s [%(request_id)s] %(message)s"
+
+
+_SECRETS = re.compile(
+    r"(?P<param>(?:access_)?token=)[^&\s\"']+"  # ?token=... in a logged URL
+    r"|(?P<bearer>[Bb]earer[ .])[\w.~+/-]+=*"  # Authorization: Bearer ... / bearer.<token>
+    r"|bgrl_[\w-]{16,}"  # an API token
+    r"|eyJ[\w-]+\.eyJ[\w-]+\.[\w-]+"  # a JWT
+)
+REDACTED = "[redacted]"
+
+
+def redact_secrets(text: str) -> str:
+    """``text`` with every token in it replaced: ``token=`` values of URLs, bearer tokens,
+    API tokens (``bgrl_...``) and JWTs."""
+
+    def replace(match: re.Match[str]) -> str:
+        return (match.group("param") or match.group("bearer") or "") + REDACTED
+
+    return _SECRETS.sub(replace, text)
+
+
+class _RedactSecrets(logging.Filter):
+    """Replaces the tokens in a record's message (uvicorn logs a websocket's URL, query
+    included: a client that puts ``?token=`` there must not get its token into the log)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        redacted = redact_secrets(message)
+        if redacted != message:
+            record.msg, record.args = redacted, None
+        return True
 
 
 class _RequestIdFilter(logging.Filter):
@@ -60,12 +93,15 @@ def configure_logging(level: str = "INFO", *, json_lines: bool = False) -> None:
         return
     handler = logging.StreamHandler(sys.stderr)
     handler.addFilter(_RequestIdFilter())
+    handler.addFilter(_RedactSecrets())
     handler.setFormatter(JsonFormatter() if json_lines else logging.Formatter(TEXT_FORMAT))
     root.addHandler(handler)
-    # uvicorn's own access/error loggers go through the same handler and format
+    # uvicorn's own loggers go through the same handler and format; its access log is off:
+    # every service logs each request once itself (services.core.web, with the request id)
     for name in ("uvicorn", "uvicorn.error", "uvicorn.access"):
         logging.getLogger(name).handlers.clear()
         logging.getLogger(name).propagate = True
+    logging.getLogger("uvicorn.access").setLevel(logging.WARNING)
     _configured = True
 
 
@@ -101,6 +137,7 @@ def configure_log_file(settings: BaseServiceSettings, name: str) -> Path | None:
         encoding="utf-8",
     )
     handler.addFilter(_RequestIdFilter())
+    handler.addFilter(_RedactSecrets())
     formatter = JsonFormatter() if settings.log_json else logging.Formatter(TEXT_FORMAT)
     handler.setFormatter(formatter)
     root.addHandler(handler)

@@ -8,6 +8,8 @@ from typing import Literal, TypeVar
 from pydantic import AliasChoices, Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from services.core.files import private_folder
+
 ENV_PREFIX = "BGRL_"
 
 SettingsT = TypeVar("SettingsT", bound=BaseSettings)
@@ -107,6 +109,6 @@ class BaseServiceSettings(BaseSettings):
     )
 
     def ensure_data_dir(self) -> Path:
-        """Create ``data_dir`` if needed and return it."""
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        return self.data_dir
+        """Create ``data_dir`` if needed (mode 700: only its owner may read the data) and
+        return it."""
+        return private_folder(self.data_dir)

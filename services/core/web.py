@@ -40,14 +40,17 @@ SERVICE_TOKEN_HEADER = "x-service-token"
 
 
 def jsonable(value: Any) -> Any:
-    """``value`` with every non-finite float replaced by its name (``"nan"``, ``"inf"``)."""
+    """``value`` with every non-finite float replaced by its name (``"nan"``, ``"inf"``) and
+    every lone surrogate in text by its escape (``\\ud800``), so that it can be sent."""
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
+        return {jsonable(str(k)): jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [jsonable(v) for v in value]
-    if value is None or isinstance(value, str | int | float | bool):
+    if isinstance(value, str):  # a lone surrogate (JSON's "\\ud800") has no UTF-8: escaped
+        return value.encode("utf-8", "backslashreplace").decode("utf-8")
+    if value is None or isinstance(value, int | float | bool):
         return value
     return str(value)
 
@@ -57,8 +60,23 @@ def _field_name(loc: Sequence[Any]) -> str:
     return ".".join(parts) or "body"
 
 
+SECRET_FIELD_WORDS = ("password", "token", "secret", "key")
+"""A field whose name holds one of these never has its submitted value echoed."""
+
+
+def _echoable(value: Any, field: str) -> bool:
+    """Whether a 422 may repeat the submitted ``value`` of ``field``: a single value (an
+    object or list may hold a password) of a field not named like a secret."""
+    lowered = field.lower()
+    return not isinstance(value, dict | list | tuple) and not any(
+        word in lowered for word in SECRET_FIELD_WORDS
+    )
+
+
 def validation_error_body(errors: Sequence[Any]) -> dict[str, Any]:
-    """FastAPI's 422 list, each entry with ``field``, and inputs safe to serialise.
+    """FastAPI's 422 list, each entry with ``field``, and inputs safe to serialise; the
+    submitted value is echoed only when it is a single value of a field not named like a
+    secret (never a password, a token or a whole object that may hold one).
 
     ``detail`` stays a list (FastAPI clients read it); ``message`` sums it up in one line.
     A body that is not JSON is named ``body`` and the message says where it breaks (FastAPI
@@ -77,7 +95,7 @@ def validation_error_body(errors: Sequence[Any]) -> dict[str, Any]:
             err["msg"] = err["msg"][len(VALUE_ERROR_PREFIX) :]
         entry = {k: jsonable(v) for k, v in err.items() if k in ("loc", "msg", "type")}
         entry["field"] = _field_name(err.get("loc", ()))
-        if "input" in err:
+        if "input" in err and _echoable(err["input"], entry["field"]):
             text = json.dumps(jsonable(err["input"]))
             entry["input"] = jsonable(err["input"]) if len(text) <= 200 else text[:200] + "..."
         entries.append(entry)

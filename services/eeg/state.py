@@ -40,6 +40,7 @@ class EEGService:
         self.settings = settings
         root = settings.eeg_dir
         self.incoming = ArtifactStore(root)
+        self.incoming.remove_abandoned_parts()  # uploads of a killed service
         self.recordings = RecordingStore(root / "recordings", self.incoming)
         self.classifiers = ClassifierStore(root / "classifiers")
         self.jobs = JobStore(root / "jobs")

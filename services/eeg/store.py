@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from services.core.artifacts import ArtifactStore
-from services.core.files import write_json_atomic
+from services.core.files import private_folder, write_json_atomic
 from services.core.web import jsonable
 from services.eeg.classifier import ErrPClassifier
 from services.eeg.errors import (
@@ -91,9 +91,8 @@ class RecordingStore:
     """Validated recordings stored under their sha256."""
 
     def __init__(self, folder: Path, incoming: ArtifactStore) -> None:
-        self.folder = folder
+        self.folder = private_folder(folder)  # human EEG: its owner's only
         self.incoming = incoming
-        folder.mkdir(parents=True, exist_ok=True)
 
     def get(self, recording_id: str) -> RecordingPublic:
         """The metadata of one recording (404 if unknown)."""

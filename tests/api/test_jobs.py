@@ -315,8 +315,10 @@ def _token(api: Api, role: str) -> str:
 
 def test_progress_websocket(api: Api) -> None:
     job_id = submit(api, "guided_ppo", GUIDED).json()["id"]
-    url = f"/api/v1/jobs/{job_id}/events?token={_token(api, 'viewer')}"
-    with api.client.websocket_connect(url) as ws:
+    url = f"/api/v1/jobs/{job_id}/events"
+    protocols = ["bgrl", f"bearer.{_token(api, 'viewer')}"]  # as a browser sends it
+    with api.client.websocket_connect(url, subprotocols=protocols) as ws:
+        assert ws.accepted_subprotocol == "bgrl"  # never the token
         first = ws.receive_json()
         assert (first["id"], first["status"]) == (job_id, "queued")
         set_job(api, job_id, status="running", progress=0.5, steps_done=1024)
@@ -334,21 +336,24 @@ def test_progress_websocket(api: Api) -> None:
 
 
 @pytest.mark.parametrize(
-    ("query", "headers", "code"),
+    ("query", "protocols", "headers", "code"),
     [
-        ("", {}, 4401),
-        ("?token=garbage", {}, 4401),
-        ("?token={viewer}", {"origin": "https://evil.example"}, 4403),
+        ("", [], {}, 4401),
+        ("", ["bgrl", "bearer.garbage"], {}, 4401),
+        ("?token={viewer}", [], {}, 4401),  # a token in the URL is refused: URLs are logged
+        ("", ["bgrl", "bearer.{viewer}"], {"origin": "https://evil.example"}, 4403),
     ],
 )
 def test_progress_websocket_refuses_before_accept(
-    api: Api, query: str, headers: dict, code: int
+    api: Api, query: str, protocols: list[str], headers: dict, code: int
 ) -> None:
     job_id = submit(api, "guided_ppo", GUIDED).json()["id"]
-    url = f"/api/v1/jobs/{job_id}/events" + query.format(viewer=_token(api, "viewer"))
+    viewer = _token(api, "viewer")
+    url = f"/api/v1/jobs/{job_id}/events" + query.format(viewer=viewer)
+    offered = [protocol.format(viewer=viewer) for protocol in protocols]
     with (
         pytest.raises(WebSocketDisconnect) as refused,
-        api.client.websocket_connect(url, headers=headers),
+        api.client.websocket_connect(url, subprotocols=offered, headers=headers),
     ):
         pass
     assert refused.value.code == code

@@ -8,8 +8,12 @@ from starlette.websockets import WebSocketDisconnect
 from tests.api.conftest import Api
 
 
-def _close_code(api: Api, path: str) -> int:
-    with pytest.raises(WebSocketDisconnect) as refused, api.client.websocket_connect(path) as ws:
+def _close_code(api: Api, path: str, token: str | None = None) -> int:
+    protocols = ["bgrl", f"bearer.{token}"] if token else []
+    with (
+        pytest.raises(WebSocketDisconnect) as refused,
+        api.client.websocket_connect(path, subprotocols=protocols) as ws,
+    ):
         ws.receive_json()
     return refused.value.code
 
@@ -17,8 +21,9 @@ def _close_code(api: Api, path: str) -> int:
 def test_frame_relay_checks_token_and_session_before_accept(api: Api) -> None:
     token = api.as_("viewer")["Authorization"].removeprefix("Bearer ")
     assert _close_code(api, "/api/v1/sessions/1/frames") == 4401
-    assert _close_code(api, "/api/v1/sessions/1/frames?token=nope") == 4401
-    assert _close_code(api, f"/api/v1/sessions/999/frames?token={token}") == 4404
+    assert _close_code(api, "/api/v1/sessions/1/frames", token="nope") == 4401
+    assert _close_code(api, f"/api/v1/sessions/1/frames?token={token}") == 4401  # URLs are logged
+    assert _close_code(api, "/api/v1/sessions/999/frames", token=token) == 4404
 
 
 def test_frame_relay_accepts_then_closes_4404_while_a_session_has_no_sim_session(
@@ -32,9 +37,12 @@ def test_frame_relay_accepts_then_closes_4404_while_a_session_has_no_sim_session
             "scheduled_at": "2026-12-02T09:00:00+00:00"}  # fmt: skip
     session = api.client.post("/api/v1/sessions", json=body, headers=staff).json()
     token = staff["Authorization"].removeprefix("Bearer ")
-    path = f"/api/v1/sessions/{session['id']}/frames?token={token}"
+    path = f"/api/v1/sessions/{session['id']}/frames"
     # entered in order: a refused handshake would raise before pytest.raises is entered
-    with api.client.websocket_connect(path) as ws, pytest.raises(WebSocketDisconnect) as closed:
+    with (
+        api.client.websocket_connect(path, subprotocols=["bgrl", f"bearer.{token}"]) as ws,
+        pytest.raises(WebSocketDisconnect) as closed,
+    ):
         ws.receive_json()
     assert closed.value.code == 4404 and "no running sim session" in closed.value.reason
 

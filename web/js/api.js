@@ -199,15 +199,20 @@ export async function download(path, fallbackName) {
   return { filename, size: blob.size, checksum };
 }
 
-/** The websocket URL of a job's progress events (browsers cannot send headers). */
-export function jobEventsUrl(jobId) {
+/** A websocket to ``path`` of this host, signed in with the user's token as the
+ *  subprotocol ``bearer.<token>`` beside ``bgrl`` (browsers cannot send headers, and a
+ *  token in the URL would be logged: the API refuses it there). */
+function openSocket(path) {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  const id = encodeURIComponent(jobId);
-  return `${scheme}://${location.host}/api/v1/jobs/${id}/events?token=${encodeURIComponent(token())}`;
+  return new WebSocket(`${scheme}://${location.host}${path}`, ["bgrl", `bearer.${token()}`]);
+}
+
+/** A websocket of a job's progress events. */
+export function jobEventsSocket(jobId) {
+  return openSocket(`/api/v1/jobs/${encodeURIComponent(jobId)}/events`);
 }
 
 /** The websocket relaying a live session's robot frames (the sim is not reachable directly). */
-export function framesUrl(sessionId) {
-  const scheme = location.protocol === "https:" ? "wss" : "ws";
-  return `${scheme}://${location.host}/api/v1/sessions/${sessionId}/frames?token=${encodeURIComponent(token())}`;
+export function framesSocket(sessionId) {
+  return openSocket(`/api/v1/sessions/${encodeURIComponent(sessionId)}/frames`);
 }

@@ -1,6 +1,6 @@
 // The robot's frames of a live session through the api's relay, reconnecting when dropped.
 
-import { framesUrl } from "./api.js";
+import { framesSocket } from "./api.js";
 
 const RETRY_MS = [500, 1000, 2000, 4000];
 
@@ -16,7 +16,7 @@ export function followFrames(sessionId, img, { onFrame = () => {}, onStatus = ()
 
   function connect() {
     if (stopped) return;
-    socket = new WebSocket(framesUrl(sessionId));
+    socket = framesSocket(sessionId);
     socket.addEventListener("open", () => onStatus("connected"));
     socket.addEventListener("message", async (event) => {
       const message = JSON.parse(event.data);

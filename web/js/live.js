@@ -1,6 +1,6 @@
 // Live job progress: the API's job events websocket, with polling if it drops.
 
-import { get, jobEventsUrl } from "./api.js";
+import { get, jobEventsSocket } from "./api.js";
 
 export const FINAL = new Set(["succeeded", "failed", "cancelled"]);
 const POLL_MS = 2000;
@@ -28,7 +28,7 @@ export function watchJob(jobId, onUpdate) {
   }
 
   let last = null;
-  socket = new WebSocket(jobEventsUrl(jobId));
+  socket = jobEventsSocket(jobId);
   socket.addEventListener("message", (event) => {
     last = JSON.parse(event.data);
     onUpdate(last);

@@ -25,7 +25,7 @@ from services.api.deps import (
     get_current_user,
 )
 from services.api.routes.jobs import _enqueue, require_job_space
-from services.api.schemas.common import MAX_ROW_ID, NUL_MESSAGE, ApiRequest, UtcDatetime, has_nul
+from services.api.schemas.common import MAX_ROW_ID, ApiRequest, UtcDatetime, unstorable_text
 from services.core.db.live import (
     LiveDecision,
     LiveFrameShown,
@@ -124,8 +124,8 @@ def start(
     require_job_space(settings, "starting a live session")
     lab = get_or_404(db, LabSession, session_id, "session_id")
     for name, value in body:
-        if has_nul(value):
-            raise BadRequestError(NUL_MESSAGE, field=name)
+        if (problem := unstorable_text(value)) is not None:
+            raise BadRequestError(problem, field=name)
     if lab.kind not in LIVE_KINDS:
         raise BadRequestError(
             f"session {session_id} is a {lab.kind} session; only {', '.join(LIVE_KINDS)} run live",

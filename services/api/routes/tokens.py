@@ -9,10 +9,16 @@ from sqlalchemy import select
 
 from services.api import audit
 from services.api.crud import get_or_404, paginate
-from services.api.deps import CurrentUser, DbDep, PageDep, RowId, get_current_user
+from services.api.deps import BearerToken, CurrentUser, DbDep, PageDep, RowId, get_current_user
+from services.api.errors import ForbiddenError
 from services.api.schemas.auth import ApiTokenCreate, ApiTokenCreated, ApiTokenPublic
 from services.api.schemas.common import Page
-from services.api.security import SHOWN_PREFIX_CHARS, hash_api_token, new_api_token
+from services.api.security import (
+    API_TOKEN_PREFIX,
+    SHOWN_PREFIX_CHARS,
+    hash_api_token,
+    new_api_token,
+)
 from services.core.db.base import utcnow
 from services.core.db.models import ApiToken
 from services.core.errors import NotFoundError
@@ -22,9 +28,23 @@ router = APIRouter(
 )
 
 
-@router.post("", status_code=status.HTTP_201_CREATED)
-def create(body: ApiTokenCreate, user: CurrentUser, db: DbDep) -> ApiTokenCreated:
-    """A new API token acting as you (with your role); the token is in this answer only."""
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    responses={403: {"description": "Signed in with an API token (sign in with a password)"}},
+)
+def create(
+    body: ApiTokenCreate, user: CurrentUser, token: BearerToken, db: DbDep
+) -> ApiTokenCreated:
+    """A new API token acting as you (with your role); the token is in this answer only.
+
+    Only a password sign-in (an access token) creates API tokens: an API token cannot mint
+    others, so revoking a leaked one ends what it could do.
+    """
+    if token.startswith(API_TOKEN_PREFIX):
+        raise ForbiddenError(
+            "an API token cannot create API tokens; sign in with your password", field="token"
+        )
     token = new_api_token()
     expires = (
         None if body.expires_in_days is None else utcnow() + timedelta(days=body.expires_in_days)

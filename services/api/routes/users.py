@@ -8,7 +8,17 @@ from sqlalchemy import select
 from services.api import audit
 from services.api.accounts import active_admin_count, create_user, set_password
 from services.api.crud import get_or_404, paginate
-from services.api.deps import AdminUser, CurrentUser, DbDep, PageDep, RowId, get_current_user
+from services.api.deps import (
+    AdminUser,
+    CurrentUser,
+    DbDep,
+    LimiterDep,
+    PageDep,
+    RowId,
+    get_current_user,
+)
+from services.api.errors import TooManyRequestsError
+from services.api.ratelimit import limit_key
 from services.api.schemas.common import Page
 from services.api.schemas.users import PasswordChange, UserCreate, UserPublic, UserUpdate
 from services.api.security import verify_password
@@ -24,12 +34,35 @@ def read_me(user: CurrentUser) -> UserPublic:
     return UserPublic.model_validate(user)
 
 
-@router.post("/me/password", status_code=status.HTTP_204_NO_CONTENT)
-def change_my_password(body: PasswordChange, user: CurrentUser, db: DbDep) -> None:
+PASSWORD_CHANGE_SCOPE = "password-change"
+"""The failed-login limit counts wrong current passwords under this "address", per account."""
+
+
+@router.post(
+    "/me/password",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses={429: {"description": "Too many wrong current passwords"}},
+)
+def change_my_password(
+    body: PasswordChange, user: CurrentUser, db: DbDep, limiter: LimiterDep
+) -> None:
     """Change your own password (the current one is required; a wrong one is 422, not 401:
-    the caller is signed in, the field is wrong)."""
+    the caller is signed in, the field is wrong).
+
+    Wrong current passwords count against the failed-login limit of the account, from
+    any address (``BGRL_LOGIN_MAX_FAILURES`` per ``BGRL_LOGIN_WINDOW_S``); more are a 429.
+    """
+    key = limit_key(PASSWORD_CHANGE_SCOPE, str(user.id))
+    wait = limiter.begin(db, key)
+    if wait:
+        raise TooManyRequestsError(
+            f"too many wrong current passwords; try again in {wait} s",
+            retry_after_s=wait,
+            field="current_password",
+        )
     if not verify_password(user.password_hash, body.current_password):
         raise BadRequestError("current password is wrong", field="current_password")
+    limiter.succeeded(db, key)
     set_password(user, body.new_password)
     audit.record(db, user, "user.password", "user", user.id)
     db.commit()

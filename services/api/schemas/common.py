@@ -4,6 +4,7 @@ the bounds of ids and timestamps."""
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from typing import Annotated, Any, Generic, TypeVar
 
@@ -26,32 +27,54 @@ MAX_ROW_ID = 2**31 - 1
 NO_NUL_PATTERN = r"^[^\x00]*$"
 """Text without NUL characters (PostgreSQL cannot store them): for query parameters."""
 NUL_MESSAGE = "text may not contain NUL characters (\\u0000)"
+_SURROGATE = re.compile(r"[\ud800-\udfff]")
 EARLIEST = datetime(1900, 1, 1, tzinfo=UTC)
 LATEST = datetime(9000, 1, 1, tzinfo=UTC)
 """Timestamps a request may carry: far from the ends of ``datetime``, so that adding a
 duration or converting to UTC cannot overflow."""
 
 
-def has_nul(value: Any) -> bool:
-    """True if ``value`` (text, or a list or mapping holding text) contains a NUL character."""
+SURROGATE_MESSAGE = (
+    "text may not contain a lone surrogate (\\ud800-\\udfff): it is no Unicode character"
+)
+
+
+def _texts(value: Any) -> Iterator[str]:
+    """Every text in ``value`` (text, or a list or mapping holding text, keys included)."""
     if isinstance(value, str):
-        return "\x00" in value
-    if isinstance(value, dict):
-        return any(has_nul(k) or has_nul(v) for k, v in value.items())
-    if isinstance(value, list | tuple):
-        return any(has_nul(v) for v in value)
-    return False
+        yield value
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            yield from _texts(key)
+            yield from _texts(item)
+    elif isinstance(value, list | tuple):
+        for item in value:
+            yield from _texts(item)
+
+
+def unstorable_text(value: Any) -> str | None:
+    """Why ``value`` (text, or a list or mapping holding text) cannot be stored and sent back,
+    or None: a NUL character (PostgreSQL cannot store it) or a lone surrogate (JSON's
+    ``"\\ud800"`` decodes to one; no UTF-8 can carry it, so the answer could not be sent)."""
+    for text in _texts(value):
+        if "\x00" in text:
+            return NUL_MESSAGE
+        if _SURROGATE.search(text):
+            return SURROGATE_MESSAGE
+    return None
 
 
 class ApiRequest(StrictRequest):
     """A request body of the api: no unknown fields, no non-finite numbers and no text with
-    NUL characters (a 422 naming the field, never a database error)."""
+    NUL characters or lone surrogates (a 422 naming the field, never a database error or a
+    500)."""
 
     @field_validator("*")
     @classmethod
-    def _no_nul(cls, value: Any) -> Any:
-        if has_nul(value):
-            raise ValueError(NUL_MESSAGE)
+    def _storable_text(cls, value: Any) -> Any:
+        problem = unstorable_text(value)
+        if problem is not None:
+            raise ValueError(problem)
         return value
 
 
