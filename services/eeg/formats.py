@@ -23,6 +23,7 @@ import re
 import shutil
 import tempfile
 import zipfile
+import zlib
 from contextlib import suppress
 from pathlib import Path
 from typing import Literal
@@ -52,6 +53,14 @@ EEGLAB_MAGIC = b"MATLAB "
 MAX_UNZIPPED_BYTES = 4 << 30
 """Largest BrainVision set or EEGLAB dataset read out of a zip (4 GiB: 20 minutes of 256
 channels at 1 kHz)."""
+MAX_HEADER_BYTES = 1 << 20
+"""Largest ``.vhdr`` read (a header is a few kB of text)."""
+MAX_COMPRESSION_RATIO = 100
+"""Largest unzipped/zipped size of a zip member past ``RATIO_FREE_BYTES`` (EEG samples
+compress 1.1-4 times; a zip bomb of zeros, about 1000 times: 2 MB that unzip to 2 GiB)."""
+RATIO_FREE_BYTES = 16 << 20
+"""Members up to this size unzipped are not held to ``MAX_COMPRESSION_RATIO`` (headers and
+marker files are small and compress well)."""
 MAX_RATE_MISMATCH = 0.01
 """Largest relative difference between an XDF EEG stream's nominal rate and the rate its
 timestamps give (clock drift is ppm; a percent is a wrong rate or lost samples)."""
@@ -214,11 +223,9 @@ def _read_vhdr(vhdr: Path, shown: str, preload: bool) -> mne.io.BaseRaw:
     return raw
 
 
-def _check_brainvision_length(
-    vhdr_text: str, data_path: Path, marker_path: Path, raw: mne.io.BaseRaw, shown: str
-) -> None:
-    """Refuse a truncated BrainVision set: a binary ``.eeg`` that ends inside a sample, or
-    markers after the last sample (MNE reads the part that is there, silently)."""
+def _binary_layout(vhdr_text: str) -> tuple[int, int, int | None] | None:
+    """Bytes per sample of all channels, the number of channels and the declared
+    ``DataPoints`` (if any) of a binary BrainVision set; None when the header does not say."""
     parser = configparser.ConfigParser(interpolation=None, strict=False)
     with suppress(configparser.Error):
         parser.read_string(vhdr_text.split("\n", 1)[1] if "\n" in vhdr_text else "")
@@ -226,19 +233,26 @@ def _check_brainvision_length(
     binary = parser["Binary Infos"] if parser.has_section("Binary Infos") else {}
     sample_bytes = _BINARY_FORMAT_BYTES.get(str(binary.get("BinaryFormat", "")).strip().upper())
     n_channels = str(common.get("NumberOfChannels", "")).strip()
+    points = str(common.get("DataPoints", "")).strip()
     if (
-        str(common.get("DataFormat", "BINARY")).strip().upper() == "BINARY"
-        and sample_bytes
-        and n_channels.isdigit()
-        and int(n_channels) > 0
+        str(common.get("DataFormat", "BINARY")).strip().upper() != "BINARY"
+        or not sample_bytes
+        or not n_channels.isdigit()
+        or int(n_channels) == 0
     ):
-        frame = sample_bytes * int(n_channels)
-        extra = data_path.stat().st_size % frame
-        if extra:
-            raise FormatError(
-                f"{shown}: truncated: the .eeg file ends inside a sample ({extra} bytes of a "
-                f"{frame}-byte sample of {n_channels} channels; was the copy cut short?)"
-            )
+        return None
+    declared = int(points) if points.isdigit() else None
+    return sample_bytes * int(n_channels), int(n_channels), declared
+
+
+def _check_brainvision_length(
+    vhdr_text: str, data_path: Path, marker_path: Path, raw: mne.io.BaseRaw, shown: str
+) -> None:
+    """Refuse a truncated BrainVision set: a binary ``.eeg`` that ends inside a sample, or
+    markers after the last sample (MNE reads the part that is there, silently)."""
+    refusal = _samples_size_refusal(vhdr_text, data_path.stat().st_size, shown)
+    if refusal:
+        raise FormatError(refusal)
     markers = marker_path.read_text(encoding="utf-8", errors="replace")
     positions = [int(match) for match in _MARKER_POSITION.findall(markers)]
     if positions and max(positions) > raw.n_times:
@@ -246,6 +260,54 @@ def _check_brainvision_length(
             f"{shown}: truncated: the .vmrk places markers up to sample {max(positions)} "
             f"but the .eeg holds {raw.n_times} samples (was the copy cut short?)"
         )
+
+
+def _check_members(members: list[zipfile.ZipInfo], shown: str) -> None:
+    """Refuse, before anything is unzipped, members that would unzip to more than
+    ``MAX_UNZIPPED_BYTES`` together or that claim more than ``MAX_COMPRESSION_RATIO`` times
+    their zipped size (a zip bomb, or a header lying about a member's size)."""
+    size = sum(info.file_size for info in members)
+    if size > MAX_UNZIPPED_BYTES:
+        raise FormatError(f"{shown}: {size} bytes unzipped; at most {MAX_UNZIPPED_BYTES} are read")
+    for info in members:
+        ratio = info.file_size / max(info.compress_size, 1)
+        if info.file_size > RATIO_FREE_BYTES and ratio > MAX_COMPRESSION_RATIO:
+            raise FormatError(
+                f"{shown}: {Path(info.filename).name} would unzip to {info.file_size} bytes, "
+                f"{ratio:.0f} times its {info.compress_size} zipped bytes (EEG samples compress "
+                f"at most a few times; more than {MAX_COMPRESSION_RATIO} is refused as a zip "
+                "bomb or a damaged zip)"
+            )
+
+
+def _unzip(archive: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, shown: str) -> None:
+    """Copy one member to ``target``, never more bytes than its header declares (zipfile
+    stops there, and a member whose data does not match its header fails its CRC)."""
+    try:
+        with archive.open(info) as src, target.open("wb") as dst:
+            shutil.copyfileobj(src, dst, 1 << 20)
+    except (zipfile.BadZipFile, zlib.error, EOFError) as exc:
+        raise FormatError(f"{shown}: a damaged zip ({Path(info.filename).name}: {exc})") from exc
+
+
+def _samples_size_refusal(vhdr_text: str, size: int, shown: str) -> str | None:
+    """Why a ``.eeg`` of ``size`` bytes does not fit its header's recording (a whole number
+    of samples of its channels, and the header's ``DataPoints`` if given), or None."""
+    layout = _binary_layout(vhdr_text)
+    if layout is None:
+        return None
+    frame, n_channels, data_points = layout
+    if size % frame:
+        return (
+            f"{shown}: truncated: the .eeg file ends inside a sample ({size % frame} bytes of a "
+            f"{frame}-byte sample of {n_channels} channels; was the copy cut short?)"
+        )
+    if data_points is not None and size != data_points * frame:
+        return (
+            f"{shown}: the .eeg file holds {size // frame} samples; the header declares "
+            f"DataPoints={data_points}"
+        )
+    return None
 
 
 def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io.BaseRaw:
@@ -264,7 +326,15 @@ def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io
                 f"{shown}: a BrainVision zip holds one .vhdr with its .vmrk and .eeg; "
                 f"found {len(headers)} .vhdr files"
             )
-        text = archive.read(headers[0]).decode("utf-8", "replace")
+        _check_members(headers, shown)
+        if headers[0].file_size > MAX_HEADER_BYTES:
+            raise FormatError(
+                f"{shown}: a {headers[0].file_size}-byte .vhdr is no BrainVision header"
+            )
+        try:
+            text = archive.read(headers[0]).decode("utf-8", "replace")
+        except (zipfile.BadZipFile, zlib.error, EOFError) as exc:
+            raise FormatError(f"{shown}: a damaged zip ({exc})") from exc
         data_file, marker_file = _referenced_files(text, shown)
         # Members are matched by base name (the set may sit in a folder of the zip), and
         # case-insensitively when no exact match exists (sets written on Windows).
@@ -282,17 +352,15 @@ def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io
                     f"({', '.join(info.filename for info in found[:4])}); keep one set per zip"
                 )
             chosen.append(found[0])
-        size = headers[0].file_size + sum(info.file_size for info in chosen)
-        if size > MAX_UNZIPPED_BYTES:
-            raise FormatError(
-                f"{shown}: {size} bytes unzipped; at most {MAX_UNZIPPED_BYTES} are read"
-            )
+        _check_members(chosen, shown)
+        # the .eeg's declared size must fit the header, checked before it is unzipped
+        if refusal := _samples_size_refusal(text, chosen[0].file_size, shown):
+            raise FormatError(refusal)
         header_name = f"{Path(headers[0].filename).stem or 'recording'}.vhdr"
         targets = [header_name, data_file, marker_file]  # MNE wants a lower-case .vhdr
         with tempfile.TemporaryDirectory(prefix="bgrl-vhdr-") as folder:
             for info, target in zip([headers[0], *chosen], targets, strict=True):
-                with archive.open(info) as src, (Path(folder) / target).open("wb") as dst:
-                    shutil.copyfileobj(src, dst, 1 << 20)
+                _unzip(archive, info, Path(folder) / target, shown)
             return _read_vhdr(Path(folder) / header_name, shown, preload=True)
 
 
@@ -354,16 +422,11 @@ def read_eeglab(path: Path, shown: str) -> mne.io.BaseRaw:
                 f"{len(sets)} .set and {len(samples)} .fdt files"
             )
         chosen = [*sets, *samples]
-        size = sum(info.file_size for info in chosen)
-        if size > MAX_UNZIPPED_BYTES:
-            raise FormatError(
-                f"{shown}: {size} bytes unzipped; at most {MAX_UNZIPPED_BYTES} are read"
-            )
+        _check_members(chosen, shown)
         names = [Path(info.filename).name for info in chosen]
         with tempfile.TemporaryDirectory(prefix="bgrl-set-") as folder:
             for info, name in zip(chosen, names, strict=True):
-                with archive.open(info) as src, (Path(folder) / name).open("wb") as dst:
-                    shutil.copyfileobj(src, dst, 1 << 20)
+                _unzip(archive, info, Path(folder) / name, shown)
             return _read_set(Path(folder) / names[0], shown)
 
 
