@@ -2,8 +2,10 @@
 
 :func:`create_service_app` gives each service the same body-size limit (answered with a
 JSON 413), the same JSON error bodies (:class:`~services.core.errors.ServiceError`,
-validation errors that name the field and never echo a value JSON cannot carry), a request
-id on every request and log line, ``GET /health`` and ``GET /metrics`` (Prometheus).
+validation errors that name the field and never echo a value JSON cannot carry, nor a
+secret), a request id on every request and log line, ``GET /health``, ``GET /metrics``
+(Prometheus), and ``/docs`` and ``/redoc`` whose Swagger UI and ReDoc are served by the
+service itself (no CDN).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.body_limit import MAX_BODY_SIZE_SCOPE_KEY, RequestBodyLimitMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from services.core.docs_pages import add_docs_pages
 from services.core.errors import ServiceError
 from services.core.gc_pauses import frozen_after_startup
 from services.core.logging import request_id
@@ -292,8 +295,14 @@ def create_service_app(
     internal token only), with the series of ``metrics_collectors``.
     """
     app = FastAPI(
-        title=title, summary=summary, version=version, lifespan=frozen_after_startup(lifespan)
+        title=title,
+        summary=summary,
+        version=version,
+        lifespan=frozen_after_startup(lifespan),
+        docs_url=None,  # served without a CDN by add_docs_pages
+        redoc_url=None,
     )
+    add_docs_pages(app)
 
     @app.exception_handler(ServiceError)
     async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
