@@ -124,16 +124,7 @@ class _Writer:
         self.size = 0
         self.root = store.root
         self._check_free_space(reserve.expected_bytes if reserve else 0)
-        tmp_dir = store.root / TMP_FOLDER
-        tmp_dir.mkdir(exist_ok=True, mode=PRIVATE_FOLDER_MODE)
-        self.tmp = tmp_dir / f"{uuid.uuid4().hex}{PART_SUFFIX}"
-        # created under another name, locked, then named a part: every part is locked for
-        # as long as its writer lives (the lock, on the file, follows the rename)
-        unlocked = self.tmp.with_suffix(NEW_SUFFIX)
-        fd = os.open(unlocked, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        os.replace(unlocked, self.tmp)
-        self.handle: BinaryIO = os.fdopen(fd, "wb")
+        self.tmp, self.handle = store.open_part()
         self.store = store
         self.target = store.path(self.relpath)
 
@@ -192,6 +183,21 @@ class ArtifactStore:
 
     def __init__(self, root: Path) -> None:
         self.root = private_folder(Path(root).resolve())
+
+    def open_part(self) -> tuple[Path, BinaryIO]:
+        """A new ``.tmp/<random>.part`` (mode 600) open for writing and locked until it is
+        closed, so :meth:`remove_abandoned_parts` leaves it alone while its writer lives.
+        Rename it into place before closing it (every write to the store does)."""
+        tmp_dir = self.root / TMP_FOLDER
+        tmp_dir.mkdir(exist_ok=True, mode=PRIVATE_FOLDER_MODE)
+        part = tmp_dir / f"{uuid.uuid4().hex}{PART_SUFFIX}"
+        # created under another name, locked, then named a part: every part is locked for
+        # as long as its writer lives (the lock, on the file, follows the rename)
+        unlocked = part.with_suffix(NEW_SUFFIX)
+        fd = os.open(unlocked, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        os.replace(unlocked, part)
+        return part, os.fdopen(fd, "wb")
 
     def make_folders(self, folder: Path) -> None:
         """Create ``folder`` (inside the root) and its missing parents, each mode 700."""

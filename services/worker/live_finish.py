@@ -278,29 +278,33 @@ class RunFinish:
 
 def copy_into_store(store: ArtifactStore, source: Path, relpath: str, sha256: str) -> int:
     """Copy ``source`` to ``relpath`` in the store unless it is already there with
-    ``sha256``; returns its size. The copy is hashed as it is written under a temporary
-    name fixed by ``relpath`` (so an interrupted copy is overwritten, not left beside),
-    synced, checked against ``sha256`` and renamed into place: the file is complete or
-    absent."""
+    ``sha256``; returns its size. The copy is hashed as it is written into a locked part
+    (:meth:`ArtifactStore.open_part`: an interrupted copy's part is removed at the api's next
+    start), synced, checked against ``sha256`` and renamed into place: the file is complete
+    or absent."""
     target = store.path(relpath)
     if target.is_file() and sha256_file(target) == sha256:
         return target.stat().st_size
-    part = store.root / ".tmp" / (relpath.replace("/", "__") + ".part")
-    part.parent.mkdir(parents=True, exist_ok=True)
+    part, dst = store.open_part()
     digest = hashlib.sha256()
-    with source.open("rb") as src, part.open("wb") as dst:
-        while chunk := src.read(CHUNK_BYTES):
-            digest.update(chunk)
-            dst.write(chunk)
+    try:
+        with source.open("rb") as src:
+            while chunk := src.read(CHUNK_BYTES):
+                digest.update(chunk)
+                dst.write(chunk)
         dst.flush()
         os.fsync(dst.fileno())
-    if digest.hexdigest() != sha256:
+        if digest.hexdigest() != sha256:
+            raise RuntimeError(
+                f"{source.name}: the copy's sha256 {digest.hexdigest()[:12]} is not {sha256[:12]}"
+            )
+        store.make_folders(target.parent)
+        os.replace(part, target)
+    except BaseException:
         part.unlink(missing_ok=True)
-        raise RuntimeError(
-            f"{source.name}: the copy's sha256 {digest.hexdigest()[:12]} is not {sha256[:12]}"
-        )
-    target.parent.mkdir(parents=True, exist_ok=True)
-    os.replace(part, target)
+        raise
+    finally:
+        dst.close()  # after the rename: the part stays locked while it is one
     return target.stat().st_size
 
 
