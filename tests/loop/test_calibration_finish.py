@@ -71,7 +71,7 @@ def _die_before_the_rename(patch: pytest.MonkeyPatch) -> None:
     calls = []
 
     def dying(src: Any, dst: Any, *args: Any, **kwargs: Any) -> None:
-        if str(src).endswith(".part") and "live-run-" in str(src) and not calls:
+        if str(src).endswith(".part") and str(dst).endswith("-calibration.bdf") and not calls:
             calls.append(1)
             raise WorkerDiedError("before the rename")
         real(src, dst, *args, **kwargs)
@@ -151,7 +151,7 @@ def _one_recording(loop: LoopPlatform, run_id: int, session_id: int) -> tuple[Re
     assert path.stat().st_size == recording.size_bytes == artifact.size_bytes
     store = loop.runtime.store.root
     assert sorted(store.rglob(f"{name}*")) == [path]  # no second copy
-    assert not [p for p in store.rglob("*.part") if f"live-run-{run_id}" in p.name]
+    assert not list(store.rglob("*.part"))  # the dead copy's part is gone too
     eeg = httpx.get(
         f"{loop.url('eeg')}/recordings", headers={"X-Service-Token": TOKEN}, timeout=30
     ).json()
