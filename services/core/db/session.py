@@ -57,15 +57,19 @@ def _ping_when_idle(engine: Engine) -> None:
 
 
 def _private_sqlite_file(path: Path) -> None:
-    """Create the SQLite file (and its folder) readable by its owner only: mode 600 (SQLite
-    gives its journal and WAL files the database file's mode)."""
+    """Make the SQLite file (and its folder) readable by its owner only: mode 600 (SQLite
+    gives its journal and WAL files the database file's mode).
+
+    An existing file is changed by its path, never opened: closing any descriptor of a
+    database file drops the POSIX locks every SQLite connection of this process holds on
+    it. A new one is created empty here, before any connection can have opened it.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, PRIVATE_FILE_MODE)
     try:
-        if os.fstat(fd).st_mode & 0o777 != PRIVATE_FILE_MODE:
-            os.fchmod(fd, PRIVATE_FILE_MODE)
-    finally:
-        os.close(fd)
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE))
+    except FileExistsError:
+        if path.stat().st_mode & 0o777 != PRIVATE_FILE_MODE:
+            path.chmod(PRIVATE_FILE_MODE)
 
 
 def make_engine(url: str, *, connections: int | None = None, **kwargs: Any) -> Engine:
