@@ -30,8 +30,13 @@ from services.learner.specs import (
 )
 from services.platform.jobs import REPRODUCE, REPRODUCE_RUN
 from services.platform.jobs.reproduce import ReproduceConfig
-from services.worker.runtime import JobConfigError, JobContext, JobOutcome, JobStoppedError
-from services.worker.training import parse_config
+from services.worker.runtime import (
+    JobConfigError,
+    JobContext,
+    JobOutcome,
+    JobStoppedError,
+    parse_config,
+)
 
 PLOT_SUFFIXES = (".png",)
 RECORD_FIELDS = frozenset(f.name for f in dataclasses.fields(RunRecord))

@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from pydantic import ValidationError
 from sqlalchemy import select
 from torch.utils.tensorboard import SummaryWriter
 
@@ -41,12 +40,12 @@ from services.learner.hf_methods import RECOMMENDED_METHOD
 from services.learner.ppo import Callback
 from services.learner.runs import RunRecord, run_one
 from services.learner.specs import RunSpec, apply_preset
-from services.platform.jobs import GUIDED_PPO, JobKind, config_error
+from services.platform.jobs import GUIDED_PPO
 from services.platform.jobs.guided_ppo import GuidedPPOConfig
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
 from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
-from services.worker.runtime import JobConfigError, JobContext, JobOutcome
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome, parse_config
 
 PROGRESS_EVERY_S = 1.0
 """Progress (steps done) is written at most this often; every evaluation is written."""
@@ -106,15 +105,6 @@ class JobProgress(Callback):
             curve=list(self.curve),
         )
         return True
-
-
-def parse_config(kind: JobKind, config: dict[str, Any]) -> Any:
-    """The job's config parsed with its kind's model (the api's validation, again: a config
-    stored by an older api, or written by hand, is refused the same way)."""
-    try:
-        return kind.parse(config)
-    except ValidationError as exc:
-        raise JobConfigError(config_error(exc)) from None
 
 
 def spec_from_guided_config(config: GuidedPPOConfig) -> RunSpec:
