@@ -138,12 +138,13 @@ def add_job(runtime: Any, kind: str, config: dict[str, Any]) -> str:
 def live_run(runtime: Any, session_id: int, mode: str, options: dict[str, Any]) -> tuple[int, str]:
     """What ``POST /api/v1/sessions/{id}/start`` writes: the live run and its job."""
     from services.core.db.live import LiveRun, queue_live_job
+    from services.platform.jobs import LIVE_SESSION
 
     with runtime.sessions() as db:
         run = LiveRun(session_id=session_id, mode=mode, options=options, status="queued")
         db.add(run)
         db.flush()
-        job = queue_live_job(db, run)
+        job = queue_live_job(db, run, LIVE_SESSION.name)
         db.commit()
         return run.id, job.id
 

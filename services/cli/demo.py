@@ -124,6 +124,7 @@ def demo(
     from services.core.db.models import Subject
     from services.core.logging import configure_logging
     from services.learner.runs import steps_to_reach
+    from services.platform.jobs import GUIDED_PPO
     from services.worker.calibration import eeg_calibration
     from services.worker.live_session import live_session
     from services.worker.training import guided_ppo
@@ -177,7 +178,7 @@ def demo(
         typer.echo(f"guided PPO from HF model {online['hf_model_id']}: {total_steps} steps")
         guided = {"task": "sssg", "method": "hf_sparse", "hf_model_id": online["hf_model_id"],
                   "seed": seed, "total_steps": total_steps, "preset": "platform"}  # fmt: skip
-        job_id = add_job(runtime, "guided_ppo", guided)
+        job_id = add_job(runtime, GUIDED_PPO.name, guided)
         trained_rl = run_to_end(runtime, job_id, guided_ppo)
         stages["guided_ppo_s"] = time.perf_counter() - t
 

@@ -23,9 +23,10 @@ from services.client.config import (
     load_credentials,
     save_credentials,
 )
-from services.client.schemas import JobKind, JobStatus
+from services.client.schemas import JobStatus
 from services.core.model_formats import SUFFIXES, ModelFormat
 from services.core.settings import SettingsError, load_settings
+from services.platform.jobs import KIND_NAMES, SUBMITTED_KINDS
 
 jobs_app = typer.Typer(
     help="Submit, follow, inspect, cancel and retry jobs on the platform.", no_args_is_help=True
@@ -216,7 +217,7 @@ def build_config(config: str | None, assignments: list[str]) -> dict[str, Any]:
 
 
 def submit(
-    kind: Annotated[str, typer.Argument(help=f"Job kind: {', '.join(get_args(JobKind))}.")],
+    kind: Annotated[str, typer.Argument(help=f"Job kind: {', '.join(SUBMITTED_KINDS)}.")],
     config: Annotated[
         str | None, typer.Option(help="The config as JSON, or @FILE holding it.")
     ] = None,
@@ -227,10 +228,8 @@ def submit(
     url: UrlOption = None,
 ) -> None:
     """Submit a job; prints its id (e.g. JOB=$(bgrl jobs submit guided_ppo --set ...))."""
-    if kind not in get_args(JobKind):
-        _fail(
-            f"unknown job kind {kind!r}; use one of {', '.join(get_args(JobKind))}", EXIT_BAD_INPUT
-        )
+    if kind not in SUBMITTED_KINDS:
+        _fail(f"unknown job kind {kind!r}; use one of {', '.join(SUBMITTED_KINDS)}", EXIT_BAD_INPUT)
     try:
         values = build_config(config, set_ or [])
     except ValueError as exc:
@@ -262,9 +261,8 @@ def list_jobs(
             f"unknown status {status!r}; use one of {', '.join(get_args(JobStatus))}",
             EXIT_BAD_INPUT,
         )
-    kinds = (*get_args(JobKind), "reproduce_run", "live_session")
-    if kind is not None and kind not in kinds:
-        _fail(f"unknown job kind {kind!r}; use one of {', '.join(kinds)}", EXIT_BAD_INPUT)
+    if kind is not None and kind not in KIND_NAMES:
+        _fail(f"unknown job kind {kind!r}; use one of {', '.join(KIND_NAMES)}", EXIT_BAD_INPUT)
     with _client(url) as client:
         page = client.list_jobs(status=status, kind=kind, limit=limit)  # type: ignore[arg-type]
     if as_json:

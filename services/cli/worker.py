@@ -40,10 +40,11 @@ def worker(
         from services.core.db.migrate import upgrade_database
 
         upgrade_database(settings.resolved_database_url)
+    from services.platform.jobs import GUIDED_PPO
     from services.worker import app as worker_app
 
     celery = worker_app.main_app(settings)
-    worker_app.load_handler("guided_ppo")  # import the learner now, not in the first job
+    worker_app.load_handler(GUIDED_PPO.name)  # import the learner now, not in the first job
     typer.echo(
         f"worker {settings.owner_name}: broker {maybe_sanitize_url(broker_url(settings))}, "
         f"artifacts {settings.resolved_artifact_dir}",

@@ -3,11 +3,12 @@
 Example::
 
     from services.client import PlatformClient
+    from services.platform.jobs import GUIDED_PPO
 
     with PlatformClient("http://127.0.0.1:8000") as api:
         api.login("me@lab.org", "my password")
-        job = api.submit_job("guided_ppo", {"task": "sssg", "method": "hf_sparse",
-                                            "accuracy": 0.7, "seed": 0, "total_steps": 40000})
+        job = api.submit_job(GUIDED_PPO.name, {"task": "sssg", "method": "hf_sparse",
+                                               "accuracy": 0.7, "seed": 0, "total_steps": 40000})
         job = api.wait_job(job.id, timeout=3600, on_progress=lambda j: print(j.progress))
         api.download_model(job.id, "policy.pt")
 """

@@ -10,10 +10,12 @@ from typing import Any, Generic, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from services.platform.jobs import SubmittedKindName
+
 ItemT = TypeVar("ItemT")
 
-JobKind = Literal["guided_ppo", "reproduce", "eeg_calibration", "bids_export", "session_replay"]
-"""Kinds a user may submit (the api's; a test holds them equal)."""
+JobKind = SubmittedKindName
+"""Kinds a user may submit (the job contract's, :mod:`services.platform.jobs`)."""
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 FINAL_JOB_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 """A job in one of these stays there (until it is retried)."""

@@ -33,16 +33,15 @@ from kombu.utils.json import dumps
 if TYPE_CHECKING:
     from services.core.platform import PlatformSettings
 
-TASK_NAMES: dict[str, str] = {
-    "guided_ppo": "bgrl.jobs.guided_ppo",
-    "reproduce": "bgrl.jobs.reproduce",
-    "reproduce_run": "bgrl.jobs.reproduce_run",
-    "eeg_calibration": "bgrl.jobs.eeg_calibration",
-    "live_session": "bgrl.jobs.live_session",
-    "bids_export": "bgrl.jobs.bids_export",
-    "session_replay": "bgrl.jobs.session_replay",
-}
-"""Job kind -> Celery task name (the api sends by name; only workers import the tasks)."""
+TASK_PREFIX = "bgrl.jobs."
+"""Celery task names are this and the job kind (the api sends by name; only workers import
+the tasks, one per kind of ``services.platform.jobs``)."""
+
+
+def task_name(kind: str) -> str:
+    """The Celery task of job kind ``kind``."""
+    return TASK_PREFIX + kind
+
 
 JOB_QUEUE = "bgrl.jobs"
 """The one queue every job task goes to."""
@@ -146,7 +145,7 @@ def make_celery(settings: PlatformSettings) -> Celery:
         task_acks_on_failure_or_timeout=True,
         task_reject_on_worker_lost=True,
         task_default_queue=JOB_QUEUE,
-        task_routes={name: {"queue": JOB_QUEUE} for name in TASK_NAMES.values()},
+        task_routes={f"{TASK_PREFIX}*": {"queue": JOB_QUEUE}},
         task_serializer="json",
         accept_content=["json"],
         worker_prefetch_multiplier=1,
@@ -166,9 +165,4 @@ def make_celery(settings: PlatformSettings) -> Celery:
 
 def enqueue_job(celery_app: Celery, job_id: str, kind: str) -> None:
     """Send the task of ``kind`` for ``job_id``; call it after the job row is committed."""
-    try:
-        task_name = TASK_NAMES[kind]
-    except KeyError:
-        known = sorted(TASK_NAMES)
-        raise ValueError(f"unknown job kind {kind!r}; expected one of {known}") from None
-    celery_app.send_task(task_name, args=[job_id], queue=JOB_QUEUE)
+    celery_app.send_task(task_name(kind), args=[job_id], queue=JOB_QUEUE)

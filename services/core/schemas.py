@@ -23,6 +23,8 @@ Seed = Annotated[
     int, Field(strict=True, ge=0, le=2**63 - 1, description="A JSON integer in [0, 2^63).")
 ]
 """A seed, as a JSON integer in [0, 2^63)."""
+MAX_ROW_ID = 2**31 - 1
+"""Largest integer id accepted (bigger ones cannot exist and would overflow the database)."""
 
 
 class StrictRequest(BaseModel):

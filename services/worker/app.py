@@ -18,23 +18,34 @@ from celery import Celery
 from celery.signals import worker_ready, worker_shutdown, worker_shutting_down
 
 from services.core.gc_pauses import freeze_startup_objects, unfreeze
-from services.core.queue import TASK_NAMES, make_celery
+from services.core.queue import make_celery, task_name
 from services.core.reaper import Reaper
 from services.core.settings import load_settings
+from services.platform.jobs import (
+    BIDS_EXPORT,
+    EEG_CALIBRATION,
+    GUIDED_PPO,
+    JOB_KINDS,
+    LIVE_SESSION,
+    REPRODUCE,
+    REPRODUCE_RUN,
+    SESSION_REPLAY,
+)
 from services.worker.runtime import SHUTDOWN, Handler, Runtime, run_job
 from services.worker.settings import WorkerSettings
 
 logger = logging.getLogger(__name__)
 
 HANDLERS: dict[str, str] = {
-    "guided_ppo": "services.worker.training:guided_ppo",
-    "reproduce": "services.worker.reproduce:reproduce",
-    "reproduce_run": "services.worker.training:reproduce_run",
-    "eeg_calibration": "services.worker.calibration:eeg_calibration",
-    "live_session": "services.worker.live_session:live_session",
-    "bids_export": "services.worker.bids:bids_export",
-    "session_replay": "services.worker.replay:session_replay",
+    GUIDED_PPO.name: "services.worker.training:guided_ppo",
+    REPRODUCE.name: "services.worker.reproduce:reproduce",
+    REPRODUCE_RUN.name: "services.worker.training:reproduce_run",
+    EEG_CALIBRATION.name: "services.worker.calibration:eeg_calibration",
+    LIVE_SESSION.name: "services.worker.live_session:live_session",
+    BIDS_EXPORT.name: "services.worker.bids:bids_export",
+    SESSION_REPLAY.name: "services.worker.replay:session_replay",
 }
+assert set(HANDLERS) == set(JOB_KINDS), "every job kind of the registry needs its handler"
 """Handler of each job kind, imported on first use (a worker that only trains never loads
 the EEG pipeline, which takes seconds to import)."""
 
@@ -62,7 +73,7 @@ def _register(celery: Celery, runtime: Runtime, kind: str) -> None:
 
     task.__name__ = task.__qualname__ = kind
     task.__doc__ = f"Run the {kind} job with this id (idempotent by job id)."
-    celery.task(name=TASK_NAMES[kind])(task)
+    celery.task(name=task_name(kind))(task)
 
 
 runtime: Runtime | None = None

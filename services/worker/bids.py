@@ -34,7 +34,8 @@ from services.core.db.models import Subject
 from services.eeg.bdf import write_bdf
 from services.eeg.io import action_events, detect_format
 from services.eeg.virtual_subject import LINE_FREQ_HZ, STIM_CHANNEL
-from services.worker.runtime import JobConfigError, JobContext, JobOutcome, Runtime
+from services.platform.jobs import BIDS_EXPORT
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome, Runtime, parse_config
 from services.worker.session_data import (
     SessionStream,
     StoredSession,
@@ -297,13 +298,7 @@ def zip_folder(folder: Path, target: Path) -> Path:
 def bids_export(context: JobContext) -> JobOutcome:
     """Handler of ``bids_export`` jobs: config ``{subject_id}``; the zip is a ``bids``
     artifact."""
-    config = {k: v for k, v in context.config.items() if v is not None}
-    unknown = set(config) - {"subject_id"}
-    if unknown:
-        raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
-    subject_id = config.get("subject_id")
-    if not isinstance(subject_id, int) or isinstance(subject_id, bool) or subject_id < 1:
-        raise JobConfigError("subject_id must be an integer >= 1")
+    subject_id = parse_config(BIDS_EXPORT, context.config).subject_id
     with tempfile.TemporaryDirectory(prefix="bgrl-bids-job-") as tmp:
         root = Path(tmp) / "bids"
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import Any
 
 from sqlalchemy import select
 
@@ -19,28 +18,18 @@ from services.core.web import jsonable
 from services.eeg.calibration import TrainingConfig, calibrate
 from services.eeg.classifier import ONNX_FILE, PT2_FILE, TORCHSCRIPT_FILE
 from services.eeg.io import RecordingError, read_recording
-from services.worker.runtime import JobConfigError, JobContext, JobOutcome
+from services.platform.jobs import EEG_CALIBRATION
+from services.platform.jobs.eeg_calibration import EEGCalibrationConfig
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome, parse_config
 
-CALIBRATION_FIELDS = frozenset({"recording_id", "seed", "max_passes", "onnx", "report"})
 ARTIFACT_KINDS = {".png": "plot", ".json": "results", ".html": "results"}
-
-
-def _int(config: dict[str, Any], name: str, default: int | None, minimum: int) -> int:
-    value = config.get(name, default)
-    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-        raise JobConfigError(f"{name} must be an integer >= {minimum}")
-    return value
 
 
 def eeg_calibration(context: JobContext) -> JobOutcome:
     """Handler of ``eeg_calibration`` jobs."""
-    config = {k: v for k, v in context.config.items() if v is not None}
-    unknown = set(config) - CALIBRATION_FIELDS
-    if unknown:
-        raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
-    recording_id = _int(config, "recording_id", None, 1)
-    seed = _int(config, "seed", 0, 0)
-    max_passes = _int(config, "max_passes", TrainingConfig().max_passes, 1)
+    config: EEGCalibrationConfig = parse_config(EEG_CALIBRATION, context.config)
+    recording_id, seed = config.recording_id, config.seed
+    max_passes = config.max_passes or TrainingConfig().max_passes
     with context.runtime.sessions() as session:
         row = session.execute(
             select(Recording, Artifact.relpath, LabSession.subject_id)
@@ -64,8 +53,8 @@ def eeg_calibration(context: JobContext) -> JobOutcome:
                 seed=seed,
                 out_dir=out,
                 config=TrainingConfig(max_passes=max_passes),
-                report=bool(config.get("report", True)),
-                onnx=bool(config.get("onnx", True)),
+                report=config.report,
+                onnx=config.onnx,
             )
         except ValueError as exc:  # e.g. too few labelled epochs: retrying will not help
             raise JobConfigError(f"recording {recording_id}: {exc}") from None

@@ -22,6 +22,7 @@ from services.core.live import LiveOptions
 from services.core.queue import enqueue_job
 from services.eeg.io import read_recording
 from services.eeg.settings import EEGSettings
+from services.platform.jobs import EEG_CALIBRATION
 from services.worker.live_services import ServiceClient
 from services.worker.runtime import JobContext
 
@@ -160,7 +161,7 @@ class RunFinish:
             if options.calibration_max_passes is not None:
                 config["max_passes"] = options.calibration_max_passes
             job = Job(
-                kind="eeg_calibration",
+                kind=EEG_CALIBRATION.name,
                 config=config,
                 status="queued",
                 submitter_id=self.context.submitter_id,
@@ -180,7 +181,7 @@ class RunFinish:
         with self.runtime.sessions() as db:
             status = db.scalar(select(Job.status).where(Job.id == job_id))
         if status == "queued":
-            enqueue_job(self.runtime.celery, job_id, "eeg_calibration")
+            enqueue_job(self.runtime.celery, job_id, EEG_CALIBRATION.name)
 
     def calibration(self, stored: dict[str, Any] | None) -> dict[str, Any]:
         """Store the EEG service's live recording of the session (BDF + sha256, an artifact and

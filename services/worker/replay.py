@@ -39,10 +39,12 @@ from services.learner.feedback import FeedbackConfig
 from services.learner.hf_methods import PAPER_METHOD
 from services.learner.service.export import policy_files
 from services.learner.service.session import HFSession, SessionSpec
+from services.platform.jobs import SESSION_REPLAY
+from services.platform.jobs.session_replay import SessionReplayConfig
 from services.sim.registry import resolve_map
 from services.worker.live_eeg import EPOCH_END_S
 from services.worker.live_finish import hf_policy_spl
-from services.worker.runtime import JobConfigError, JobContext, JobOutcome, Runtime
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome, Runtime, parse_config
 from services.worker.session_data import (
     SessionStream,
     StoredSession,
@@ -52,17 +54,6 @@ from services.worker.session_data import (
 )
 
 logger = logging.getLogger(__name__)
-
-REPLAY_FIELDS = frozenset({"session_id", "classifier_id", "label_budget"})
-
-
-def _int(config: dict[str, Any], name: str, *, required: bool) -> int | None:
-    value = config.get(name)
-    if value is None and not required:
-        return None
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise JobConfigError(f"{name} must be an integer >= 1")
-    return value
 
 
 def decode_session(
@@ -139,12 +130,8 @@ def _hf_session(runtime_data_dir: Path, run: LiveRun, budget: int, method: str) 
 def session_replay(context: JobContext) -> JobOutcome:
     """Handler of ``session_replay`` jobs: config ``{session_id, classifier_id?,
     label_budget?}``."""
-    config = {k: v for k, v in context.config.items() if v is not None}
-    unknown = set(config) - REPLAY_FIELDS
-    if unknown:
-        raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
-    session_id = _int(config, "session_id", required=True)
-    assert session_id is not None
+    config: SessionReplayConfig = parse_config(SESSION_REPLAY, context.config)
+    session_id = config.session_id
     runtime = context.runtime
     stored = load_session(runtime, session_id)
     run = stored.run
@@ -155,14 +142,10 @@ def session_replay(context: JobContext) -> JobOutcome:
             f"session_id: session {session_id} is a {run.mode} session; replay trains pi_HF "
             "from an online session's states and actions"
         )
-    classifier_id = _int(config, "classifier_id", required=False) or run.options.get(
-        "classifier_id"
-    )
+    classifier_id = config.classifier_id or run.options.get("classifier_id")
     if classifier_id is None:
         raise JobConfigError("classifier_id: the session has none; give one")
-    budget = _int(config, "label_budget", required=False) or int(
-        run.options.get("label_budget", 1000)
-    )
+    budget = config.label_budget or int(run.options.get("label_budget", 1000))
     classifier = load_classifier(runtime, int(classifier_id))
     stream = session_stream(runtime, stored)
     decisions = decode_session(stored, stream, classifier, f"platform-{classifier_id}")

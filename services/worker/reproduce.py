@@ -22,70 +22,43 @@ from services.learner.outputs import Results, load_results, save_results
 from services.learner.pool import reproduce as write_reproduction
 from services.learner.runs import RunFailure, RunRecord
 from services.learner.specs import (
-    DEFAULT_LABELS,
     FULL_SEEDS,
     QUICK_SEEDS,
     RunSpec,
     apply_preset,
     build_specs,
 )
-from services.worker.runtime import JobConfigError, JobContext, JobOutcome, JobStoppedError
-from services.worker.training import check_ppo_overrides
+from services.platform.jobs import REPRODUCE, REPRODUCE_RUN
+from services.platform.jobs.reproduce import ReproduceConfig
+from services.worker.runtime import (
+    JobConfigError,
+    JobContext,
+    JobOutcome,
+    JobStoppedError,
+    parse_config,
+)
 
-REPRODUCE_FIELDS = frozenset(
-    {
-        "quick", "seeds", "first_seed", "tasks", "methods", "accuracies", "treatments", "ppo",
-        "checkpoint_every", "preset", "n_labels",
-    }
-)  # fmt: skip
 PLOT_SUFFIXES = (".png",)
 RECORD_FIELDS = frozenset(f.name for f in dataclasses.fields(RunRecord))
 
 
-def _items(value: Any, name: str) -> list[str]:
-    if isinstance(value, str):
-        return [v.strip() for v in value.split(",") if v.strip()]
-    if isinstance(value, list) and all(isinstance(v, str | int | float) for v in value):
-        return [str(v) for v in value]
-    raise JobConfigError(f"{name} must be a list or a comma-separated string")
-
-
 def specs_from_config(config: dict[str, Any]) -> list[RunSpec]:
     """The run specs of a ``reproduce`` job config (the options of ``bgrl reproduce``)."""
-    config = {k: v for k, v in config.items() if v is not None}
-    unknown = set(config) - REPRODUCE_FIELDS
-    if unknown:
-        raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
-    quick = bool(config.get("quick", False))
-    seeds = config.get("seeds", QUICK_SEEDS if quick else FULL_SEEDS)
-    first_seed = config.get("first_seed", 0)
-    n_labels = config.get("n_labels", DEFAULT_LABELS)
-    for name, value, least in (("seeds", seeds, 1), ("first_seed", first_seed, 0),
-                               ("n_labels", n_labels, 1)):  # fmt: skip
-        if not isinstance(value, int) or isinstance(value, bool) or value < least:
-            raise JobConfigError(f"{name} must be an integer >= {least}")
-    overrides = config.get("ppo") or {}
-    if not isinstance(overrides, dict):
-        raise JobConfigError("ppo must be an object of PPO settings")
-    check_ppo_overrides(overrides)
+    parsed: ReproduceConfig = parse_config(REPRODUCE, config)
     try:
         treatments, overrides, hf_method = apply_preset(
-            config.get("preset", "paper"),
-            _items(config.get("treatments", "authors"), "treatments"),
-            overrides,
+            parsed.preset, list(parsed.treatments), parsed.ppo.given()
         )
         return build_specs(
-            seeds=seeds,
-            first_seed=first_seed,
-            tasks=[t.lower() for t in _items(config.get("tasks", "sssg,vssg"), "tasks")],
-            methods=_items(config.get("methods", "rl_sparse,rl_rich,hf_sparse"), "methods"),
-            accuracies=[
-                float(c) for c in _items(config.get("accuracies", "0.55,0.6,0.7"), "accuracies")
-            ],
+            seeds=parsed.seeds or (QUICK_SEEDS if parsed.quick else FULL_SEEDS),
+            first_seed=parsed.first_seed,
+            tasks=list(parsed.tasks),
+            methods=list(parsed.methods),
+            accuracies=list(parsed.accuracies),
             treatments=treatments,
             ppo_overrides=overrides,
             hf_method=hf_method,
-            n_labels=n_labels,
+            n_labels=parsed.n_labels,
         )
     except (TypeError, ValueError) as exc:
         raise JobConfigError(str(exc)) from None
@@ -122,7 +95,7 @@ def _fan_out(context: JobContext) -> JobOutcome:
             raise JobStoppedError("lease lost")
         children = [
             Job(
-                kind="reproduce_run",
+                kind=REPRODUCE_RUN.name,
                 config={**spec.to_dict(), **({"checkpoint_every": every} if every else {})},
                 parent_id=context.job_id,
                 submitter_id=context.submitter_id,
@@ -134,7 +107,7 @@ def _fan_out(context: JobContext) -> JobOutcome:
         session.commit()
         ids = [child.id for child in children]
     for child_id in ids:
-        enqueue_job(runtime.celery, child_id, "reproduce_run")
+        enqueue_job(runtime.celery, child_id, REPRODUCE_RUN.name)
     return JobOutcome(wait_for_children=True, values={"result": {"runs": len(ids)}})
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from celery import Celery
+from pydantic import ValidationError
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -28,6 +29,7 @@ from services.core.db.models import JOB_FINAL_STATUSES, Artifact, Job
 from services.core.db.session import make_engine, make_session_factory
 from services.core.queue import enqueue_job
 from services.core.web import jsonable
+from services.platform.jobs import JobKind, config_error
 from services.worker.settings import WorkerSettings
 
 logger = logging.getLogger(__name__)
@@ -41,6 +43,15 @@ SHUTDOWN = threading.Event()
 
 class JobConfigError(ValueError):
     """The job's config is invalid: the job fails at once, without retries."""
+
+
+def parse_config(kind: JobKind, config: dict[str, Any]) -> Any:
+    """The job's config parsed with its kind's model (the api's validation, again: a config
+    stored by an older api, or written by hand, is refused the same way)."""
+    try:
+        return kind.parse(config)
+    except ValidationError as exc:
+        raise JobConfigError(config_error(exc)) from None
 
 
 class JobStoppedError(Exception):

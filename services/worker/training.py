@@ -34,17 +34,18 @@ from torch.utils.tensorboard import SummaryWriter
 
 from services.core.artifacts import TENSORBOARD_KIND
 from services.core.db.models import Artifact, HFModel
-from services.core.json_values import describe_type, fits_type
 from services.core.model_formats import MODEL_FORMATS, SUFFIXES, ModelFormat
 from services.learner.feedback import HFPolicy
 from services.learner.hf_methods import RECOMMENDED_METHOD
-from services.learner.ppo import Callback, check_settings
+from services.learner.ppo import Callback
 from services.learner.runs import RunRecord, run_one
-from services.learner.specs import METHODS, TASK_ENV_IDS, RunSpec, apply_preset
+from services.learner.specs import RunSpec, apply_preset
+from services.platform.jobs import GUIDED_PPO
+from services.platform.jobs.guided_ppo import GuidedPPOConfig
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
 from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
-from services.worker.runtime import JobConfigError, JobContext, JobOutcome
+from services.worker.runtime import JobConfigError, JobContext, JobOutcome, parse_config
 
 PROGRESS_EVERY_S = 1.0
 """Progress (steps done) is written at most this often; every evaluation is written."""
@@ -52,12 +53,6 @@ SPL_TAG = "charts/SPL"
 """TensorBoard tag of the greedy policy's SPL at each evaluation."""
 TENSORBOARD_FLUSH_S = 5
 """The TensorBoard event files are flushed at least this often (and at every evaluation)."""
-GUIDED_PPO_FIELDS = frozenset(
-    {
-        "task", "method", "accuracy", "seed", "total_steps", "ppo", "hf_treatment", "n_labels",
-        "hf_model_id", "checkpoint_every", "hf_method", "preset",
-    }
-)  # fmt: skip
 
 
 class JobProgress(Callback):
@@ -112,65 +107,21 @@ class JobProgress(Callback):
         return True
 
 
-def check_ppo_overrides(overrides: dict[str, Any], field: str = "ppo") -> None:
-    """Refuse a PPO setting of the wrong type or out of its bounds, naming it
-    (``ppo.n_epochs must be an integer, not 'ten'``): the learner's rules, before any work."""
-    try:
-        check_settings(overrides)
-    except ValueError as exc:
-        raise JobConfigError(f"{field}.{exc}") from None
-
-
-def _check_scalar(config: dict[str, Any], name: str, hint: Any) -> None:
-    if name in config and not fits_type(config[name], hint):
-        raise JobConfigError(f"{name} must be {describe_type(hint)}, not {config[name]!r}")
-
-
-def spec_from_guided_config(config: dict[str, Any]) -> RunSpec:
-    """The learner's run spec of a ``guided_ppo`` job config (refusing what is wrong)."""
-    unknown = set(config) - GUIDED_PPO_FIELDS
-    if unknown:
-        raise JobConfigError(f"unknown config field(s) {sorted(unknown)}")
-    task = str(config.get("task", "")).lower()
-    if task not in TASK_ENV_IDS:
-        raise JobConfigError(f"task must be one of {sorted(t.upper() for t in TASK_ENV_IDS)}")
-    method = config.get("method")
-    if method not in METHODS:
-        raise JobConfigError(f"method must be one of {list(METHODS)}")
-    overrides = config.get("ppo") or {}
-    if not isinstance(overrides, dict):
-        raise JobConfigError("ppo must be an object of PPO settings")
-    check_ppo_overrides(overrides)
-    _check_scalar(config, "total_steps", int)
-    _check_scalar(config, "accuracy", float | None)
-    _check_scalar(config, "n_labels", int)
-    _check_scalar(config, "checkpoint_every", int)
-    if "total_steps" in config:
-        overrides = {**overrides, "total_steps": config["total_steps"]}
-    seed = config.get("seed", 0)
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise JobConfigError("seed must be an integer >= 0")
-    treatment = config.get("hf_treatment")
+def spec_from_guided_config(config: GuidedPPOConfig) -> RunSpec:
+    """The learner's run spec of a ``guided_ppo`` job config."""
+    overrides = {**config.ppo.given(), "total_steps": config.total_steps}
     try:  # the platform preset: truncated IS for hf_sparse, its PPO settings for every method
-        treatments, overrides, _ = apply_preset(
-            config.get("preset", "paper"), [treatment or "authors"], overrides
-        )
-    except ValueError as exc:
-        raise JobConfigError(str(exc)) from None
-    if method == "hf_sparse":
-        treatment = treatments[0]
-    try:
+        treatments, overrides, _ = apply_preset(config.preset, [config.hf_treatment], overrides)
         return RunSpec(
-            task=task,
-            method=method,
-            seed=seed,
-            accuracy=config.get("accuracy"),
-            hf_treatment=treatment,
-            n_labels=config.get("n_labels", 1000),
+            task=config.task,
+            method=config.method,
+            seed=config.seed,
+            accuracy=config.accuracy,
+            hf_treatment=treatments[0] if config.method == "hf_sparse" else config.hf_treatment,
+            n_labels=config.n_labels,
             ppo_overrides=overrides,
-            hf_method=config.get(
-                "hf_method", RECOMMENDED_METHOD if method == "hf_sparse" else None
-            ),
+            hf_method=config.hf_method
+            or (RECOMMENDED_METHOD if config.method == "hf_sparse" else None),
         )
     except (TypeError, ValueError) as exc:
         raise JobConfigError(str(exc)) from None
@@ -211,11 +162,9 @@ def warm_oracle(spec: RunSpec, data_dir: Path) -> None:
     Oracle.for_map(nav_map, cache_dir)
 
 
-def stored_hf_policy(context: JobContext, hf_model_id: Any) -> tuple[HFPolicy, float | None]:
+def stored_hf_policy(context: JobContext, hf_model_id: int) -> tuple[HFPolicy, float | None]:
     """The greedy pi_HF of HF model ``hf_model_id`` (an online session's TorchScript export)
     and the feedback accuracy it was learned with."""
-    if not isinstance(hf_model_id, int) or isinstance(hf_model_id, bool):
-        raise JobConfigError("hf_model_id must be an integer")
     with context.runtime.sessions() as session:
         row = session.execute(
             select(HFModel.feedback_accuracy, Artifact.relpath)
@@ -304,21 +253,16 @@ def store_policy_files(context: JobContext, torchscript_path: Path) -> dict[Mode
 
 def guided_ppo(context: JobContext) -> JobOutcome:
     """Handler of ``guided_ppo`` jobs."""
-    config = {k: v for k, v in context.config.items() if v is not None}
+    config: GuidedPPOConfig = parse_config(GUIDED_PPO, context.config)
     hf_policy = None
-    if "hf_model_id" in config:
-        hf_policy, accuracy = stored_hf_policy(context, config["hf_model_id"])
-        config.setdefault("method", "hf_sparse")
-        if config["method"] != "hf_sparse":
-            raise JobConfigError("hf_model_id guides an hf_sparse run: method must be hf_sparse")
-        if config.get("accuracy") is None:
+    if config.hf_model_id is not None:
+        hf_policy, accuracy = stored_hf_policy(context, config.hf_model_id)
+        if config.accuracy is None:
             if accuracy is None:
                 raise JobConfigError("accuracy: the HF model has no measured feedback accuracy")
-            config["accuracy"] = round(accuracy, 4)
+            config = config.model_copy(update={"accuracy": round(accuracy, 4)})
     spec = spec_from_guided_config(config)
-    every = config.get("checkpoint_every", context.runtime.settings.checkpoint_every)
-    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
-        raise JobConfigError("checkpoint_every must be a positive integer")
+    every = config.checkpoint_every or context.runtime.settings.checkpoint_every
     return train_spec(context, spec, every, hf_policy)
 
 

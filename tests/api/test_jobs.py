@@ -10,6 +10,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from services.core.db.models import Artifact, Job
 from services.core.queue import JOB_QUEUE
+from services.platform.jobs import GUIDED_PPO, JOB_KINDS, SUBMITTED_KINDS
 from tests.api.conftest import Api
 
 GUIDED = {"task": "SSSG", "method": "hf_sparse", "accuracy": 0.7, "seed": 3, "total_steps": 2048}
@@ -366,3 +367,27 @@ def test_progress_websocket_unknown_job_and_header_auth(api: Api) -> None:
     ):
         pass
     assert refused.value.code == 4404
+
+
+def test_job_kinds_give_each_kinds_config_schema(api: Api) -> None:
+    """The registry's kinds with the JSON Schema the api validates with: a job built from the
+    schema's required fields and bounds is accepted, one past a bound is refused."""
+    assert api.client.get("/api/v1/job-kinds").status_code == 401
+    kinds = {
+        k["name"]: k for k in api.client.get("/api/v1/job-kinds", headers=api.as_("viewer")).json()
+    }
+    assert list(kinds) == list(JOB_KINDS)
+    assert {k for k, v in kinds.items() if v["submittable"]} == set(SUBMITTED_KINDS)
+    guided = kinds[GUIDED_PPO.name]
+    assert guided["counts_steps"] and guided["title"] == GUIDED_PPO.title
+    schema = guided["config_schema"]
+    assert set(schema["required"]) == {"task", "method"}
+    n_epochs = schema["$defs"]["PPOOverrides"]["properties"]["n_epochs"]["anyOf"][0]
+    assert (n_epochs["minimum"], n_epochs["maximum"]) == (1, 1000)
+    assert kinds["live_session"]["config_schema"] is None
+    config = {"task": "sssg", "method": "rl_sparse", "ppo": {"n_epochs": 1000}}
+    assert submit(api, GUIDED_PPO.name, config).status_code == 201
+    config["ppo"]["n_epochs"] = 1001
+    refused = submit(api, GUIDED_PPO.name, config)
+    assert refused.status_code == 422
+    assert refused.json()["detail"][0]["field"] == "config.ppo.n_epochs"

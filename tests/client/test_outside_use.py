@@ -16,10 +16,10 @@ from fastapi.responses import HTMLResponse
 from typer.main import get_command
 from typer.testing import CliRunner, Result
 
-from services.api.schemas.jobs import JobKind as ApiJobKind
 from services.cli.main import app
 from services.client import PlatformClient, PlatformError
 from services.client.schemas import JobKind
+from services.platform.jobs import SUBMITTED_KINDS
 from tests.client.conftest import PASSWORD, STAFF_EMAIL, LiveApi
 from tests.helpers import serve_in_thread
 
@@ -131,7 +131,7 @@ def test_a_token_with_non_ascii_characters_is_one_line(
 def test_every_job_kind_of_the_api_can_be_submitted_and_listed(signed_in: Path) -> None:
     """The client knew three of the api's five kinds: `bgrl jobs submit bids_export` was
     refused by the CLI itself."""
-    assert typing.get_args(JobKind) == typing.get_args(ApiJobKind)
+    assert typing.get_args(JobKind) == SUBMITTED_KINDS
     result = runner.invoke(app, ["jobs", "submit", "bids_export", "--set", "subject_id=999999"])
     line = _one_line_error(result, 2)
     assert line == "error: HTTP 422: no subject with id 999999 (field config.subject_id)"

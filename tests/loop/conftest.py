@@ -19,6 +19,7 @@ from services.core.db.live import LiveRun, queue_live_job
 from services.core.db.migrate import upgrade_database
 from services.core.db.models import LabSession, Subject
 from services.core.queue import make_celery
+from services.platform.jobs import LIVE_SESSION
 from services.sim.maps import DEFAULT_MAP_PATH, load_map
 from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
@@ -108,7 +109,7 @@ class LoopPlatform:
             run = LiveRun(session_id=session_id, mode=lab.kind, options=options, status="queued")
             db.add(run)
             db.flush()
-            job = queue_live_job(db, run)
+            job = queue_live_job(db, run, LIVE_SESSION.name)
             db.commit()
             return run.id, job.id
 

@@ -89,7 +89,7 @@ def test_bad_config_fails_at_once_naming_the_field(fs_platform: Platform, worker
     job = fs_platform.wait(job_id, {"failed", "succeeded"})
     assert job.status == "failed"
     assert job.attempts == 1
-    assert job.error == "unknown config field(s) ['max_epoch']"
+    assert job.error == "max_epoch: Extra inputs are not permitted"
 
 
 def test_failed_attempts_are_bounded_then_retry_succeeds(
@@ -153,7 +153,7 @@ def test_reproduce_fans_out_and_writes_the_reproduction(
     config = {
         "seeds": 1,
         "first_seed": 2,
-        "tasks": "sssg",
+        "tasks": ["sssg"],
         "methods": ["rl_sparse", "rl_rich"],
         "ppo": {**TINY_PPO, "total_steps": 512},
     }

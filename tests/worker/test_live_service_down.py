@@ -13,6 +13,7 @@ from services.core.db.live import LiveRun, queue_live_job
 from services.core.db.migrate import upgrade_database
 from services.core.db.models import Job, LabSession, Subject
 from services.core.queue import make_celery
+from services.platform.jobs import LIVE_SESSION
 from services.worker.app import load_handler
 from services.worker.runtime import Runtime, run_job
 from services.worker.settings import WorkerSettings
@@ -44,11 +45,11 @@ def test_a_session_whose_service_stays_down_ends_on_the_last_attempt_keeping_its
         run = LiveRun(session_id=lab.id, mode="calibration", options={}, status="queued")
         db.add(run)
         db.flush()
-        job = queue_live_job(db, run, max_attempts=max_attempts)
+        job = queue_live_job(db, run, LIVE_SESSION.name, max_attempts=max_attempts)
         db.commit()
         run_id, lab_id, job_id = run.id, lab.id, job.id
     try:
-        outcome = run_job(runtime, job_id, load_handler("live_session"))
+        outcome = run_job(runtime, job_id, load_handler(LIVE_SESSION.name))
         with runtime.sessions() as db:
             job_row, run_row, lab_row = (
                 db.get(Job, job_id), db.get(LiveRun, run_id), db.get(LabSession, lab_id)

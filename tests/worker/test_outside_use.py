@@ -101,18 +101,31 @@ def stored_file(runtime: Runtime, data: bytes, kind: str, name: str) -> tuple[st
     [
         ([1, 2], "config must be a JSON object of settings, not list"),
         ("task=SSSG", "config must be a JSON object of settings, not str"),
-        ({**GUIDED, "ppo": {"n_epochs": "four"}}, "ppo.n_epochs must be an integer, not 'four'"),
+        (
+            {**GUIDED, "ppo": {"n_epochs": "four"}},
+            "ppo.n_epochs: Input should be a valid integer, not 'four'",
+        ),
         (
             {**GUIDED, "ppo": {"hidden_sizes": [32, "x"]}},
-            "ppo.hidden_sizes must be a list of integers, not [32, 'x']",
+            "ppo.hidden_sizes.1: Input should be a valid integer, not 'x'",
         ),
-        ({**GUIDED, "ppo": {"gamma": 5}}, "ppo.gamma must be in [0, 1], not 5"),
-        ({**GUIDED, "total_steps": "256"}, "total_steps must be an integer, not '256'"),
+        (
+            {**GUIDED, "ppo": {"gamma": 5}},
+            "ppo.gamma: Input should be less than or equal to 1, not 5",
+        ),
+        (
+            {**GUIDED, "total_steps": "256"},
+            "total_steps: Input should be a valid integer, not '256'",
+        ),
         (
             {**GUIDED, "method": "hf_sparse", "accuracy": "0.7"},
-            "accuracy must be a number or null, not '0.7'",
+            "accuracy: Input should be a valid number, not '0.7'",
         ),
-        ({**GUIDED, "checkpoint_every": True}, "checkpoint_every must be an integer, not True"),
+        (
+            {**GUIDED, "checkpoint_every": True},
+            "checkpoint_every: Input should be a valid integer, not True",
+        ),
+        ({**GUIDED, "method": "hf_sparse"}, "hf_sparse needs accuracy (or hf_model_id)"),
     ],
 )
 def test_malformed_stored_config_fails_at_once_naming_the_field(

@@ -49,10 +49,8 @@ from services.api.errors import UnauthorizedError
 from services.api.plots import curve_png
 from services.api.schemas.common import MAX_ROW_ID, NO_NUL_PATTERN, Page
 from services.api.schemas.jobs import (
-    CONFIG_MODELS,
     CurvePublic,
     JobCreate,
-    JobListKind,
     JobLogEntry,
     JobLogPublic,
     JobPublic,
@@ -74,6 +72,7 @@ from services.core.db.models import (
 from services.core.disk import require_free_space
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.queue import enqueue_job
+from services.platform.jobs import EEG_CALIBRATION, GUIDED_PPO, KindName, job_kind
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"])
@@ -85,7 +84,7 @@ query (:func:`list_jobs`)."""
 def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[str, Any]:
     """The config checked against its kind's schema, defaults filled in; 422 naming the field."""
     try:
-        parsed = CONFIG_MODELS[kind].model_validate(config)
+        parsed = job_kind(kind).parse(config)
     except ValidationError as exc:
         errors = []
         for err in exc.errors():
@@ -95,9 +94,7 @@ def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[st
             errors.append(err)
         raise RequestValidationError(errors) from None
     values = parsed.model_dump(mode="json", exclude_none=True)
-    if "ppo" in values:
-        values["ppo"] = parsed.ppo.given()  # type: ignore[attr-defined]
-    hf_model_id = values.get("hf_model_id") if kind == "guided_ppo" else None
+    hf_model_id = values.get("hf_model_id") if kind == GUIDED_PPO.name else None
     if hf_model_id is not None and db.get(HFModel, hf_model_id) is None:
         raise BadRequestError(
             f"no HF model with id {values['hf_model_id']}", field="config.hf_model_id"
@@ -112,7 +109,7 @@ def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[st
         raise BadRequestError(
             f"no classifier with id {values['classifier_id']}", field="config.classifier_id"
         )
-    if kind == "eeg_calibration":
+    if kind == EEG_CALIBRATION.name:
         recording = db.get(Recording, values["recording_id"])
         if recording is None:
             raise BadRequestError(
@@ -194,7 +191,7 @@ async def list_jobs(
     token: BearerToken,
     page: PageDep,
     status_: Annotated[JobStatus | None, Query(alias="status")] = None,
-    kind: Annotated[JobListKind | None, Query()] = None,
+    kind: Annotated[KindName | None, Query()] = None,
     submitter_id: Annotated[int | None, Query(ge=1, le=MAX_ROW_ID)] = None,
     parent_id: Annotated[
         str | None, Query(max_length=MAX_PARENT_ID_CHARS, pattern=NO_NUL_PATTERN)
@@ -242,7 +239,7 @@ HOT_LIST_PARAMETERS: dict[str, Callable[[str], Any]] = {
     "limit": _decimal(1, MAX_PAGE_LIMIT),
     "offset": _decimal(0, MAX_PAGE_OFFSET),
     "status": _one_of(typing.get_args(JobStatus)),
-    "kind": _one_of(typing.get_args(JobListKind)),
+    "kind": _one_of(typing.get_args(KindName)),
     "submitter_id": _decimal(1, MAX_ROW_ID),
     "parent_id": lambda text: (
         text if 0 < len(text) <= MAX_PARENT_ID_CHARS and "\x00" not in text else None

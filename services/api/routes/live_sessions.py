@@ -37,6 +37,7 @@ from services.core.db.live import (
 from services.core.db.models import Classifier, FeedbackLabel, Job, LabSession
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.live import LiveOptions, latency_summary, pace_drift, timeline_latencies
+from services.platform.jobs import LIVE_SESSION
 
 router = APIRouter(
     prefix="/api/v1/sessions", tags=["live sessions"], dependencies=[Depends(get_current_user)]
@@ -157,7 +158,9 @@ def start(
         db.flush()
     else:  # a failed or abandoned run resumes from its rows with the options it began with
         run.status, run.error, run.stop_requested = "queued", None, False
-    job = queue_live_job(db, run, submitter_id=user.id, max_attempts=settings.job_max_attempts)
+    job = queue_live_job(
+        db, run, LIVE_SESSION.name, submitter_id=user.id, max_attempts=settings.job_max_attempts
+    )
     lab.status = "running"
     audit.record(db, user, "session.start", "session", session_id, job_id=job.id)
     db.commit()

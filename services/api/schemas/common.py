@@ -18,12 +18,11 @@ from pydantic import (
     field_validator,
 )
 
+from services.core.schemas import MAX_ROW_ID as MAX_ROW_ID  # the id bound of every request
 from services.core.schemas import StrictRequest
 
 ItemT = TypeVar("ItemT")
 
-MAX_ROW_ID = 2**31 - 1
-"""Largest integer id accepted (bigger ones cannot exist and would overflow the database)."""
 NO_NUL_PATTERN = r"^[^\x00]*$"
 """Text without NUL characters (PostgreSQL cannot store them): for query parameters."""
 NUL_MESSAGE = "text may not contain NUL characters (\\u0000)"

@@ -73,15 +73,16 @@ class LiveRun(Base):
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 
 
-def queue_live_job(db: Session, run: LiveRun, **job_fields: Any) -> Job:
-    """Add the queued ``live_session`` job that runs ``run`` and point ``run.job_id`` at it.
+def queue_live_job(db: Session, run: LiveRun, kind: str, **job_fields: Any) -> Job:
+    """Add the queued job of ``kind`` (the job contract's live session kind, which core
+    cannot import) that runs ``run`` and point ``run.job_id`` at it.
 
     The job's config is the lab session, the run and the run's options; ``job_fields`` are
     further :class:`~services.core.db.models.Job` columns (submitter, attempts). The caller
     commits.
     """
     config = {"session_id": run.session_id, "run_id": run.id, **run.options}
-    job = Job(kind="live_session", config=config, status="queued", **job_fields)
+    job = Job(kind=kind, config=config, status="queued", **job_fields)
     db.add(job)
     db.flush()
     run.job_id = job.id

@@ -33,15 +33,6 @@ ROLES = ("admin", "staff", "viewer")
 SESSION_KINDS = ("calibration", "test", "online", "rl")
 SESSION_STATUSES = ("scheduled", "running", "completed", "cancelled", "failed")
 VALIDATION_STATUSES = ("pending", "valid", "invalid")
-JOB_KINDS = (
-    "guided_ppo",
-    "reproduce",
-    "reproduce_run",
-    "eeg_calibration",
-    "live_session",
-    "bids_export",
-    "session_replay",
-)
 JOB_STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
 JOB_FINAL_STATUSES = ("succeeded", "failed", "cancelled")
 ARTIFACT_KINDS = ("recording", "classifier", "checkpoint", "model", "results", "plot", "bids")
