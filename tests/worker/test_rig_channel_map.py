@@ -13,10 +13,15 @@ from services.worker.live_eeg import EegDecoder
 class RecordingCalls:
     """Stands in for the EEG service's client: keeps every call."""
 
+    base_url = "http://eeg.invalid"
+
     def __init__(self) -> None:
         self.calls: list[tuple[str, str, dict[str, Any]]] = []
 
-    def call(self, method: str, path: str, *, json: dict[str, Any]) -> dict[str, Any]:
+    def call(
+        self, method: str, path: str, *, json: dict[str, Any], idempotent: bool = False
+    ) -> dict[str, Any]:
+        assert idempotent, f"{method} {path} is retried by attach, so it must be idempotent"
         self.calls.append((method, path, json))
         return {}
 
