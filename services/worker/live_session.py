@@ -39,7 +39,7 @@ from pydantic import ValidationError
 from sqlalchemy import func, select
 
 from services.core.db.base import utcnow
-from services.core.db.live import LiveDecision, LiveMarker, LiveRun
+from services.core.db.live import LiveDecision, LiveMarker, LiveRun, end_live_run
 from services.core.db.models import FeedbackLabel, LabSession, Rig
 from services.core.live import DEFAULT_ACTIONS, ONLINE_ACTIONS_PER_LABEL, LiveOptions
 from services.core.markers import ActionMarker
@@ -420,21 +420,10 @@ class LiveRunner:
         self.context.update(steps_done=step, progress=min(fraction, 0.99))
 
     def end_without(self, down: ServiceDownError) -> None:
-        """End the run because a service stayed down through the job's last attempt: the
-        rows written so far (markers, decisions, labels) stay, and the run says so; starting
-        the session again resumes from them."""
+        """End the run because a service stayed down through the job's last attempt
+        (:func:`~services.core.db.live.end_live_run`: its rows stay, and the run says so)."""
         with self.runtime.sessions() as db:
-            steps = db.scalar(select(func.count()).where(LiveMarker.run_id == self.run_id))
-        error = (
-            f"session ended after {steps or 0} steps: {down}; its markers, decisions and "
-            "labels are kept, start the session again to resume"
-        )
-        self._set_run(status="failed", error=error, finished_at=utcnow())
-        with self.runtime.sessions() as db:
-            lab = db.get(LabSession, self.session_id)
-            assert lab is not None
-            lab.status = "failed"
-            db.commit()
+            end_live_run(db, self.run_id, str(down))
 
     def finish(self, stopped: bool) -> JobOutcome:
         if self.mode == "calibration":

@@ -1,5 +1,6 @@
 """A live session whose service stays down: each attempt but the last waits for it (the job
-is retried and resumes from its rows); the last ends the session, keeps its rows, says so."""
+is retried and resumes from its rows); the last ends the session, keeps its rows, says so.
+One whose worker died on the last attempt is ended likewise by the reaper."""
 
 from __future__ import annotations
 
@@ -7,11 +8,15 @@ from datetime import timedelta
 from pathlib import Path
 
 import pytest
+from sqlalchemy import func, select, update
 
+from services.core.db import jobs as job_rows
 from services.core.db.base import utcnow
-from services.core.db.live import LiveRun, queue_live_job
+from services.core.db.jobs import ClaimOutcome
+from services.core.db.live import LiveMarker, LiveRun, queue_live_job
 from services.core.db.migrate import upgrade_database
 from services.core.db.models import Job, LabSession, Subject
+from services.core.db.session import make_engine, make_session_factory
 from services.core.queue import make_celery
 from services.platform.jobs import LIVE_SESSION
 from services.worker.app import load_handler
@@ -72,3 +77,65 @@ def test_a_session_whose_service_stays_down_ends_on_the_last_attempt_keeping_its
             assert run_row.finished_at is not None
     finally:
         runtime.engine.dispose()
+
+
+def test_a_session_whose_worker_died_on_the_last_attempt_is_ended_by_the_reaper(
+    tmp_path: Path,
+) -> None:
+    """No worker code runs to end it: the reaper, failing the job, ends the run and its lab
+    session with the reason, and the rows written so far stay."""
+    url = f"sqlite:///{tmp_path / 'live.db'}"
+    upgrade_database(url)
+    engine = make_engine(url)
+    sessions = make_session_factory(engine)
+    try:
+        with sessions() as db:
+            subject = Subject(code="S-002")
+            db.add(subject)
+            db.flush()
+            start = utcnow()
+            lab = LabSession(
+                subject_id=subject.id, kind="calibration", scheduled_at=start,
+                duration_minutes=60, ends_at=start + timedelta(minutes=60), status="running",
+            )  # fmt: skip
+            db.add(lab)
+            db.flush()
+            run = LiveRun(session_id=lab.id, mode="calibration", options={}, status="running")
+            db.add(run)
+            db.flush()
+            job = queue_live_job(db, run, max_attempts=1)
+            db.flush()
+            db.add(
+                LiveMarker(
+                    run_id=run.id, session_id=lab.id, step=0, sim_session_id="sim-1", sim_step=0,
+                    episode=0, action=1, oracle_correct=True, observation=[0.0], marker_ts=1.0,
+                    eeg_ts=1.0, executed_at=start,
+                )
+            )  # fmt: skip
+            db.commit()
+            run_id, lab_id, job_id = run.id, lab.id, job.id
+        with sessions() as db:
+            assert job_rows.claim_job(db, job_id, "dead-worker", 30) is ClaimOutcome.CLAIMED
+            db.execute(
+                update(Job)
+                .where(Job.id == job_id)
+                .values(lease_expires_at=utcnow() - timedelta(seconds=1))
+            )
+            db.commit()
+        with sessions() as db:
+            assert job_rows.reap(db) == []
+        with sessions() as db:
+            job_row, run_row, lab_row = (
+                db.get(Job, job_id), db.get(LiveRun, run_id), db.get(LabSession, lab_id)
+            )  # fmt: skip
+            assert job_row is not None and run_row is not None and lab_row is not None
+            assert job_row.status == "failed"
+            assert (run_row.status, lab_row.status) == ("failed", "failed")
+            assert run_row.error == (
+                "session ended after 1 steps: worker lost on the last of 1 attempts; its "
+                "markers, decisions and labels are kept, start the session again to resume"
+            )
+            assert run_row.finished_at is not None
+            assert db.scalar(select(func.count()).where(LiveMarker.run_id == run_id)) == 1
+    finally:
+        engine.dispose()

@@ -23,6 +23,7 @@ from sqlalchemy import and_, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from services.core.db.base import utcnow
+from services.core.db.live import end_live_runs_of_job
 from services.core.db.models import JOB_FINAL_STATUSES, Job
 
 
@@ -132,6 +133,8 @@ def _settle_unleased(
         .execution_options(synchronize_session=False)
     ).rowcount
     session.commit()
+    if done == 1 and status == "failed":
+        end_live_runs_of_job(session, job_id, error or "the job failed")
     return done == 1
 
 
@@ -177,7 +180,7 @@ def finish_job(
         raise ValueError(f"{status!r} is not a final status {JOB_FINAL_STATUSES}")
     if status == "succeeded":
         values.setdefault("progress", 1.0)
-    return update_job(
+    done = update_job(
         session,
         job_id,
         owner,
@@ -190,6 +193,9 @@ def finish_job(
         finished_at=utcnow(),
         **values,
     )
+    if done and status == "failed":
+        end_live_runs_of_job(session, job_id, error or "the job failed")
+    return done
 
 
 def release_for_retry(
@@ -289,6 +295,9 @@ def reap(session: Session, *, stale_queued_s: float | None = None) -> list[tuple
         session.commit()
         if done == 1 and values["status"] == "queued":
             to_send.append((job_id, kind))
+        elif done == 1 and values["status"] == "failed":
+            # no worker code runs to end a live session whose worker died: end it here
+            end_live_runs_of_job(session, job_id, values["error"])
 
     waiting = session.execute(
         select(Job.id, Job.kind, Job.cancel_requested).where(

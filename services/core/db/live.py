@@ -24,14 +24,18 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    func,
+    select,
+    update,
 )
 from sqlalchemy.orm import Mapped, Session, mapped_column
 
 from services.core.db.base import Base, UtcDateTime, utcnow
-from services.core.db.models import BigIntId, Job
+from services.core.db.models import BigIntId, Job, LabSession
 
 LIVE_MODES = ("calibration", "test", "online")
 LIVE_STATUSES = ("queued", "running", "completed", "stopped", "failed")
+LIVE_ACTIVE_STATUSES = ("queued", "running")
 DECISION_STATUSES = ("ok", "rejected")
 
 
@@ -181,3 +185,43 @@ class LiveFrameShown(Base):
     step: Mapped[int] = mapped_column(Integer)
     shown_at: Mapped[datetime] = mapped_column(UtcDateTime)
     received_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+def end_live_run(db: Session, run_id: int, reason: str) -> bool:
+    """End a live run that cannot go on (its job failed: a service stayed down, or its
+    worker died on the last attempt) and its lab session, saying why; the rows written so
+    far (markers, decisions, labels, the recording) stay, and starting the session again
+    resumes from them. A run already ended is left alone; returns whether this call ended
+    it. Commits."""
+    steps = db.scalar(select(func.count()).where(LiveMarker.run_id == run_id)) or 0
+    error = (
+        f"session ended after {steps} steps: {reason}; its markers, decisions and labels "
+        "are kept, start the session again to resume"
+    )
+    ended = db.execute(
+        update(LiveRun)
+        .where(LiveRun.id == run_id, LiveRun.status.in_(LIVE_ACTIVE_STATUSES))
+        .values(status="failed", error=error, finished_at=utcnow(), updated_at=utcnow())
+        .execution_options(synchronize_session=False)
+    ).rowcount
+    if ended == 1:
+        session_id = select(LiveRun.session_id).where(LiveRun.id == run_id).scalar_subquery()
+        db.execute(
+            update(LabSession)
+            .where(LabSession.id == session_id, LabSession.status == "running")
+            .values(status="failed", updated_at=utcnow())
+            .execution_options(synchronize_session=False)
+        )
+    db.commit()
+    return ended == 1
+
+
+def end_live_runs_of_job(db: Session, job_id: str, reason: str) -> None:
+    """:func:`end_live_run` for the runs of a ``live_session`` job that was failed outside
+    its handler (by the reaper, or by the worker after the handler raised): nothing for a
+    job of another kind. Commits."""
+    runs = db.scalars(
+        select(LiveRun.id).where(LiveRun.job_id == job_id, LiveRun.status.in_(LIVE_ACTIVE_STATUSES))
+    ).all()
+    for run_id in runs:
+        end_live_run(db, run_id, reason)
