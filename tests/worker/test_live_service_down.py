@@ -79,11 +79,13 @@ def test_a_session_whose_service_stays_down_ends_on_the_last_attempt_keeping_its
         runtime.engine.dispose()
 
 
-def test_a_session_whose_worker_died_on_the_last_attempt_is_ended_by_the_reaper(
-    tmp_path: Path,
+@pytest.mark.parametrize("failed_by", ["reaper", "last attempt's error"])
+def test_a_session_whose_job_fails_outside_its_loop_is_ended_keeping_its_rows(
+    tmp_path: Path, failed_by: str
 ) -> None:
-    """No worker code runs to end it: the reaper, failing the job, ends the run and its lab
-    session with the reason, and the rows written so far stay."""
+    """No live-session code runs to end it (its worker died on the last attempt, or the
+    attempt raised): failing the job ends the run and its lab session with the reason, and
+    the rows written so far stay."""
     url = f"sqlite:///{tmp_path / 'live.db'}"
     upgrade_database(url)
     engine = make_engine(url)
@@ -115,15 +117,25 @@ def test_a_session_whose_worker_died_on_the_last_attempt_is_ended_by_the_reaper(
             db.commit()
             run_id, lab_id, job_id = run.id, lab.id, job.id
         with sessions() as db:
-            assert job_rows.claim_job(db, job_id, "dead-worker", 30) is ClaimOutcome.CLAIMED
-            db.execute(
-                update(Job)
-                .where(Job.id == job_id)
-                .values(lease_expires_at=utcnow() - timedelta(seconds=1))
-            )
-            db.commit()
-        with sessions() as db:
-            assert job_rows.reap(db) == []
+            assert job_rows.claim_job(db, job_id, "worker", 30) is ClaimOutcome.CLAIMED
+        if failed_by == "reaper":
+            with sessions() as db:
+                db.execute(
+                    update(Job)
+                    .where(Job.id == job_id)
+                    .values(lease_expires_at=utcnow() - timedelta(seconds=1))
+                )
+                db.commit()
+            with sessions() as db:
+                assert job_rows.reap(db) == []
+            reason = "worker lost on the last of 1 attempts"
+        else:
+            reason = "RuntimeError: boom"
+            with sessions() as db:
+                status = job_rows.release_for_retry(
+                    db, job_id, "worker", error=reason, traceback=None
+                )
+                assert status == "failed"
         with sessions() as db:
             job_row, run_row, lab_row = (
                 db.get(Job, job_id), db.get(LiveRun, run_id), db.get(LabSession, lab_id)
@@ -132,8 +144,8 @@ def test_a_session_whose_worker_died_on_the_last_attempt_is_ended_by_the_reaper(
             assert job_row.status == "failed"
             assert (run_row.status, lab_row.status) == ("failed", "failed")
             assert run_row.error == (
-                "session ended after 1 steps: worker lost on the last of 1 attempts; its "
-                "markers, decisions and labels are kept, start the session again to resume"
+                f"session ended after 1 steps: {reason}; its markers, decisions and labels "
+                "are kept, start the session again to resume"
             )
             assert run_row.finished_at is not None
             assert db.scalar(select(func.count()).where(LiveMarker.run_id == run_id)) == 1
