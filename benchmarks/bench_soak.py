@@ -2,24 +2,30 @@
 
 The platform runs as a lab runs it (``bgrl up``, embedded SQLite and file broker, two job
 workers) in a folder of its own. For ``minutes`` a client submits a small guided-PPO job
-every ``job_every_s`` and reads the job list every second (the dashboard's hot read), while
+every ``job_every_s``, uploads a virtual subject's short calibration recording (a SYNTHETIC
+BDF) to a lab session every ``upload_every_s``, and reads the job list every second (the
+dashboard's hot read), while
 every ``kill_every_s`` a process of a random kind (an api process, the sim, EEG or learner
 service, a job worker) is killed with SIGKILL. Then the jobs get ``drain_s`` to end, ``bgrl
 up`` is stopped, and the report counts:
 
 - jobs submitted / succeeded / failed with a reason / **lost** (not ended, or failed
   without a reason: must be 0);
+- uploads submitted / stored (201) / refused with the reason / unanswered (an api process
+  killed mid-upload: the client would send it again) / **lost** (stored, but afterwards
+  missing or with another SHA-256: must be 0);
 - **orphans**: processes of the platform still alive 10 s after ``bgrl up`` stopped (0);
 - restarts per kind (``bgrl up``'s status file), the p99 of the reads, the reads that got
   no answer (an api process killed mid-request), and each kind's RSS over time with its
   growth per hour (a line fitted to the samples), plotted.
 
-Not in the mix yet: uploads and live sessions (they need the EEG pipeline's recordings and
-a virtual subject each; their restarts are covered by the tests of ``bgrl up``).
+Not in the mix yet: live sessions (they need a virtual subject streaming each; their
+restarts are covered by the tests of ``bgrl up``).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import random
@@ -55,6 +61,18 @@ JOB_CONFIG = {
     "ppo": {"n_epochs": 4, "eval_every": 256},
 }
 """A small guided-PPO job (``job_steps`` env steps); each gets its own seed."""
+UPLOAD_ACTIONS = 4
+"""Actions in the uploaded recording: a virtual subject's calibration of about 8 s."""
+
+
+def virtual_recording(folder: Path, seed: int) -> Path:
+    """A virtual subject's short calibration recording (SYNTHETIC), as a 24-bit BDF file."""
+    from services.eeg.io import write_bdf
+    from services.eeg.virtual_subject import SyntheticRecording
+
+    labels = [action % 3 != 0 for action in range(UPLOAD_ACTIONS)]
+    recording = SyntheticRecording(labels, quality=0.6, seed=seed)
+    return write_bdf(recording, folder / "virtual-subject.bdf")
 
 
 def _free_port() -> int:
@@ -110,6 +128,7 @@ def run_soak(
     job_every_s: float,
     drain_s: float,
     seed: int,
+    upload_every_s: float = 15.0,
     job_steps: int = 1024,
     settings: dict[str, str] | None = None,
     progress: Callable[[str], None] = lambda _: None,
@@ -145,8 +164,9 @@ def run_soak(
     base = f"http://127.0.0.1:{ports['api']}"
     try:
         config = {**JOB_CONFIG, "total_steps": job_steps}
-        timing = (minutes, kill_every_s, job_every_s, drain_s)
-        return _soak(up, base, out, run_dir, rng, config, *timing, progress)
+        recording = virtual_recording(run_dir, seed).read_bytes()
+        timing = (minutes, kill_every_s, job_every_s, upload_every_s, drain_s)
+        return _soak(up, base, out, run_dir, rng, config, recording, *timing, progress)
     finally:
         if up.poll() is None:
             up.kill()
@@ -159,9 +179,11 @@ def _soak(
     run_dir: Path,
     rng: random.Random,
     job_config: dict[str, Any],
+    recording: bytes,
     minutes: float,
     kill_every_s: float,
     job_every_s: float,
+    upload_every_s: float,
     drain_s: float,
     progress: Callable[[str], None],
 ) -> dict[str, Any]:
@@ -179,6 +201,8 @@ def _soak(
     )
     answer.raise_for_status()
     client.headers["Authorization"] = f"Bearer {answer.json()['access_token']}"
+    lab_session = _lab_session(client)
+    uploads = Uploads(client, lab_session, recording)
 
     started = time.monotonic()
     end = started + minutes * 60
@@ -189,6 +213,7 @@ def _soak(
     kills: list[dict[str, Any]] = []
     rss: dict[str, list[tuple[float, float]]] = defaultdict(list)
     next_job, next_rss, next_kill = started, started, started + kill_every_s / 2
+    next_upload = started + upload_every_s / 3
     while time.monotonic() < end:
         now = time.monotonic()
         if now >= next_job:
@@ -202,6 +227,9 @@ def _soak(
                     refused += 1
             except httpx.HTTPError:
                 refused += 1  # an api process killed mid-request: the client's retry
+        if now >= next_upload:
+            next_upload += upload_every_s
+            uploads.send()
         if now >= next_kill:
             next_kill += kill_every_s
             processes = platform_processes(up.pid)
@@ -236,6 +264,7 @@ def _soak(
         if all(s.get("status") in FINAL for s in statuses.values()):
             break
         time.sleep(3)
+    upload_report = uploads.report()
     state = json.loads((run_dir / "data" / "run" / "processes.json").read_text())["processes"]
     restarts: dict[str, int] = defaultdict(int)
     for process in state.values():
@@ -267,6 +296,7 @@ def _soak(
             "lost": lost,
             "failure_reasons": sorted({str(s["error"])[:120] for s in with_reason}),
         },
+        "uploads": upload_report,
         "orphans": len(orphans),
         "kills": {kind: sum(k["kind"] == kind for k in kills) for kind in KINDS},
         "restarts": {kind: restarts.get(kind, 0) for kind in KINDS},
@@ -322,3 +352,76 @@ def _plot(
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _lab_session(client: httpx.Client) -> int:
+    """A new subject's calibration session, the uploads' destination; its id."""
+    code = f"SOAK{datetime.now(UTC):%H%M%S}"
+    subject = client.post("/api/v1/subjects", json={"code": code})
+    subject.raise_for_status()
+    session = client.post(
+        "/api/v1/sessions",
+        json={
+            "subject_id": subject.json()["id"],
+            "kind": "calibration",
+            "scheduled_at": datetime.now(UTC).isoformat(),
+        },
+    )
+    session.raise_for_status()
+    return int(session.json()["id"])
+
+
+class Uploads:
+    """The soak's recording uploads: sends one BDF file again and again, then checks that
+    every upload the api acknowledged is still there with the same SHA-256."""
+
+    def __init__(self, client: httpx.Client, session_id: int, recording: bytes) -> None:
+        self.client = client
+        self.path = f"/api/v1/sessions/{session_id}/recordings"
+        self.recording = recording
+        self.sha256 = hashlib.sha256(recording).hexdigest()
+        self.stored: list[int] = []
+        self.refusals: list[str] = []
+        self.unanswered = 0
+
+    def send(self) -> None:
+        """One upload; a refusal keeps the api's status and message."""
+        try:
+            sent = self.client.post(
+                self.path,
+                params={"filename": "virtual-subject.bdf"},
+                content=self.recording,
+                headers={"Content-Type": "application/octet-stream"},
+            )
+        except httpx.HTTPError:
+            self.unanswered += 1  # an api process killed mid-upload: the client's retry
+            return
+        if sent.status_code == 201:
+            self.stored.append(int(sent.json()["id"]))
+        else:
+            self.refusals.append(f"{sent.status_code}: {sent.text[:120]}")
+
+    def report(self) -> dict[str, Any]:
+        """The counts, after the soak (the api answering); an acknowledged upload that is
+        missing or changed is lost."""
+        lost = 0
+        for recording_id in self.stored:
+            for _ in range(5):  # an api process may still be restarting
+                try:
+                    found = self.client.get(f"/api/v1/recordings/{recording_id}")
+                    break
+                except httpx.HTTPError:
+                    time.sleep(2)
+            else:
+                raise RuntimeError("the api did not answer after the soak")
+            if found.status_code != 200 or found.json().get("sha256") != self.sha256:
+                lost += 1
+        return {
+            "submitted": len(self.stored) + len(self.refusals) + self.unanswered,
+            "stored": len(self.stored),
+            "refused_with_reason": len(self.refusals),
+            "unanswered": self.unanswered,
+            "lost": lost,
+            "bytes_each": len(self.recording),
+            "refusal_reasons": sorted(set(self.refusals)),
+        }

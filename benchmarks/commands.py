@@ -373,6 +373,9 @@ def bench_soak(
         float, typer.Option(min=2, help="Seconds between two SIGKILLs of a random process.")
     ] = 20,
     job_every: Annotated[float, typer.Option(min=1, help="Seconds between two new jobs.")] = 10,
+    upload_every: Annotated[
+        float, typer.Option(min=1, help="Seconds between two recording uploads.")
+    ] = 15,
     drain: Annotated[
         float, typer.Option(min=0, help="Seconds the jobs get to end after the load.")
     ] = 300,
@@ -382,8 +385,8 @@ def bench_soak(
     seed: Annotated[int, typer.Option(min=0, help="Seed of which process is killed.")] = 0,
 ) -> None:
     """Soak with faults: bgrl up under a steady load while random processes are SIGKILLed;
-    writes OUT/soak.json (jobs submitted/succeeded/failed/lost, orphans, restarts per kind,
-    p99 of reads, RSS growth per hour) and OUT/soak_rss.png."""
+    writes OUT/soak.json (jobs and uploads submitted/succeeded/failed/lost, orphans,
+    restarts per kind, p99 of reads, RSS growth per hour) and OUT/soak_rss.png."""
     from benchmarks.bench_soak import run_soak
     from services.core.files import write_results_json
 
@@ -393,20 +396,23 @@ def bench_soak(
         minutes=minutes,
         kill_every_s=kill_every,
         job_every_s=job_every,
+        upload_every_s=upload_every,
         drain_s=drain,
         seed=seed,
         job_steps=job_steps,
         progress=lambda message: typer.echo(message, err=True),
     )
     write_results_json(out / "soak.json", report)
-    jobs = report["jobs"]
+    jobs, uploads = report["jobs"], report["uploads"]
     typer.echo(
         f"jobs: {jobs['submitted']} submitted, {jobs['succeeded']} succeeded, "
         f"{jobs['failed_with_reason']} failed with a reason, {jobs['lost']} lost; "
+        f"uploads: {uploads['submitted']} submitted, {uploads['stored']} stored, "
+        f"{uploads['refused_with_reason']} refused, {uploads['lost']} lost; "
         f"orphans: {report['orphans']}; restarts: {report['restarts']}; "
         f"reads p99 {report['reads']['p99_ms']} ms; {out / 'soak.json'}"
     )
-    if jobs["lost"] or report["orphans"]:
+    if jobs["lost"] or uploads["lost"] or report["orphans"]:
         raise typer.Exit(1)
 
 

@@ -1,5 +1,6 @@
 """The soak benchmark's short version: ``bgrl up`` under load while random processes are
-SIGKILLed loses no job and leaves no orphan (``bgrl bench soak`` runs it for longer)."""
+SIGKILLed loses no job and no upload and leaves no orphan (``bgrl bench soak`` runs it
+for longer)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,14 @@ def test_a_short_soak_loses_no_job_and_leaves_no_orphan(tmp_path: Path) -> None:
     assert jobs["submitted"] >= 3
     assert jobs["lost"] == 0, report
     assert jobs["succeeded"] + jobs["failed_with_reason"] == jobs["submitted"]
+    uploads = report["uploads"]
+    assert uploads["submitted"] >= 2
+    assert uploads["lost"] == 0, report
+    assert uploads["stored"] >= 1
+    assert (
+        uploads["stored"] + uploads["refused_with_reason"] + uploads["unanswered"]
+        == (uploads["submitted"])
+    )
     assert report["orphans"] == 0
     kills = sum(report["kills"].values())
     assert kills >= 3
