@@ -105,7 +105,7 @@ def test_a_session_whose_job_fails_outside_its_loop_is_ended_keeping_its_rows(
             run = LiveRun(session_id=lab.id, mode="calibration", options={}, status="running")
             db.add(run)
             db.flush()
-            job = queue_live_job(db, run, max_attempts=1)
+            job = queue_live_job(db, run, LIVE_SESSION.name, max_attempts=1)
             db.flush()
             db.add(
                 LiveMarker(
