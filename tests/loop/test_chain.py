@@ -113,8 +113,8 @@ def test_online_session_labels_to_its_budget_and_registers_the_hf_model(
     with loop.runtime.sessions() as db:
         job = Job(
             kind="guided_ppo",
-            config={"task": "sssg", "hf_model_id": model.id, "seed": 0, "ppo": TINY_PPO,
-                    "total_steps": 512},
+            config={"task": "sssg", "method": "hf_sparse", "hf_model_id": model.id, "seed": 0,
+                    "ppo": TINY_PPO, "total_steps": 512},
         )  # fmt: skip
         db.add(job)
         db.commit()
