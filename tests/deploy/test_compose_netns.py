@@ -19,7 +19,7 @@ from typing import Any, TypeVar
 
 import httpx
 import pytest
-from sqlalchemy import create_engine, select
+from sqlalchemy import create_engine, select, text
 from sqlalchemy.orm import Session
 
 from services.client import PlatformClient
@@ -78,8 +78,25 @@ class LabPC:
                 watch()
             if time.monotonic() > deadline:
                 logs = "\n".join(f"== {h}\n{self.compose.tail(h, 2000)}" for h in WORKER_HOSTS)
-                pytest.fail(f"job {job_id} still {job.status} after {timeout} s\n{logs}")
+                pytest.fail(f"job {job_id} still {job.status} after {timeout} s\n"
+                            f"{self.diagnosis(job_id)}\n{logs}")  # fmt: skip
             time.sleep(0.3)
+
+    def diagnosis(self, job_id: str) -> str:
+        """The job's children and the database's sessions that wait on a lock or hold one
+        open: what a job stuck "running" is waiting for."""
+        children = [(c.id[:8], c.status, c.lease_owner, c.lease_expires_at, c.attempts)
+                    for c in self.jobs(parent_id=job_id)]  # fmt: skip
+
+        def sessions() -> list[Any]:
+            with self.engine.connect() as conn:
+                return list(conn.execute(text(
+                    "SELECT pid, client_addr, state, wait_event_type, now() - xact_start, "
+                    "left(query, 80) FROM pg_stat_activity WHERE datname = 'bgrl' "
+                    "AND (wait_event_type = 'Lock' OR starts_with(state, 'idle in transaction'))"
+                )))  # fmt: skip
+
+        return f"children: {children}\nwaiting or open transactions: {self.run(sessions)}"
 
     def close(self) -> None:
         self.run(self.client.close)
