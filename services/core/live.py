@@ -14,6 +14,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
+from services.core.feedback import LabelChannel
 from services.core.hf_methods import HFMethodName
 from services.core.schemas import StrictRequest
 
@@ -57,6 +58,12 @@ class LiveOptions(StrictRequest):
         None,
         description="Stage-2 method learning an online session's pi_HF (docs/stage2.md; "
         "default: the learner's recommended method). The run records the method used.",
+    )
+    label_channel: LabelChannel | None = Field(
+        None,
+        description="How an online session's labels enter Fhat: 'hard', the thresholded "
+        "feedback (the paper; the default); 'soft', the calibrated classifier's "
+        "log-likelihood ratio (docs/live.md). The run records the channel used.",
     )
     task: Literal["sssg", "vssg"] = "sssg"
     map: str | None = Field(None, max_length=1024, description="Sim map (default map if None).")

@@ -51,7 +51,8 @@ class LearnerLink:
 
     def attach(self) -> dict[str, str] | None:
         """Find the run's HF session again (None), or open one and return what the run's row
-        keeps of it (``hf_session_id``, ``hf_method``: the method the learner created it with)."""
+        keeps of it (``hf_session_id``; ``hf_method`` and ``label_channel``: how the learner
+        created it)."""
         if self.hf_session_id is not None:
             self.client.call("GET", f"/hf-sessions/{self.hf_session_id}")
             return None
@@ -63,9 +64,15 @@ class LearnerLink:
         }
         if self.options.hf_method is not None:
             body["method"] = self.options.hf_method
+        if self.options.label_channel is not None:
+            body["fhat"] = {"label_channel": self.options.label_channel}
         created = self.client.call("POST", "/hf-sessions", json=body)
         self.hf_session_id = created["id"]
-        return {"hf_session_id": created["id"], "hf_method": created["method"]}
+        return {
+            "hf_session_id": created["id"],
+            "hf_method": created["method"],
+            "label_channel": created["fhat"].get("label_channel", "hard"),
+        }
 
     def next_action_at(self, observation: list[float]) -> tuple[int, int]:
         """pi_HF's next action and its model version: the one the last label's answer
@@ -130,6 +137,7 @@ class LearnerLink:
                     action=action,
                     decoded_error=decision["feedback"] == "error",
                     p_error=decision["p_error"],
+                    log_likelihood_ratio=decision.get("log_likelihood_ratio"),
                     oracle_error=None if oracle_correct is None else not oracle_correct,
                     decoded_at=utcnow(),
                 )

@@ -249,7 +249,8 @@ class LiveRunner:
             )
             marker_row = (marker.observation, marker.action, marker.oracle_correct)
             feedback = {"status": decision.status, "feedback": decision.feedback,
-                        "p_error": decision.p_error}  # fmt: skip
+                        "p_error": decision.p_error,
+                        "log_likelihood_ratio": decision.log_likelihood_ratio}  # fmt: skip
         if self.mode == "online" and decision.status == "ok" and labelled is None:
             self.learner.send_label(step, *marker_row, feedback)
 
@@ -349,6 +350,7 @@ class LiveRunner:
                         reason=decision.get("reason"),
                         feedback=decision.get("feedback"),
                         p_error=decision.get("p_error"),
+                        log_likelihood_ratio=decision.get("log_likelihood_ratio"),
                         oracle_correct=marker.correct,
                         classifier_id=self.decoder.classifier_id,
                         epoch_end_ts=epoch_end,

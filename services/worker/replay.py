@@ -121,7 +121,7 @@ def _hf_session(runtime_data_dir: Path, run: LiveRun, budget: int, method: str) 
         seed=int(options.get("seed", 0)),
         label_budget=budget,
         method=method,
-        fhat=asdict(FeedbackConfig(method=method)),
+        fhat=asdict(FeedbackConfig(method=method, label_channel=run.label_channel or "hard")),
         created_at=datetime.now(UTC).replace(microsecond=0),
     )
     return HFSession(spec)
@@ -147,6 +147,11 @@ def session_replay(context: JobContext) -> JobOutcome:
         raise JobConfigError("classifier_id: the session has none; give one")
     budget = config.label_budget or int(run.options.get("label_budget", 1000))
     classifier = load_classifier(runtime, int(classifier_id))
+    if run.label_channel == "soft" and classifier.calibration is None:
+        raise JobConfigError(
+            f"classifier_id: classifier {classifier_id} has no calibrated posterior, which "
+            "replaying a session on the soft label channel needs"
+        )
     stream = session_stream(runtime, stored)
     decisions = decode_session(stored, stream, classifier, f"platform-{classifier_id}")
     context.check_stop()
@@ -163,6 +168,7 @@ def session_replay(context: JobContext) -> JobOutcome:
             action=row.action,
             correct=decision["feedback"] == "correct",
             p_error=decision["p_error"],
+            log_likelihood_ratio=decision.get("log_likelihood_ratio"),
             oracle_correct=row.oracle_correct,
         )
         labels.append(

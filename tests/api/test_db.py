@@ -61,7 +61,7 @@ def test_empty_database_upgrades_to_head_matching_the_models(any_db_url: str) ->
     upgrade_database(any_db_url)
     engine = make_engine(any_db_url)
     try:
-        assert current_revision(engine) == head_revision() == "0008"
+        assert current_revision(engine) == head_revision() == "0009"
         assert set(inspect(engine).get_table_names()) == TABLES
         with engine.connect() as connection:
             diff = compare_metadata(
@@ -99,7 +99,7 @@ def test_previous_revision_upgrades_and_keeps_its_rows(any_db_url: str) -> None:
             )
             db.commit()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0008"
+        assert current_revision(engine) == "0009"
         with sessions() as db:
             job = db.get(Job, "j" * 32)
             assert (job.config, job.status, job.curve, job.attempts) == (
@@ -126,7 +126,7 @@ def test_revision_0003_upgrades_to_the_shared_login_limit_and_back(any_db_url: s
             db.commit()
         assert "login_attempts" not in inspect(engine).get_table_names()
         upgrade_database(any_db_url)
-        assert current_revision(engine) == "0008"
+        assert current_revision(engine) == "0009"
         with sessions() as db:
             assert db.scalar(select(User.email)) == "a@lab.test"
             db.add(LoginAttempt(key="k" * 64, at=datetime(2026, 12, 2, tzinfo=UTC)))

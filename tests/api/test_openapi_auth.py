@@ -129,8 +129,8 @@ def test_health_routes_are_public(api: Api, path: str) -> None:
 def test_readyz_names_the_revision(api: Api) -> None:
     from services.core.db.migrate import head_revision
 
-    assert head_revision() == "0008"  # a new migration updates this line
-    assert api.client.get("/readyz").json() == {"status": "ready", "database_revision": "0008"}
+    assert head_revision() == "0009"  # a new migration updates this line
+    assert api.client.get("/readyz").json() == {"status": "ready", "database_revision": "0009"}
 
 
 def test_readyz_reports_the_processes_bgrl_up_supervises(

@@ -141,6 +141,74 @@ def test_replay_refuses_a_calibration_session(loop: LoopPlatform, online: dict[s
         assert job is not None and "calibration session" in (job.error or "")
 
 
+@pytest.fixture(scope="module")
+def soft_online(loop: LoopPlatform, online: dict[str, int]) -> dict[str, int]:
+    """An accelerated online session on the soft label channel, with the same classifier."""
+    session_id = loop.lab_session("online", subject_code="S-003")  # S-002's export: 1 session
+    options = {"accelerated": True, "classifier_id": online["classifier_id"],
+               "label_budget": LABELS, "virtual_quality": 0.6, "seed": 3,
+               "hf_method": HF_METHOD, "label_channel": "soft"}  # fmt: skip
+    run_id, job_id = loop.live_job(session_id, options)
+    assert run_job(loop.runtime, job_id, live_session) == "succeeded"
+    return {"session_id": session_id, "run_id": run_id}
+
+
+def test_a_soft_channel_session_keeps_each_labels_likelihood_ratio(
+    loop: LoopPlatform, soft_online: dict[str, int]
+) -> None:
+    """The run records its channel; every label keeps its decision's log-likelihood ratio
+    (what a label re-sent after a crash is sent with), and a replay, which decodes the
+    recording anew on the soft channel, trains the same pi_HF."""
+    with loop.runtime.sessions() as db:
+        run = db.get(LiveRun, soft_online["run_id"])
+        assert run is not None and run.status == "completed" and run.label_channel == "soft"
+        ratios = {d.step: d.log_likelihood_ratio for d in db.scalars(
+            select(LiveDecision).where(LiveDecision.run_id == run.id, LiveDecision.status == "ok")
+        )}  # fmt: skip
+        labels = db.scalars(
+            select(FeedbackLabel).where(FeedbackLabel.session_id == soft_online["session_id"])
+        ).all()
+        first = db.get(HFModel, run.hf_model_id)
+        assert first is not None
+    assert len(labels) == LABELS
+    assert all(label.log_likelihood_ratio is not None for label in labels)
+    assert {label.step: label.log_likelihood_ratio for label in labels} == {
+        label.step: ratios[label.step] for label in labels
+    }
+    assert len({label.log_likelihood_ratio for label in labels}) > 1  # graded, not two values
+    job_id = _job(loop, "session_replay", {"session_id": soft_online["session_id"]})
+    assert run_job(loop.runtime, job_id, session_replay) == "succeeded"
+    with loop.runtime.sessions() as db:
+        job = db.get(Job, job_id)
+        assert job is not None and job.result is not None
+        comparison = job.result["comparison"]
+    assert comparison["decisions_agreeing"] == comparison["decisions_compared"] > 0
+    assert comparison["hf_policy_spl"] == comparison["original_hf_policy_spl"]
+
+
+def test_the_soft_and_hard_channels_train_different_policies_from_one_classifier(
+    loop: LoopPlatform, online: dict[str, int], soft_online: dict[str, int]
+) -> None:
+    """The channel is not a label on the row only: the learner's Fhat saw other evidence."""
+    with loop.runtime.sessions() as db:
+        hard_run = db.get(LiveRun, online["run_id"])
+        soft_run = db.get(LiveRun, soft_online["run_id"])
+        assert hard_run is not None and soft_run is not None
+        assert hard_run.label_channel == "hard" and soft_run.label_channel == "soft"
+        models = [db.get(HFModel, r.hf_model_id) for r in (hard_run, soft_run)]
+        paths = [
+            loop.runtime.store.path(
+                db.scalar(select(Artifact.relpath).where(Artifact.id == m.torchscript_artifact_id))
+            )
+            for m in models
+            if m is not None
+        ]
+    assert len(paths) == 2
+    obs = torch.tensor(np.random.default_rng(0).uniform(0, 3, (32, 13)), dtype=torch.float32)
+    hard_logits, soft_logits = (torch.jit.load(str(p))(obs) for p in paths)
+    assert not torch.allclose(hard_logits, soft_logits, atol=1e-4)
+
+
 def _read_tsv(path: Path) -> list[dict[str, str]]:
     with path.open(newline="") as handle:
         return list(csv.DictReader(handle, delimiter="\t"))

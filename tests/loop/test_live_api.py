@@ -11,7 +11,7 @@ import pytest
 from sqlalchemy import select
 
 from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion, LiveRun
-from services.core.db.models import FeedbackLabel, Job
+from services.core.db.models import Classifier, FeedbackLabel, Job
 from tests.api.conftest import Api, make_settings, start_api
 
 
@@ -80,6 +80,25 @@ def test_start_creates_a_run_and_its_job_and_refuses_bad_starts(api: Api) -> Non
         "detail": "hf_method applies to online sessions, not to a calibration session",
         "field": "hf_method",
     }
+    soft_calibration = api.client.post(
+        f"/api/v1/sessions/{cal}/start", json={"label_channel": "soft"}, headers=staff
+    )
+    assert soft_calibration.json() == {
+        "detail": "label_channel applies to online sessions, not to a calibration session",
+        "field": "label_channel",
+    }
+    with db(api) as session:  # a classifier from before posteriors were calibrated
+        uncalibrated = Classifier(name="old", metrics={"test_accuracy": 0.7})
+        session.add(uncalibrated)
+        session.commit()
+        uncalibrated_id = uncalibrated.id
+    soft_old = api.client.post(
+        f"/api/v1/sessions/{online}/start",
+        json={"classifier_id": uncalibrated_id, "label_channel": "soft"},
+        headers=staff,
+    )
+    assert soft_old.status_code == 422 and soft_old.json()["field"] == "label_channel"
+    assert "no calibrated posterior" in soft_old.json()["detail"]
     stopped = api.client.post(f"/api/v1/sessions/{cal}/stop", headers=staff)
     assert stopped.status_code == 200 and stopped.json()["stop_requested"] is True
     never = api.client.post(f"/api/v1/sessions/{online}/stop", headers=staff)

@@ -60,6 +60,10 @@ class LiveRunPublic(BaseModel):
     hf_method: str | None = Field(
         description="Stage-2 method of an online run's pi_HF (known once the run started)."
     )
+    label_channel: str | None = Field(
+        description="How an online run's labels enter Fhat, 'hard' or 'soft' (known once the "
+        "run started)."
+    )
     status: str
     stop_requested: bool
     resumes: int
@@ -132,16 +136,25 @@ def start(
             f"session {session_id} is a {lab.kind} session; only {', '.join(LIVE_KINDS)} run live",
             field="session_id",
         )
-    if body.hf_method is not None and lab.kind != "online":
-        raise BadRequestError(
-            f"hf_method applies to online sessions, not to a {lab.kind} session",
-            field="hf_method",
-        )
+    for online_only in ("hf_method", "label_channel"):
+        if getattr(body, online_only) is not None and lab.kind != "online":
+            raise BadRequestError(
+                f"{online_only} applies to online sessions, not to a {lab.kind} session",
+                field=online_only,
+            )
     if lab.kind in ("test", "online"):
         if body.classifier_id is None:
             raise BadRequestError(f"{lab.kind} sessions need a classifier", field="classifier_id")
-        if body.classifier_id > MAX_ROW_ID or db.get(Classifier, body.classifier_id) is None:
+        too_big = body.classifier_id > MAX_ROW_ID  # PostgreSQL's integer would overflow
+        classifier = None if too_big else db.get(Classifier, body.classifier_id)
+        if classifier is None:
             raise BadRequestError(f"no classifier {body.classifier_id}", field="classifier_id")
+        if body.label_channel == "soft" and not (classifier.metrics or {}).get("calibration"):
+            raise BadRequestError(
+                f"classifier {body.classifier_id} has no calibrated posterior, which the soft "
+                "channel needs: calibrate it again (eeg_calibration) or use label_channel hard",
+                field="label_channel",
+            )
     run = _latest_run(db, session_id)
     job = db.get(Job, run.job_id) if run is not None and run.job_id else None
     active = job is not None and job.status in ("queued", "running")

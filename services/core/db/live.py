@@ -61,6 +61,8 @@ class LiveRun(Base):
     hf_session_id: Mapped[str | None] = mapped_column(String(64))
     hf_method: Mapped[str | None] = mapped_column(String(32))
     """The stage-2 method of an online run's HF session, as the learner created it."""
+    label_channel: Mapped[str | None] = mapped_column(String(8))
+    """How the labels of an online run's HF session enter Fhat (``hard`` or ``soft``)."""
     eeg_classifier_id: Mapped[str | None] = mapped_column(String(64))
     recording_id: Mapped[int | None] = mapped_column(
         ForeignKey("recordings.id", ondelete="SET NULL")
@@ -140,6 +142,8 @@ class LiveDecision(Base):
     reason: Mapped[str | None] = mapped_column(Text)
     feedback: Mapped[str | None] = mapped_column(String(16))
     p_error: Mapped[float | None] = mapped_column(Float)
+    log_likelihood_ratio: Mapped[float | None] = mapped_column(Float)
+    """log P(epoch | error) / P(epoch | correct) from a calibrated classifier (the soft label)."""
     oracle_correct: Mapped[bool | None] = mapped_column(Boolean)
     classifier_id: Mapped[str | None] = mapped_column(String(64))
     epoch_end_ts: Mapped[float | None] = mapped_column(Float)

@@ -314,6 +314,8 @@ class FeedbackLabel(Base):
     action: Mapped[int] = mapped_column(Integer)
     decoded_error: Mapped[bool | None] = mapped_column(Boolean)
     p_error: Mapped[float | None] = mapped_column(Float)
+    log_likelihood_ratio: Mapped[float | None] = mapped_column(Float)
+    """The soft label: log P(epoch | error) / P(epoch | correct) (a calibrated classifier's)."""
     oracle_error: Mapped[bool | None] = mapped_column(Boolean)
     shown_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     decoded_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
