@@ -320,6 +320,8 @@ def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
     assert form.get_by_label("Label budget").input_value() == "1000"  # not reached: stopped
     assert form.get_by_label("Stage-2 method").input_value() == ""  # the recommended one
     form.get_by_label("Stage-2 method").select_option("categorical")
+    assert form.get_by_label("Label channel").input_value() == "hard"
+    form.get_by_label("Label channel").select_option("soft")
     assert form.get_by_label("Accelerated (virtual subject)").is_checked()
     form.get_by_role("button", name="Start").click()
     page.get_by_text("Session started.").wait_for()
@@ -358,6 +360,7 @@ def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
     assert run["result"]["stopped_on_command"] is True and run["hf_model_id"] is not None
     assert run["options"]["classifier_id"] == classifier_id and run["options"]["accelerated"]
     assert run["options"]["hf_method"] == run["hf_method"] == "categorical"
+    assert run["options"]["label_channel"] == run["label_channel"] == "soft"
     # The page's table is the run's rows: every action, its oracle label, decoded feedback
     # and p(error) as the worker stored them; its running accuracy is the API's.
     rows = page.locator("#live-actions tr")

@@ -54,6 +54,9 @@ function startForm(session, classifiers, message, onStarted) {
   const budget = h("input", { type: "number", min: 1, max: 100000, name: "label_budget", value: 1000 });
   const hfMethod = h("select", { name: "hf_method" }, h("option", { value: "" }, "Recommended (default)"),
     HF_METHODS.map(([v, l]) => h("option", { value: v }, l)));
+  const channel = h("select", { name: "label_channel" },
+    h("option", { value: "hard" }, "Hard: the thresholded feedback (default)"),
+    h("option", { value: "soft" }, "Soft: the calibrated likelihood ratio"));
   const accelerated = h("input", { type: "checkbox", name: "accelerated", checked: true });
   const needsClassifier = session.kind !== "calibration";
   const submit = h("button", { type: "submit", class: "btn primary" }, "Start");
@@ -65,6 +68,9 @@ function startForm(session, classifiers, message, onStarted) {
     label_budget: session.kind === "online" ? field("Label budget", budget) : null,
     hf_method: session.kind === "online"
       ? field("Stage-2 method", hfMethod, "How pi_HF is learned from the labels (docs/stage2.md).")
+      : null,
+    label_channel: session.kind === "online"
+      ? field("Label channel", channel, "How each decoded label enters Fhat (docs/live.md).")
       : null,
   };
   submit.disabled = needsClassifier && !classifiers.length;
@@ -83,6 +89,7 @@ function startForm(session, classifiers, message, onStarted) {
     if (needsClassifier) body.classifier_id = Number(classifier.value);
     if (session.kind === "online") body.label_budget = Number(budget.value);
     if (session.kind === "online" && hfMethod.value) body.hf_method = hfMethod.value;
+    if (session.kind === "online" && channel.value !== "hard") body.label_channel = channel.value;
     try {
       await post(`/api/v1/sessions/${session.id}/start`, body);
       onStarted();
