@@ -1,9 +1,9 @@
 """EEG decoding benchmarks (``bgrl bench eeg``) and the quality -> accuracy sweep.
 
-All data here is SYNTHETIC (virtual subject, :mod:`services.eeg.virtual_subject`).
+All data here is SYNTHETIC (virtual subject, :mod:`services.eeg.virtual.subject`).
 
 * Decision latency: a recording is replayed over a loopback LSL stream (chunks of 32
-  samples, paced at ``speed`` x real time) into :class:`services.eeg.live.LiveIngest`; for
+  samples, paced at ``speed`` x real time) into :class:`services.eeg.live.ingest.LiveIngest`; for
   each action the latency runs from the moment the chunk holding the last sample of the
   [0, 0.8] s window is pushed to the moment P(error) is available (LSL transport, integrity
   checks, causal preprocessing, epoch cut, EEGNet). Peer, same run and same windows: MNE's
@@ -36,7 +36,7 @@ import numpy as np
 
 import services.core
 from services.core.actions import ACTION_PERIOD_S
-from services.eeg.training_config import DECODERS
+from services.eeg.decoding.training_config import DECODERS
 
 LSL_LOOPBACK_CFG = Path(services.core.__file__).with_name("lsl_loopback.cfg")
 DEFAULT_QUALITIES = (0.0, 0.2, 0.3, 0.4, 0.6, 1.0)
@@ -73,8 +73,8 @@ def _subject_epochs(seed: int, n_actions: int, error_rate: float) -> tuple[Any, 
     """The epochs of virtual subject ``seed`` simulated at quality 0 and 1, and its labels.
     Kept for the last subject: a serial sweep runs its two tasks (halves of the levels) one
     after the other, and the second reuses the first's simulations (read only)."""
-    from services.eeg.preprocessing import epochs_from_raw
-    from services.eeg.virtual_subject import simulate_recording
+    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.virtual.subject import simulate_recording
 
     labels = random_labels(n_actions, error_rate, seed)
     e0 = epochs_from_raw(simulate_recording(labels, quality=0.0, seed=seed))
@@ -105,9 +105,9 @@ def _sweep_subject(
     """
     import torch
 
-    from services.eeg.calibration import TrainingConfig, train_classifier
-    from services.eeg.preprocessing import EpochSet, epochs_from_raw
-    from services.eeg.virtual_subject import simulate_recording
+    from services.eeg.decoding.calibration import TrainingConfig, train_classifier
+    from services.eeg.signal.preprocessing import EpochSet, epochs_from_raw
+    from services.eeg.virtual.subject import simulate_recording
 
     torch.set_num_threads(1)
     e0, e1, labels = _subject_epochs(seed, n_actions, error_rate)
@@ -312,7 +312,7 @@ def plot_sweep(result: dict[str, Any]):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from services.eeg.report import DECODER_NAMES
+    from services.eeg.decoding.report import DECODER_NAMES
 
     names = list(result["decoders"])
     summary = result["summary"]
@@ -400,9 +400,9 @@ def write_sweep_outputs(result: dict[str, Any], out: Path) -> list[Path]:
 
 def bench_training(n_actions: int = 600, seed: int = 0) -> tuple[dict[str, Any], Any]:
     """Time calibration training on ``n_actions`` epochs; returns (figures, classifier)."""
-    from services.eeg.calibration import train_classifier
-    from services.eeg.preprocessing import epochs_from_raw
-    from services.eeg.virtual_subject import simulate_recording
+    from services.eeg.decoding.calibration import train_classifier
+    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.virtual.subject import simulate_recording
 
     raw = simulate_recording(random_labels(n_actions, 0.3, seed), quality=0.4, seed=seed)
     epochs = epochs_from_raw(raw)
@@ -428,8 +428,8 @@ def bench_offline_speed(minutes: float = 20.0, seed: int = 1) -> dict[str, Any]:
     """Offline preprocessing of a ``minutes`` long recording: ours vs MNE filter+resample."""
     import mne
 
-    from services.eeg.preprocessing import OnlinePreprocessor, PreprocessingParams
-    from services.eeg.virtual_subject import simulate_recording
+    from services.eeg.signal.preprocessing import OnlinePreprocessor, PreprocessingParams
+    from services.eeg.virtual.subject import simulate_recording
 
     n_actions = int(minutes * 60 / ACTION_PERIOD_S) - 2
     raw = simulate_recording(random_labels(n_actions, 0.3, seed), quality=0.5, seed=seed)
@@ -492,9 +492,9 @@ def bench_latency(
     os.environ.setdefault("LSLAPICFG", str(LSL_LOOPBACK_CFG))  # stay on this machine
     from mne_lsl.lsl import StreamInfo, StreamInlet, StreamOutlet, resolve_streams
 
-    from services.eeg.live import LiveIngest
-    from services.eeg.preprocessing import epochs_from_raw
-    from services.eeg.virtual_subject import simulate_recording
+    from services.eeg.live.ingest import LiveIngest
+    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.virtual.subject import simulate_recording
 
     torch.set_num_threads(1)
     period = 1.0
@@ -608,8 +608,8 @@ MEMORY_LIMIT_MB = 1500.0
 
 _SERVICE_READ = """
 import sys
-from services.eeg.io import action_events, file_sha256, read_recording
-from services.eeg.preprocessing import epochs_from_raw
+from services.eeg.recordings.io import action_events, file_sha256, read_recording
+from services.eeg.signal.preprocessing import epochs_from_raw
 raw = read_recording(sys.argv[1])  # upload: validate, count the actions, hash
 events = action_events(raw)
 file_sha256(sys.argv[1])

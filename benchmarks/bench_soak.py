@@ -48,7 +48,7 @@ KINDS = ("api", "sim", "eeg", "learner", "worker")
 MARKS = {
     "api": "services.api.app:app",
     "sim": "services.sim.app:app",
-    "eeg": "services.eeg.app:app",
+    "eeg": "services.eeg.service.app:app",
     "learner": "services.learner.service.app:app",
     "worker": "services.cli.main worker",
 }
@@ -67,8 +67,8 @@ UPLOAD_ACTIONS = 4
 
 def virtual_recording(folder: Path, seed: int) -> Path:
     """A virtual subject's short calibration recording (SYNTHETIC), as a 24-bit BDF file."""
-    from services.eeg.io import write_bdf
-    from services.eeg.virtual_subject import SyntheticRecording
+    from services.eeg.recordings.io import write_bdf
+    from services.eeg.virtual.subject import SyntheticRecording
 
     labels = [action % 3 != 0 for action in range(UPLOAD_ACTIONS)]
     recording = SyntheticRecording(labels, quality=0.6, seed=seed)

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from services.cli.eeg import eeg_app
 from services.cli.paths import output_folder
-from services.eeg.training_config import DECODERS
+from services.eeg.decoding.training_config import DECODERS
 
 
 def bench_sim(
@@ -115,7 +115,7 @@ def quality_sweep_command(
         quality_sweep,
         write_sweep_outputs,
     )
-    from services.eeg.calibration import TrainingConfig
+    from services.eeg.decoding.calibration import TrainingConfig
 
     names = tuple(d.strip() for d in decoders.split(",") if d.strip())
     try:

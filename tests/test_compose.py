@@ -21,7 +21,7 @@ from typer._click.exceptions import UsageError
 from services.api.settings import ApiSettings
 from services.cli.main import app
 from services.core.platform import PlatformSettings
-from services.eeg.settings import EEGSettings
+from services.eeg.service.settings import EEGSettings
 from services.learner.service.settings import LearnerSettings
 from services.sim.settings import SimSettings
 from services.worker.live_services import LiveSettings

@@ -20,8 +20,8 @@ import pytest
 import torch
 
 import services.sim.oracle as oracle_module
-from services.eeg.calibration import TrainingConfig, calibrate
-from services.eeg.virtual_subject import simulate_recording
+from services.eeg.decoding.calibration import TrainingConfig, calibrate
+from services.eeg.virtual.subject import simulate_recording
 from services.sim.app import create_app
 from services.sim.settings import SimSettings
 

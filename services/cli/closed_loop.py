@@ -15,7 +15,7 @@ from typing import Any
 
 SERVICES = {
     "sim": "services.sim.app:app",
-    "eeg": "services.eeg.app:app",
+    "eeg": "services.eeg.service.app:app",
     "learner": "services.learner.service.app:app",
 }
 

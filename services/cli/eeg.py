@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from services.cli.paths import output_folder, refuse_file
-from services.eeg.training_config import DECODERS
+from services.eeg.decoding.training_config import DECODERS
 
 eeg_app = typer.Typer(help="ErrP decoding: calibrate classifiers, sweep subject quality.")
 
@@ -66,8 +66,8 @@ def calibrate_command(
     """Train and evaluate the ErrP classifier on RECORDING; writes OUT/metrics.json."""
     import torch
 
-    from services.eeg.calibration import TrainingConfig, calibrate
-    from services.eeg.io import RecordingError, read_recording
+    from services.eeg.decoding.calibration import TrainingConfig, calibrate
+    from services.eeg.recordings.io import RecordingError, read_recording
 
     torch.set_num_threads(1)  # this process only: one core, bit-reproducible runs
     try:
@@ -133,7 +133,7 @@ def _read_channel_map(path: Path) -> dict[str, str]:
 
 def _event_labels(pairs: list[str]):
     """``EventLabels`` from ``KEY=correct|error`` pairs (an integer KEY is a Status code)."""
-    from services.eeg.formats import EventLabels
+    from services.eeg.recordings.formats import EventLabels
 
     codes: dict[int, str] = {}
     descriptions: dict[str, str] = {}
@@ -179,7 +179,7 @@ def information_command(
     """
     from services.cli.feedback_options import FEEDBACK_CACHE
     from services.core.files import write_results_json
-    from services.eeg.calibration import TrainingConfig
+    from services.eeg.decoding.calibration import TrainingConfig
     from services.worker.label_information import format_table, measure_subject, summarize
 
     names = tuple(d.strip() for d in decoders.split(",") if d.strip())

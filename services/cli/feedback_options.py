@@ -103,7 +103,7 @@ def feedback_factory(feedback: str, decoders: str, out: Path) -> VirtualSubjectF
     """The factory of the virtual subject's feedback (None for the oracle's)."""
     if feedback != "virtual_subject":
         return None
-    from services.eeg.training_config import TrainingConfig
+    from services.eeg.decoding.training_config import TrainingConfig
     from services.worker.e2e_feedback import VirtualSubjectFactory
 
     names = tuple(d.strip() for d in decoders.split(",") if d.strip())

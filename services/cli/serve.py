@@ -84,7 +84,7 @@ class ServiceSpec:
 SERVICES = (
     ServiceSpec("api", "services.api.app:app", "services.api.settings:ApiSettings"),
     ServiceSpec("sim", "services.sim.app:app", "services.sim.settings:SimSettings"),
-    ServiceSpec("eeg", "services.eeg.app:app", "services.eeg.settings:EEGSettings"),
+    ServiceSpec("eeg", "services.eeg.service.app:app", "services.eeg.service.settings:EEGSettings"),
     ServiceSpec(
         "learner",
         "services.learner.service.app:app",

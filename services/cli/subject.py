@@ -62,8 +62,8 @@ def simulate_command(
     ),
 ) -> None:
     """Write a virtual subject's calibration recording (SYNTHETIC) as a 24-bit BDF file."""
-    from services.eeg.io import file_sha256, write_bdf
-    from services.eeg.virtual_subject import SyntheticRecording
+    from services.eeg.recordings.io import file_sha256, write_bdf
+    from services.eeg.virtual.subject import SyntheticRecording
 
     if task not in ("sssg", "vssg"):
         raise typer.BadParameter(f"task must be sssg or vssg, got {task!r}", param_hint="--task")
@@ -110,8 +110,8 @@ def stream_command(
     """
     import time
 
-    from services.eeg.io import RecordingError, read_recording
-    from services.eeg.lsl import replay
+    from services.eeg.live.lsl import replay
+    from services.eeg.recordings.io import RecordingError, read_recording
 
     if recording is None:
         from services.cli.subject_live import stream_virtual_subject

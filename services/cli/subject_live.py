@@ -6,7 +6,7 @@ import time
 
 import typer
 
-from services.eeg.virtual_stream import VirtualLslStream
+from services.eeg.virtual.stream import VirtualLslStream
 
 
 def stream_virtual_subject(

@@ -1,9 +1,9 @@
 """``eeg_calibration`` jobs: train the ErrP classifier on a stored calibration recording.
 
 The recording is read from the artifact store, calibrated by the EEG pipeline
-(:func:`services.eeg.calibration.calibrate`), and every file it writes (weights, TorchScript, .pt2,
-ONNX, metrics, history, report) becomes an artifact of the job; a ``classifiers`` row links
-them to the recording and its subject.
+(:func:`services.eeg.decoding.calibration.calibrate`), and every file it writes (weights,
+TorchScript, .pt2, ONNX, metrics, history, report) becomes an artifact of the job; a
+``classifiers`` row links them to the recording and its subject.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from sqlalchemy import select
 
 from services.core.db.models import Artifact, Classifier, LabSession, Recording
 from services.core.web import jsonable
-from services.eeg.calibration import TrainingConfig, calibrate
-from services.eeg.classifier import ONNX_FILE, PT2_FILE, TORCHSCRIPT_FILE
-from services.eeg.io import RecordingError, read_recording
+from services.eeg.decoding.calibration import TrainingConfig, calibrate
+from services.eeg.decoding.classifier import ONNX_FILE, PT2_FILE, TORCHSCRIPT_FILE
+from services.eeg.recordings.io import RecordingError, read_recording
 from services.platform.jobs import EEG_CALIBRATION
 from services.platform.jobs.eeg_calibration import EEGCalibrationConfig
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome, parse_config

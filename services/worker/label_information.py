@@ -4,7 +4,7 @@ For each subject (seed) and target decoding accuracy: the subject's quality is f
 an end-to-end run (:func:`~services.worker.e2e_feedback.find_quality`, the same cache), its
 decoder calibrated on its own 600-action calibration session, and the information of one
 label measured on a separate session of fresh epochs, half of them errors
-(:mod:`services.eeg.information`): the hard channel's ``1 - H(error rate)`` and the mutual
+(:mod:`services.eeg.decoding.information`): the hard channel's ``1 - H(error rate)`` and the mutual
 information of the decisions with the truth, the soft channel's mutual information of the
 calibrated posterior with the truth (binned, bootstrap interval), and the Gaussian-score
 reference at the same accuracy. Beside them, the subject's trial-to-trial variability at
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from services.eeg.information import (
+from services.eeg.decoding.information import (
     bootstrap_interval,
     gaussian_reference,
     hard_bits,
@@ -28,8 +28,8 @@ from services.eeg.information import (
     soft_bin_edges,
     soft_information,
 )
-from services.eeg.posterior import PosteriorCalibration
-from services.eeg.training_config import TrainingConfig
+from services.eeg.decoding.posterior import PosteriorCalibration
+from services.eeg.decoding.training_config import TrainingConfig
 from services.worker.e2e_feedback import (
     SubjectEpochs,
     SubjectRecording,

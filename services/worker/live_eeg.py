@@ -28,10 +28,10 @@ from websockets.exceptions import WebSocketException
 
 from services.core.db.models import Artifact, Classifier, Job
 from services.core.markers import ActionMarker
-from services.eeg.settings import EEGSettings
-from services.eeg.store import ClassifierStore
-from services.eeg.virtual_ingest import VirtualIngestClient
-from services.eeg.virtual_source import VirtualEEGSource
+from services.eeg.service.settings import EEGSettings
+from services.eeg.service.store import ClassifierStore
+from services.eeg.virtual.ingest import VirtualIngestClient
+from services.eeg.virtual.source import VirtualEEGSource
 from services.worker.live_services import (
     OutcomeUnknownError,
     ServiceCallError,

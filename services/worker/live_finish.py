@@ -20,8 +20,8 @@ from services.core.db.live import LiveDecision, LiveMarker, LiveRun
 from services.core.db.models import Artifact, FeedbackLabel, HFModel, Job, Recording
 from services.core.live import LiveOptions
 from services.core.queue import enqueue_job
-from services.eeg.io import read_recording
-from services.eeg.settings import EEGSettings
+from services.eeg.recordings.io import read_recording
+from services.eeg.service.settings import EEGSettings
 from services.platform.jobs import EEG_CALIBRATION
 from services.worker.live_services import ServiceClient
 from services.worker.runtime import JobContext

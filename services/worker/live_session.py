@@ -176,7 +176,7 @@ class LiveRunner:
     def attach_eeg(self) -> None:
         """Connect the EEG source: bound to the classifier (test, online), or recorded by the
         EEG service's live recording (calibration)."""
-        from services.eeg.virtual_source import VirtualEEGSource
+        from services.eeg.virtual.source import VirtualEEGSource
 
         eeg_id = None
         if self.mode != "calibration":

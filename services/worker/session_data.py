@@ -36,9 +36,9 @@ from services.core.db.models import (
     Subject,
 )
 from services.core.markers import ActionMarker
-from services.eeg.classifier import ErrPClassifier
-from services.eeg.io import action_events, is_synthetic, read_recording
-from services.eeg.virtual_source import VirtualEEGSource
+from services.eeg.decoding.classifier import ErrPClassifier
+from services.eeg.recordings.io import action_events, is_synthetic, read_recording
+from services.eeg.virtual.source import VirtualEEGSource
 from services.worker.live_eeg import EPOCH_END_S, WARMUP_S
 from services.worker.runtime import JobConfigError, Runtime
 

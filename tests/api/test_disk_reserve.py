@@ -60,8 +60,8 @@ def test_api_refuses_uploads_jobs_retries_and_live_starts_below_the_reserve(api:
 
 
 def test_eeg_service_refuses_uploads_and_calibration_jobs_below_the_reserve(tmp_path: Path) -> None:
-    from services.eeg.app import create_app
-    from services.eeg.settings import EEGSettings
+    from services.eeg.service.app import create_app
+    from services.eeg.service.settings import EEGSettings
 
     settings = EEGSettings(data_dir=tmp_path, min_free_mb=ABOVE_FREE_MB)
     with TestClient(create_app(settings)) as client:

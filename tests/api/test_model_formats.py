@@ -13,9 +13,9 @@ import torch
 
 from services.core.db.models import Artifact, Classifier, HFModel, Job
 from services.core.model_formats import MODEL_FORMATS, SUFFIXES
-from services.eeg.classifier import ONNX_FILE, PT2_FILE, TORCHSCRIPT_FILE, ErrPClassifier
-from services.eeg.eegnet import EEGNet
-from services.eeg.riemannian import fit_xdawn_riemann
+from services.eeg.decoding.classifier import ONNX_FILE, PT2_FILE, TORCHSCRIPT_FILE, ErrPClassifier
+from services.eeg.decoding.eegnet import EEGNet
+from services.eeg.decoding.riemannian import fit_xdawn_riemann
 from services.learner.feedback import FeedbackModel
 from services.learner.networks import ObsNormalizer
 from services.learner.policy_files import ActorLogits, write_beside_torchscript

@@ -16,8 +16,8 @@ from tests.helpers import serve_in_thread
 @pytest.fixture(scope="module")
 def synthetic_bdf(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     """A small synthetic recording (virtual subject, 256 Hz, 12 actions) as BDF bytes."""
-    from services.eeg.io import write_bdf
-    from services.eeg.virtual_subject import SyntheticRecording
+    from services.eeg.recordings.io import write_bdf
+    from services.eeg.virtual.subject import SyntheticRecording
 
     path = tmp_path_factory.mktemp("bdf") / "s01.bdf"
     recording = SyntheticRecording([True, False] * 6, quality=0.8, seed=1, sfreq=256.0)
@@ -28,8 +28,8 @@ def synthetic_bdf(tmp_path_factory: pytest.TempPathFactory) -> bytes:
 @pytest.fixture(scope="module")
 def eeg_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """The real EEG service on a free loopback port (a uvicorn server in a thread)."""
-    from services.eeg.app import create_app as create_eeg_app
-    from services.eeg.settings import EEGSettings
+    from services.eeg.service.app import create_app as create_eeg_app
+    from services.eeg.service.settings import EEGSettings
 
     settings = EEGSettings(data_dir=tmp_path_factory.mktemp("eeg"), max_upload_bytes=4 * 2**20)
     with serve_in_thread(create_eeg_app(settings)) as url:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.eeg.preprocessing import EpochSet, PreprocessingParams
-from services.eeg.virtual_subject import eeg_channel_names
+from services.eeg.signal.preprocessing import EpochSet, PreprocessingParams
+from services.eeg.virtual.subject import eeg_channel_names
 
 CH_NAMES = eeg_channel_names()
 """The virtual subject's 64 channels, the order of the epochs' rows."""

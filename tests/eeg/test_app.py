@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from services.eeg import jobs as jobs_module
-from services.eeg.app import create_app
-from services.eeg.calibration import CalibrationCancelled
-from services.eeg.io import action_events, write_bdf
-from services.eeg.settings import EEGSettings
-from services.eeg.virtual_subject import simulate_recording
+from services.eeg.decoding.calibration import CalibrationCancelled
+from services.eeg.recordings.io import action_events, write_bdf
+from services.eeg.service import jobs as jobs_module
+from services.eeg.service.app import create_app
+from services.eeg.service.settings import EEGSettings
+from services.eeg.virtual.subject import simulate_recording
 
 SFREQ = 512.0
 N_ACTIONS = 40

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from services.eeg.calibration import (
+from services.eeg.decoding.calibration import (
     Split,
     TrainingConfig,
     calibrate,
@@ -17,9 +17,9 @@ from services.eeg.calibration import (
     stratified_split,
     train_classifier,
 )
-from services.eeg.classifier import ONNX_FILE, TORCHSCRIPT_FILE, ErrPClassifier
-from services.eeg.preprocessing import EpochSet, PreprocessingParams
-from services.eeg.virtual_subject import eeg_channel_names, simulate_recording
+from services.eeg.decoding.classifier import ONNX_FILE, TORCHSCRIPT_FILE, ErrPClassifier
+from services.eeg.signal.preprocessing import EpochSet, PreprocessingParams
+from services.eeg.virtual.subject import eeg_channel_names, simulate_recording
 
 CH_NAMES = eeg_channel_names()
 
@@ -69,7 +69,7 @@ def test_training_refuses_single_class() -> None:
 
 def test_calibration_on_virtual_subject_beats_chance() -> None:
     """A clean SYNTHETIC subject: the held-out ROC AUC and balanced accuracy exceed chance."""
-    from services.eeg.preprocessing import epochs_from_raw
+    from services.eeg.signal.preprocessing import epochs_from_raw
 
     labels = np.random.default_rng(5).random(300) >= 0.4
     epochs = epochs_from_raw(simulate_recording(labels, quality=1.0, seed=5))
@@ -120,7 +120,7 @@ def test_save_load_round_trip_and_torchscript(tmp_path, decoders, kept, n_params
 def test_output_json_is_strict_a_figure_without_a_value_is_null(tmp_path) -> None:
     """A test split of one class has no ROC AUC (NaN): metrics.json says null, which strict
     JSON readers take, instead of the NaN token they refuse."""
-    from services.eeg.outputs import write_outputs
+    from services.eeg.decoding.outputs import write_outputs
 
     result = calibrate(_toy_epochs(), seed=1, config=TrainingConfig(decoders=("lda",)))
     result.metrics["roc_auc"] = float("nan")
@@ -221,7 +221,7 @@ def test_concurrent_calibrations_give_their_sequential_results() -> None:
 
 
 def test_should_stop_cancels_between_passes_and_leaves_nothing(tmp_path) -> None:
-    from services.eeg.calibration import CalibrationCancelled
+    from services.eeg.decoding.calibration import CalibrationCancelled
 
     calls = []
 
@@ -245,7 +245,7 @@ def test_should_stop_cancels_between_passes_and_leaves_nothing(tmp_path) -> None
 
 def test_a_classifier_stays_bound_to_its_cap_and_rate(tmp_path) -> None:
     """Trained on a 32-channel cap at 500 Hz: other caps and rates are refused by reason."""
-    from services.eeg.preprocessing import epochs_from_raw
+    from services.eeg.signal.preprocessing import epochs_from_raw
     from tests.eeg.caps import CAP_8, CAP_32, virtual_recording
 
     raw = virtual_recording(500.0, CAP_32, labels=[True, False] * 20, seed=8)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.eeg.channels import ChannelError, builtin_channel_map, resolve_channels
+from services.eeg.recordings.channels import ChannelError, builtin_channel_map, resolve_channels
 from tests.eeg.caps import CAP_8, CAP_32, CAP_64
 
 

@@ -7,13 +7,23 @@ import pytest
 import torch
 from fastapi.testclient import TestClient
 
-from services.eeg.app import create_app
-from services.eeg.calibration import TrainingConfig, calibrate, stratified_split, train_classifier
-from services.eeg.classical import ERRP_CHANNELS, WindowMeanLDA, fit_window_lda, window_index
-from services.eeg.classifier import ErrPClassifier
-from services.eeg.preprocessing import epochs_from_raw
-from services.eeg.settings import EEGSettings
-from services.eeg.virtual_subject import simulate_recording
+from services.eeg.decoding.calibration import (
+    TrainingConfig,
+    calibrate,
+    stratified_split,
+    train_classifier,
+)
+from services.eeg.decoding.classical import (
+    ERRP_CHANNELS,
+    WindowMeanLDA,
+    fit_window_lda,
+    window_index,
+)
+from services.eeg.decoding.classifier import ErrPClassifier
+from services.eeg.service.app import create_app
+from services.eeg.service.settings import EEGSettings
+from services.eeg.signal.preprocessing import epochs_from_raw
+from services.eeg.virtual.subject import simulate_recording
 from tests.eeg.patterned import CH_NAMES, patterned_epochs
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from services.cli.main import app
-from services.eeg.virtual_subject import simulate_recording
+from services.eeg.virtual.subject import simulate_recording
 
 runner = CliRunner()
 
@@ -20,7 +20,7 @@ runner = CliRunner()
 def test_cli_calibrate_tiny_bdf_misnamed_edf_without_library_noise(tmp_path) -> None:
     """The real command in its own process: a BDF named .edf is read as BDF and said so,
     and no library notice (torchvision, TorchScript deprecation) reaches the terminal."""
-    from services.eeg.io import write_bdf
+    from services.eeg.recordings.io import write_bdf
 
     labels = np.random.default_rng(0).random(60) >= 0.3
     path = write_bdf(simulate_recording(labels, quality=1.0, seed=2), tmp_path / "tiny.bdf")

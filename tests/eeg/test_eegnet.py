@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from services.eeg.eegnet import DENSE_MAX_NORM, SPATIAL_MAX_NORM, EEGNet, count_parameters
+from services.eeg.decoding.eegnet import DENSE_MAX_NORM, SPATIAL_MAX_NORM, EEGNet, count_parameters
 
 
 def test_output_shape_and_feature_size() -> None:

@@ -15,11 +15,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.core.markers import ActionMarker
-from services.eeg.app import create_app
-from services.eeg.formats import EventLabels
-from services.eeg.io import RecordingError, action_events, detect_format, read_recording
-from services.eeg.settings import EEGSettings
-from services.eeg.virtual_subject import STIM_CHANNEL
+from services.eeg.recordings.formats import EventLabels
+from services.eeg.recordings.io import RecordingError, action_events, detect_format, read_recording
+from services.eeg.service.app import create_app
+from services.eeg.service.settings import EEGSettings
+from services.eeg.virtual.subject import STIM_CHANNEL
 from tests.eeg.caps import CAP_8, LABELS, virtual_recording
 from tests.eeg.xdf_writer import XdfStream, write_xdf
 
@@ -218,7 +218,7 @@ def test_an_edf_clipped_by_a_physical_range_in_the_wrong_unit_is_refused(raw, tm
 
 
 def test_status_codes_by_a_lab_mapping(raw, tmp_path):
-    from services.eeg.io import write_bdf
+    from services.eeg.recordings.io import write_bdf
 
     relabelled = raw.copy()
     status = relabelled._data[-1]

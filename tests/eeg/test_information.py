@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from services.eeg.information import (
+from services.eeg.decoding.information import (
     bootstrap_interval,
     gaussian_reference,
     hard_bits,

@@ -10,7 +10,7 @@ import mne
 import numpy as np
 import pytest
 
-from services.eeg.io import (
+from services.eeg.recordings.io import (
     RecordingError,
     action_events,
     detect_format,
@@ -21,7 +21,7 @@ from services.eeg.io import (
     validate_recording,
     write_bdf,
 )
-from services.eeg.virtual_subject import STIM_CHANNEL, SyntheticRecording, simulate_recording
+from services.eeg.virtual.subject import STIM_CHANNEL, SyntheticRecording, simulate_recording
 
 SFREQ = 512.0
 LABELS = [True, False, False, True, False, False, True, False]
@@ -161,7 +161,7 @@ def test_format_comes_from_the_header_not_the_name(raw, tmp_path, caplog):
     bdf = write_bdf(raw, tmp_path / "rec.bdf")
     misnamed = bdf.rename(tmp_path / "rec.edf")
     assert detect_format(misnamed) == "bdf"
-    with caplog.at_level(logging.WARNING, logger="services.eeg.io"):
+    with caplog.at_level(logging.WARNING, logger="services.eeg.recordings.io"):
         back = read_recording(misnamed)
     note = "rec.edf: the file's header says BDF, not EDF; it is read as BDF"
     assert caplog.messages == [note]
@@ -263,7 +263,7 @@ def test_flat_check_is_exact_under_a_large_dc_offset(raw):
 )
 def test_any_cap_and_rate_is_read_and_epoched(sfreq, cap, tmp_path):
     """An OpenBCI-like 250 Hz, BrainAmp-like 500/1000 Hz and BioSemi 2048 Hz recording."""
-    from services.eeg.preprocessing import epochs_from_raw
+    from services.eeg.signal.preprocessing import epochs_from_raw
     from tests.eeg.caps import CAP_8, CAP_32, CAP_64, LABELS, virtual_recording
 
     names = {"8": CAP_8, "32": CAP_32, "64": CAP_64}[cap]
@@ -282,7 +282,7 @@ def test_any_cap_and_rate_is_read_and_epoched(sfreq, cap, tmp_path):
 
 def test_device_names_and_other_channels_through_a_rig_map(tmp_path):
     """ActiView's A1..B32 names read through the rig's map; EXG kept but not decoded."""
-    from services.eeg.channels import builtin_channel_map
+    from services.eeg.recordings.channels import builtin_channel_map
     from tests.eeg.caps import CAP_64, virtual_recording
 
     raw = virtual_recording(512.0, CAP_64, seed=6)

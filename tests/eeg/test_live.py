@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from services.eeg.live import MAX_ISSUES, LiveIngest
-from services.eeg.preprocessing import epochs_from_raw
-from services.eeg.virtual_subject import STIM_CHANNEL, simulate_recording
+from services.eeg.live.ingest import MAX_ISSUES, LiveIngest
+from services.eeg.signal.preprocessing import epochs_from_raw
+from services.eeg.virtual.subject import STIM_CHANNEL, simulate_recording
 
 SFREQ = 512.0
 CHANNELS = ["FCz", "Cz", "Pz", STIM_CHANNEL]
@@ -174,7 +174,7 @@ def test_chunked_live_epochs_equal_offline_epochs():
 
 @pytest.mark.lsl
 def test_lsl_loopback_replay_yields_clean_epochs():
-    lsl = pytest.importorskip("services.eeg.lsl")
+    lsl = pytest.importorskip("services.eeg.live.lsl")
     try:
         lsl.lsl_clock()
     except Exception as exc:  # liblsl missing or unusable on this machine
@@ -221,7 +221,7 @@ def test_rational_rate_stream_gives_the_offline_epochs():
 
 @pytest.mark.lsl
 def test_lsl_stream_with_device_names_needs_the_rig_map():
-    lsl = pytest.importorskip("services.eeg.lsl")
+    lsl = pytest.importorskip("services.eeg.live.lsl")
     try:
         lsl.lsl_clock()
     except Exception as exc:  # liblsl missing or unusable on this machine
@@ -260,10 +260,10 @@ def test_post_live_takes_the_rig_channel_map(tmp_path):
     """POST /live refuses a device-named stream with the reason and takes it with its map."""
     from fastapi.testclient import TestClient
 
-    from services.eeg.app import create_app
-    from services.eeg.settings import EEGSettings
+    from services.eeg.service.app import create_app
+    from services.eeg.service.settings import EEGSettings
 
-    lsl = pytest.importorskip("services.eeg.lsl")
+    lsl = pytest.importorskip("services.eeg.live.lsl")
     try:
         lsl.lsl_clock()
     except Exception as exc:  # liblsl missing or unusable on this machine

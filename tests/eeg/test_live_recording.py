@@ -11,9 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.core.markers import ActionMarker
-from services.eeg.app import create_app
-from services.eeg.io import action_events, file_sha256, read_recording
-from services.eeg.live_recording import (
+from services.eeg.live.recording import (
     INDEX_FILE,
     SAMPLES_FILE,
     STORED_FILE,
@@ -21,11 +19,13 @@ from services.eeg.live_recording import (
     read_log,
     write_bdf_from_log,
 )
-from services.eeg.settings import EEGSettings
-from services.eeg.state import EEGService
-from services.eeg.virtual_ingest import VirtualIngestClient
-from services.eeg.virtual_source import VirtualEEGSource
-from services.eeg.virtual_subject import eeg_channel_names
+from services.eeg.recordings.io import action_events, file_sha256, read_recording
+from services.eeg.service.app import create_app
+from services.eeg.service.settings import EEGSettings
+from services.eeg.service.state import EEGService
+from services.eeg.virtual.ingest import VirtualIngestClient
+from services.eeg.virtual.source import VirtualEEGSource
+from services.eeg.virtual.subject import eeg_channel_names
 from tests.eeg.test_virtual_source import EEG, AsgiConnection
 
 SFREQ = 256.0

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 from scipy import special
 
-from services.eeg.calibration import TrainingConfig, calibrate
-from services.eeg.classifier import CONFIG_FILE, ErrPClassifier
-from services.eeg.posterior import (
+from services.eeg.decoding.calibration import TrainingConfig, calibrate
+from services.eeg.decoding.classifier import CONFIG_FILE, ErrPClassifier
+from services.eeg.decoding.posterior import (
     PosteriorCalibration,
     expected_calibration_error,
     fit_platt,
     reliability_bins,
 )
-from services.eeg.preprocessing import EpochSet, PreprocessingParams
-from services.eeg.virtual_subject import eeg_channel_names
+from services.eeg.signal.preprocessing import EpochSet, PreprocessingParams
+from services.eeg.virtual.subject import eeg_channel_names
 
 
 def _scores(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -9,7 +9,7 @@ import json
 from typer.testing import CliRunner
 
 from services.cli.main import app
-from services.eeg.calibration import DECODERS
+from services.eeg.decoding.calibration import DECODERS
 
 
 def test_quality_sweep_writes_every_decoder_to_json_csv_and_png(tmp_path) -> None:

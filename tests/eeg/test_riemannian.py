@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from services.eeg.calibration import DECODERS, TrainingConfig, calibrate, train_classifier
-from services.eeg.classifier import ONNX_FILE, TORCHSCRIPT_FILE, ErrPClassifier
-from services.eeg.preprocessing import epochs_from_raw
-from services.eeg.riemannian import XdawnRiemann, fit_xdawn_riemann, xdawn_riemann_pipeline
-from services.eeg.split import stratified_split
-from services.eeg.virtual_subject import simulate_recording
+from services.eeg.decoding.calibration import DECODERS, TrainingConfig, calibrate, train_classifier
+from services.eeg.decoding.classifier import ONNX_FILE, TORCHSCRIPT_FILE, ErrPClassifier
+from services.eeg.decoding.riemannian import XdawnRiemann, fit_xdawn_riemann, xdawn_riemann_pipeline
+from services.eeg.decoding.split import stratified_split
+from services.eeg.signal.preprocessing import epochs_from_raw
+from services.eeg.virtual.subject import simulate_recording
 from tests.eeg.patterned import CH_NAMES, patterned_epochs
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -14,11 +14,11 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from services.core.markers import ActionMarker
-from services.eeg import lsl
-from services.eeg.app import create_app
-from services.eeg.live import LiveIngest
-from services.eeg.settings import EEGSettings
-from services.eeg.virtual_subject import STIM_CHANNEL
+from services.eeg.live import lsl
+from services.eeg.live.ingest import LiveIngest
+from services.eeg.service.app import create_app
+from services.eeg.service.settings import EEGSettings
+from services.eeg.virtual.subject import STIM_CHANNEL
 from tests.eeg.test_virtual_source import save_untrained_classifier
 
 SFREQ = 512.0
@@ -354,7 +354,7 @@ def test_live_status_lists_the_last_issues_and_counts_the_dropped(client):
 def test_live_lsl_source_classifies_markers(client):
     from mne_lsl.lsl import resolve_streams
 
-    from services.eeg.virtual_subject import simulate_recording
+    from services.eeg.virtual.subject import simulate_recording
     from services.sim.lsl_markers import MarkerPublisher
 
     try:

@@ -13,9 +13,9 @@ from fastapi.testclient import TestClient
 from mne_lsl.lsl import StreamInfo, StreamOutlet, local_clock
 
 from services.core.markers import MARKER_STREAM_TYPE, ActionMarker
-from services.eeg.app import create_app
-from services.eeg.settings import EEGSettings
-from services.eeg.virtual_stream import VirtualLslStream
+from services.eeg.service.app import create_app
+from services.eeg.service.settings import EEGSettings
+from services.eeg.virtual.stream import VirtualLslStream
 from tests.eeg.test_virtual_source import (
     CLASSIFIER,
     EEG,
@@ -128,7 +128,7 @@ def test_a_stream_without_the_classifiers_channels_is_refused_with_the_reason(cl
 def test_the_stream_is_marked_synthetic_and_follows_the_lsl_clock(names):
     from mne_lsl.lsl import StreamInlet, resolve_streams
 
-    from services.eeg.lsl import stream_is_synthetic
+    from services.eeg.live.lsl import stream_is_synthetic
 
     eeg_name, _ = names
     with VirtualLslStream(

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from services.eeg.virtual_subject import (
+from services.eeg.virtual.subject import (
     STIM_CHANNEL,
     VirtualSubject,
     eeg_channel_names,

@@ -13,9 +13,9 @@ import mne
 import pytest
 from fastapi.testclient import TestClient
 
-from services.eeg.app import create_app
-from services.eeg.io import RecordingError, read_recording
-from services.eeg.settings import EEGSettings
+from services.eeg.recordings.io import RecordingError, read_recording
+from services.eeg.service.app import create_app
+from services.eeg.service.settings import EEGSettings
 from tests.eeg.caps import CAP_8, LABELS, virtual_recording
 from tests.eeg.test_formats import CODES, SFREQ, _onsets, _write_vhdr
 

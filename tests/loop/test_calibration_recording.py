@@ -13,7 +13,7 @@ import pytest
 
 from services.core.db.live import LiveRun
 from services.core.db.models import Job, Recording
-from services.eeg.io import read_recording
+from services.eeg.recordings.io import read_recording
 from services.worker.live_session import live_session
 from services.worker.runtime import run_job
 from tests.loop.conftest import TOKEN, LoopPlatform
@@ -119,8 +119,8 @@ def test_a_headset_calibration_over_lsl_is_recorded_by_the_eeg_service(
 ) -> None:
     """``eeg_source: lsl``: the EEG service connects the stream without a classifier,
     records it with the sim's markers in real time, and the session stores it."""
-    from services.eeg import lsl
-    from services.eeg.virtual_subject import simulate_recording
+    from services.eeg.live import lsl
+    from services.eeg.virtual.subject import simulate_recording
 
     try:
         lsl.lsl_clock()

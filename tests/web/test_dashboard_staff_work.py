@@ -31,8 +31,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     """The api on a temporary SQLite database with an admin, a staff and a viewer account,
     and the real EEG service (in a thread) validating uploads."""
     from services.api.settings import ApiSettings
-    from services.eeg.app import create_app as create_eeg_app
-    from services.eeg.settings import EEGSettings
+    from services.eeg.service.app import create_app as create_eeg_app
+    from services.eeg.service.settings import EEGSettings
     from tests.web.conftest import _skip_reason
 
     reason = _skip_reason()
@@ -53,8 +53,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 @pytest.fixture(scope="module")
 def synthetic_bdf(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small synthetic recording (virtual subject, 256 Hz, 12 actions) as a BDF file."""
-    from services.eeg.io import write_bdf
-    from services.eeg.virtual_subject import SyntheticRecording
+    from services.eeg.recordings.io import write_bdf
+    from services.eeg.virtual.subject import SyntheticRecording
 
     path = tmp_path_factory.mktemp("bdf") / "s01.bdf"
     write_bdf(SyntheticRecording([True, False] * 6, quality=0.8, seed=1, sfreq=256.0), path)

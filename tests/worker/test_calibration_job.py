@@ -15,8 +15,8 @@ from services.core.db.base import utcnow
 from services.core.db.migrate import upgrade_database
 from services.core.db.models import Artifact, Classifier, Job, LabSession, Recording, Subject
 from services.core.queue import make_celery
-from services.eeg.io import write_bdf
-from services.eeg.virtual_subject import SyntheticRecording
+from services.eeg.recordings.io import write_bdf
+from services.eeg.virtual.subject import SyntheticRecording
 from services.worker.calibration import eeg_calibration
 from services.worker.runtime import Runtime, run_job
 from services.worker.settings import WorkerSettings

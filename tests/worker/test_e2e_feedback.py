@@ -9,9 +9,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.eeg.calibration import TrainingConfig
-from services.eeg.preprocessing import PreprocessingParams
-from services.eeg.virtual_source import VirtualEEGSource
+from services.eeg.decoding.calibration import TrainingConfig
+from services.eeg.signal.preprocessing import PreprocessingParams
+from services.eeg.virtual.source import VirtualEEGSource
 from services.learner.feedback_sources import DecodedLabel
 from services.learner.pool import sweep_row_key
 from services.learner.runs import HFPolicySpec, RunRecord, hf_policy_run, run_lockstep

@@ -215,7 +215,7 @@ def test_up_wires_serves_restarts_and_a_sigkill_of_it_leaves_nothing(tmp_path: P
         assert ready.json()["processes"]["worker-1"]["last_exit"] == "code -9 (SIGKILL)"
         tree = descendants(proc.pid)
         kinds = " ".join(tree.values())
-        for app in ("services.api.app", "services.sim.app", "services.eeg.app", "learner"):
+        for app in ("services.api.app", "services.sim.app", "services.eeg.service.app", "learner"):
             assert app in kinds
         assert len(tree) == 6, tree  # two api processes, sim, eeg, learner, one worker
         proc.kill()

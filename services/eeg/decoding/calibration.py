@@ -1,19 +1,20 @@
 """ErrP calibration: train and evaluate ErrP decoders on a labelled recording (paper stage 1).
 
 Stratified, seeded 80/12/8 train/validation/test split of the epochs (EEG trials)
-(:mod:`services.eeg.split`). On that split: EEGNet, the paper's decoder (class-weighted
-cross-entropy, Adam, early stopping on the validation loss:
-:mod:`services.eeg.eegnet_training`), and beside it the classical window-mean shrinkage LDA
-(:mod:`services.eeg.classical`) and xDAWN + Riemannian geometry
-(:mod:`services.eeg.riemannian`) (:mod:`services.eeg.decoders`). The decoder with the
-higher validation accuracy is kept (EEGNet, then the sLDA, on a tie): it is the
-classifier, and its test metrics are the calibration's (test accuracy, balanced accuracy,
-ROC AUC, confusion matrix: :mod:`services.eeg.metrics`); ``metrics["decoders"]`` has every
-decoder's. The kept decoder's P(error) is calibrated on the validation epochs (Platt scaling,
-:mod:`services.eeg.posterior`): the classifier carries the calibration, ``metrics["calibration"]``
-has its fit and the test epochs' expected calibration error and reliability bins.
-``calibrate(..., out_dir=DIR)`` writes the classifier, ``metrics.json``,
-``history.json`` and the calibration report (:mod:`services.eeg.outputs`).
+(:mod:`services.eeg.decoding.split`). On that split: EEGNet, the paper's decoder
+(class-weighted cross-entropy, Adam, early stopping on the validation loss:
+:mod:`services.eeg.decoding.eegnet_training`), and beside it the classical window-mean
+shrinkage LDA (:mod:`services.eeg.decoding.classical`) and xDAWN + Riemannian geometry
+(:mod:`services.eeg.decoding.riemannian`) (:mod:`services.eeg.decoding.decoders`). The
+decoder with the higher validation accuracy is kept (EEGNet, then the sLDA, on a tie): it
+is the classifier, and its test metrics are the calibration's (test accuracy, balanced
+accuracy, ROC AUC, confusion matrix: :mod:`services.eeg.decoding.metrics`);
+``metrics["decoders"]`` has every decoder's. The kept decoder's P(error) is calibrated on
+the validation epochs (Platt scaling, :mod:`services.eeg.decoding.posterior`): the
+classifier carries the calibration, ``metrics["calibration"]`` has its fit and the test
+epochs' expected calibration error and reliability bins. ``calibrate(..., out_dir=DIR)``
+writes the classifier, ``metrics.json``, ``history.json`` and the calibration report
+(:mod:`services.eeg.decoding.outputs`).
 
 Words: an *epoch* is one EEG trial (the window after an action); a *pass* is one sweep of
 training over the training epochs.
@@ -37,14 +38,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from services.eeg.classifier import ErrPClassifier
-from services.eeg.decoders import fit_decoders, select_decoder
-from services.eeg.metrics import classification_metrics, roc_auc
-from services.eeg.outputs import HISTORY_FILE, METRICS_FILE, write_outputs
-from services.eeg.posterior import calibration_report, fit_platt
-from services.eeg.preprocessing import EpochSet, PreprocessingParams, epochs_from_raw
-from services.eeg.split import SPLIT_FRACTIONS, Split, stratified_split
-from services.eeg.training_config import DECODERS, CalibrationCancelled, TrainingConfig
+from services.eeg.decoding.classifier import ErrPClassifier
+from services.eeg.decoding.decoders import fit_decoders, select_decoder
+from services.eeg.decoding.metrics import classification_metrics, roc_auc
+from services.eeg.decoding.outputs import HISTORY_FILE, METRICS_FILE, write_outputs
+from services.eeg.decoding.posterior import calibration_report, fit_platt
+from services.eeg.decoding.split import SPLIT_FRACTIONS, Split, stratified_split
+from services.eeg.decoding.training_config import DECODERS, CalibrationCancelled, TrainingConfig
+from services.eeg.signal.preprocessing import EpochSet, PreprocessingParams, epochs_from_raw
 
 if TYPE_CHECKING:
     import mne

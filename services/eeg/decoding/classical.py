@@ -12,7 +12,7 @@ EEGNet uses (the platform's causal preprocessing, identical online), on the same
 Window means and the discriminant are both linear, so the trained decoder is one small
 torch module, :class:`WindowMeanLDA` (channel selection, window-mean matrix, a linear
 layer): it is saved, exported (TorchScript, ONNX) and loaded exactly like EEGNet inside an
-:class:`~services.eeg.classifier.ErrPClassifier`, which keeps it bound to its channel list
+:class:`~services.eeg.decoding.classifier.ErrPClassifier`, which keeps it bound to its channel list
 and sampling rate. No pickled scikit-learn object is ever written or read, so loading a
 classifier never unpickles a file.
 """

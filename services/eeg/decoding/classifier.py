@@ -1,8 +1,8 @@
 """A trained ErrP classifier: a decoder + the preprocessing and channels it was trained on.
 
 The decoder is EEGNet, the classical window-mean shrinkage LDA
-(:class:`~services.eeg.classical.WindowMeanLDA`) or xDAWN + Riemannian geometry
-(:class:`~services.eeg.riemannian.XdawnRiemann`); calibration keeps the best of them on
+(:class:`~services.eeg.decoding.classical.WindowMeanLDA`) or xDAWN + Riemannian geometry
+(:class:`~services.eeg.decoding.riemannian.XdawnRiemann`); calibration keeps the best of them on
 validation. All are torch modules mapping scaled epochs to two logits, so all are saved,
 exported as TorchScript and loaded the same way (no pickled objects). ONNX has no
 eigendecomposition, so an xDAWN + RG classifier has no ONNX form.
@@ -40,11 +40,11 @@ from torch import nn
 
 from services.core.files import write_bytes_atomic
 from services.core.model_formats import SUFFIXES
-from services.eeg.classical import WindowMeanLDA
-from services.eeg.eegnet import EEGNet, count_parameters
-from services.eeg.posterior import PosteriorCalibration
-from services.eeg.preprocessing import PreprocessingParams
-from services.eeg.riemannian import XdawnRiemann
+from services.eeg.decoding.classical import WindowMeanLDA
+from services.eeg.decoding.eegnet import EEGNet, count_parameters
+from services.eeg.decoding.posterior import PosteriorCalibration
+from services.eeg.decoding.riemannian import XdawnRiemann
+from services.eeg.signal.preprocessing import PreprocessingParams
 from services.model_export import export_program, save_onnx, save_pt2
 
 CONFIG_FILE = "classifier.json"
@@ -99,7 +99,7 @@ class ErrPClassifier:
         True when trained on virtual-subject data.
     calibration : PosteriorCalibration | None
         Platt scaling of P(error) fitted on the calibration's validation epochs
-        (:mod:`services.eeg.posterior`); :meth:`posterior` and :meth:`log_likelihood_ratio`
+        (:mod:`services.eeg.decoding.posterior`); :meth:`posterior` and :meth:`log_likelihood_ratio`
         need it.
     """
 
@@ -211,7 +211,7 @@ class ErrPClassifier:
     def log_likelihood_ratio(self, X: np.ndarray) -> np.ndarray:
         """``log P(epoch | error) / P(epoch | correct)`` per epoch: the soft label stage 2
         takes (:meth:`PosteriorCalibration.log_likelihood_ratio
-        <services.eeg.posterior.PosteriorCalibration.log_likelihood_ratio>`)."""
+        <services.eeg.decoding.posterior.PosteriorCalibration.log_likelihood_ratio>`)."""
         return self._posterior_calibration().log_likelihood_ratio(self.predict_proba(X))
 
     def decode_epoch(self, epoch: np.ndarray) -> tuple[float, float | None]:

@@ -2,10 +2,10 @@
 
 Every decoder sees the same training epochs, scaled by the same 1 / (training SD), and is
 bound with the same channel list, preprocessing and input rate into an
-:class:`~services.eeg.classifier.ErrPClassifier`: EEGNet (the paper's,
-:mod:`services.eeg.eegnet_training`), the window-mean shrinkage LDA
-(:mod:`services.eeg.classical`) and xDAWN + Riemannian geometry
-(:mod:`services.eeg.riemannian`). The one with the higher validation accuracy is kept.
+:class:`~services.eeg.decoding.classifier.ErrPClassifier`: EEGNet (the paper's,
+:mod:`services.eeg.decoding.eegnet_training`), the window-mean shrinkage LDA
+(:mod:`services.eeg.decoding.classical`) and xDAWN + Riemannian geometry
+(:mod:`services.eeg.decoding.riemannian`). The one with the higher validation accuracy is kept.
 """
 
 from __future__ import annotations
@@ -17,15 +17,15 @@ from typing import Any
 import numpy as np
 from torch import nn
 
-from services.eeg.classical import N_CV_FOLDS, fit_window_lda
-from services.eeg.classifier import ErrPClassifier
-from services.eeg.eegnet import count_parameters
-from services.eeg.eegnet_training import train_eegnet
-from services.eeg.metrics import validation_and_test_metrics
-from services.eeg.preprocessing import EpochSet
-from services.eeg.riemannian import fit_xdawn_riemann
-from services.eeg.split import Split
-from services.eeg.training_config import DECODERS, CalibrationCancelled, TrainingConfig
+from services.eeg.decoding.classical import N_CV_FOLDS, fit_window_lda
+from services.eeg.decoding.classifier import ErrPClassifier
+from services.eeg.decoding.eegnet import count_parameters
+from services.eeg.decoding.eegnet_training import train_eegnet
+from services.eeg.decoding.metrics import validation_and_test_metrics
+from services.eeg.decoding.riemannian import fit_xdawn_riemann
+from services.eeg.decoding.split import Split
+from services.eeg.decoding.training_config import DECODERS, CalibrationCancelled, TrainingConfig
+from services.eeg.signal.preprocessing import EpochSet
 
 
 @dataclass
@@ -39,7 +39,7 @@ class DecoderFit:
     """P(error) on the test epochs (in ``split.test`` order)."""
     val_proba: np.ndarray
     """P(error) on the validation epochs (in ``split.val`` order): the posterior calibration
-    is fitted on them (:mod:`services.eeg.posterior`)."""
+    is fitted on them (:mod:`services.eeg.decoding.posterior`)."""
     history: dict[str, list[float]] = field(default_factory=dict)
     """EEGNet's per-pass curves (empty for the others)."""
     facts: dict[str, Any] = field(default_factory=dict)

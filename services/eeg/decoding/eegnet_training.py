@@ -17,10 +17,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from services.eeg.eegnet import EEGNet
-from services.eeg.preprocessing import EpochSet
-from services.eeg.split import Split
-from services.eeg.training_config import CalibrationCancelled, TrainingConfig
+from services.eeg.decoding.eegnet import EEGNet
+from services.eeg.decoding.split import Split
+from services.eeg.decoding.training_config import CalibrationCancelled, TrainingConfig
+from services.eeg.signal.preprocessing import EpochSet
 
 
 @dataclass

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from services.core.files import write_results_json
-from services.eeg.classifier import (
+from services.eeg.decoding.classifier import (
     CONFIG_FILE,
     ONNX_FILE,
     PT2_FILE,
@@ -23,7 +23,7 @@ from services.eeg.classifier import (
 )
 
 if TYPE_CHECKING:
-    from services.eeg.calibration import CalibrationResult
+    from services.eeg.decoding.calibration import CalibrationResult
 
 METRICS_FILE = "metrics.json"
 HISTORY_FILE = "history.json"
@@ -39,7 +39,8 @@ ARTEFACTS = frozenset(
         "report.html",
     }
 )
-"""Files a calibration writes besides ``metrics.json`` (report names: services.eeg.report)."""
+"""Files a calibration writes besides ``metrics.json`` (report names:
+services.eeg.decoding.report)."""
 
 
 def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: bool) -> Path:
@@ -47,7 +48,7 @@ def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: b
 
     The classifier is written as TorchScript and as a ``torch.export`` program (``model.pt2``);
     with ``onnx``, ``model.onnx`` too when the kept decoder has an ONNX form
-    (:attr:`~services.eeg.classifier.ErrPClassifier.exports_onnx`).
+    (:attr:`~services.eeg.decoding.classifier.ErrPClassifier.exports_onnx`).
     """
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
@@ -58,7 +59,7 @@ def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: b
             result.classifier.export_onnx(staging)
         write_results_json(staging / HISTORY_FILE, result.history, indent=None)
         if report:
-            from services.eeg.report import write_report
+            from services.eeg.decoding.report import write_report
 
             write_report(result, staging)
         write_results_json(staging / METRICS_FILE, result.metrics)

@@ -1,5 +1,5 @@
 """Calibration report: ErrP grand averages, topographies, training curves, confusion matrix,
-and the reliability diagram of the calibrated P(error) (:mod:`services.eeg.posterior`).
+and the reliability diagram of the calibrated P(error) (:mod:`services.eeg.decoding.posterior`).
 
 Writes ``report.png`` and a small ``report.html`` (metrics table + the figure). Figures are
 drawn with matplotlib's Agg canvas (no display needed). Reports of virtual-subject data say
@@ -17,14 +17,14 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 if TYPE_CHECKING:
-    from services.eeg.calibration import CalibrationResult
-    from services.eeg.preprocessing import EpochSet
+    from services.eeg.decoding.calibration import CalibrationResult
+    from services.eeg.signal.preprocessing import EpochSet
 
 REPORT_PNG = "report.png"
 REPORT_HTML = "report.html"
 WAVEFORM_CHANNELS = ("FCz", "Cz")
 DECODER_NAMES = {"eegnet": "EEGNet", "lda": "window-mean sLDA", "xdawn_rg": "xDAWN + RG"}
-"""Display names of the decoders (services.eeg.training_config.DECODERS)."""
+"""Display names of the decoders (services.eeg.decoding.training_config.DECODERS)."""
 DECODER_COLORS = {"eegnet": "C2", "lda": "C4", "xdawn_rg": "C1"}
 
 

@@ -21,7 +21,7 @@ Brain-Computer Interfaces 2017):
 pyriemann and scikit-learn fit it (at calibration only); the fitted decoder is one torch
 module, :class:`XdawnRiemann` (filters, prototypes, the reference's inverse square root,
 OAS, matrix logarithm by ``torch.linalg.eigh``, the linear model), so it is saved, loaded
-and exported as TorchScript inside an :class:`~services.eeg.classifier.ErrPClassifier`
+and exported as TorchScript inside an :class:`~services.eeg.decoding.classifier.ErrPClassifier`
 like EEGNet and the sLDA, bound to its channel list and rate, and decoding needs neither
 pyriemann nor scikit-learn. ONNX has no eigendecomposition, so this decoder has no ONNX
 export.
@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from services.eeg.classical import N_CV_FOLDS
+from services.eeg.decoding.classical import N_CV_FOLDS
 
 N_FILTERS = 2
 """xDAWN filters per class (pyriemann's ERP examples use 2-4)."""

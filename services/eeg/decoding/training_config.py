@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 DECODERS = ("eegnet", "lda", "xdawn_rg")
 """Decoders calibration can train: EEGNet, the window-mean shrinkage LDA
-(:mod:`services.eeg.classical`) and xDAWN + Riemannian geometry
-(:mod:`services.eeg.riemannian`). The order breaks validation ties (earlier wins)."""
+(:mod:`services.eeg.decoding.classical`) and xDAWN + Riemannian geometry
+(:mod:`services.eeg.decoding.riemannian`). The order breaks validation ties (earlier wins)."""
 
 
 class CalibrationCancelled(Exception):  # noqa: N818 (the name callers catch)

@@ -2,7 +2,7 @@
 
 :class:`LiveIngest` receives sample chunks with timestamps on the LSL clock (the clock of the
 sim's action markers), checks every chunk against the previous one and feeds clean data to
-the decoding side's :class:`~services.eeg.preprocessing.OnlinePreprocessor`. It detects:
+the decoding side's :class:`~services.eeg.signal.preprocessing.OnlinePreprocessor`. It detects:
 
 * **dropped samples / gaps**: the first timestamp of a chunk is later than the expected
   next sample by more than ``gap_tolerance_samples`` sample periods (a short loss up to
@@ -38,13 +38,13 @@ from typing import Literal
 import numpy as np
 
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
-from services.eeg.io import TRIGGER_MASK
-from services.eeg.preprocessing import (
+from services.eeg.recordings.io import TRIGGER_MASK
+from services.eeg.signal.preprocessing import (
     EpochUnavailableError,
     OnlinePreprocessor,
     PreprocessingParams,
 )
-from services.eeg.virtual_subject import STIM_CHANNEL
+from services.eeg.virtual.subject import STIM_CHANNEL
 
 MAX_SEGMENTS = 3
 """Preprocessing segments kept (the current one and the two before the last breaks)."""

@@ -3,7 +3,7 @@
 * :func:`replay` streams a recording (BDF/EDF/FIF file or a Raw, e.g. a virtual subject's)
   in real time with ``mne_lsl.player.PlayerLSL``, ``Status`` channel included.
 * :class:`LslEegIngest` connects an ``mne_lsl.stream.StreamLSL`` to a
-  :class:`~services.eeg.live.LiveIngest`: every acquired chunk, with its per-sample LSL
+  :class:`~services.eeg.live.ingest.LiveIngest`: every acquired chunk, with its per-sample LSL
   timestamps (clock-synchronised, not de-jittered, so gaps stay visible), goes through
   the integrity checks.
 * :class:`MarkerInlet` reads :class:`~services.core.markers.ActionMarker` objects from the
@@ -34,9 +34,9 @@ from mne_lsl.stream import StreamLSL
 from pydantic import ValidationError
 
 from services.core.markers import MARKER_STREAM_NAME, MARKER_STREAM_TYPE, ActionMarker
-from services.eeg.channels import resolve_channels
-from services.eeg.live import LiveIngest
-from services.eeg.preprocessing import PreprocessingParams
+from services.eeg.live.ingest import LiveIngest
+from services.eeg.recordings.channels import resolve_channels
+from services.eeg.signal.preprocessing import PreprocessingParams
 
 EEG_STREAM_NAME = "BrainNav-EEG"
 EEG_STREAM_TYPE = "EEG"
@@ -122,7 +122,7 @@ class LslEegIngest:
     channel_map : mapping | None
         The rig's ``{device_name: standard_name}`` (a target may be ``Status``); channels
         it does not list are read as standard 10-20/10-10 names, case-insensitively
-        (:func:`services.eeg.channels.resolve_channels`).
+        (:func:`services.eeg.recordings.channels.resolve_channels`).
     params : PreprocessingParams | None
         Preprocessing parameters (e.g. a classifier's).
     timeout : float

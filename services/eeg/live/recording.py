@@ -41,8 +41,8 @@ import mne
 import numpy as np
 
 from services.core.markers import ActionMarker
-from services.eeg.io import write_bdf
-from services.eeg.virtual_subject import STIM_CHANNEL, SYNTHETIC_TAG, TRIGGER_PULSE_S
+from services.eeg.recordings.io import write_bdf
+from services.eeg.virtual.subject import STIM_CHANNEL, SYNTHETIC_TAG, TRIGGER_PULSE_S
 
 logger = logging.getLogger(__name__)
 
@@ -362,7 +362,8 @@ class LiveRecorder:
 
 
 class _LogRecording:
-    """A recording folder as :func:`services.eeg.io.write_bdf` reads a generated recording."""
+    """A recording folder as :func:`services.eeg.recordings.io.write_bdf` reads a generated
+    recording."""
 
     def __init__(self, log: RecordingLog) -> None:
         self._log = log

@@ -1,6 +1,6 @@
 """The live session (one EEG source bound to one classifier) and the feedback broadcast.
 
-A :class:`LiveSession` owns its source: an LSL inlet (:class:`~services.eeg.lsl.LslEegIngest`)
+A :class:`LiveSession` owns its source: an LSL inlet (:class:`~services.eeg.live.lsl.LslEegIngest`)
 or the chunks of a ``WS /live/ingest`` connection, and optionally a thread that classifies
 every marker of the sim's LSL marker stream. A failure in a background thread is logged and
 kept in :attr:`LiveSession.error`, so ``GET /live`` reports it instead of "connected".
@@ -19,9 +19,9 @@ from typing import Any, Literal, Protocol
 
 from services.core.feedback import is_error
 from services.core.markers import ActionMarker
-from services.eeg.classifier import ErrPClassifier
-from services.eeg.live import EpochResult, LiveIngest
-from services.eeg.schemas import Feedback, LiveStatus, StreamIssuePublic
+from services.eeg.decoding.classifier import ErrPClassifier
+from services.eeg.live.ingest import EpochResult, LiveIngest
+from services.eeg.service.schemas import Feedback, LiveStatus, StreamIssuePublic
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ class EegSource(Protocol):
 
 
 class MarkerSource(Protocol):
-    """A source of action markers (e.g. :class:`~services.eeg.lsl.MarkerInlet`)."""
+    """A source of action markers (e.g. :class:`~services.eeg.live.lsl.MarkerInlet`)."""
 
     def pull(self, timeout: float = 0.0) -> Any: ...
 

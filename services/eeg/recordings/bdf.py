@@ -23,10 +23,10 @@ import edfio
 import mne
 import numpy as np
 
-from services.eeg.virtual_subject import STIM_CHANNEL, SYNTHETIC_TAG
+from services.eeg.virtual.subject import STIM_CHANNEL, SYNTHETIC_TAG
 
 if TYPE_CHECKING:
-    from services.eeg.virtual_subject import SyntheticRecording
+    from services.eeg.virtual.subject import SyntheticRecording
 
 BDF_DIGITAL_RANGE = (-8388608, 8388607)
 CHUNK_VALUES = 1 << 22
@@ -142,7 +142,7 @@ def write_bdf(recording: mne.io.BaseRaw | SyntheticRecording, path: str | Path) 
     ----------
     recording : mne.io.BaseRaw | SyntheticRecording
         EEG channels in volts plus a stim channel named ``"Status"`` holding integer codes;
-        a virtual subject's :class:`~services.eeg.virtual_subject.SyntheticRecording` is
+        a virtual subject's :class:`~services.eeg.virtual.subject.SyntheticRecording` is
         written block by block as it is generated.
     path : str | Path
         Target ``.bdf`` file; written to a temporary file first and renamed, so a failure

@@ -33,7 +33,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
-from services.eeg.virtual_subject import STIM_CHANNEL, SYNTHETIC_TAG
+from services.eeg.virtual.subject import STIM_CHANNEL, SYNTHETIC_TAG
 
 __all__ = [
     "BRAINVISION_MAGIC",
@@ -523,7 +523,7 @@ def read_xdf(
     """
     import pyxdf
 
-    from services.eeg.virtual_stream import SYNTHETIC_ELEMENT
+    from services.eeg.virtual.stream import SYNTHETIC_ELEMENT
 
     try:
         streams, _ = pyxdf.load_xdf(str(path), verbose=False)

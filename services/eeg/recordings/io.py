@@ -3,15 +3,15 @@
 The format of a file is read from its header (:func:`detect_format`), never from its name;
 a name that says otherwise is reported (:func:`format_mismatch`). EDF/BDF files whose size
 disagrees with their header (truncated uploads and copies) are refused with the reason.
-BrainVision and XDF are read by :mod:`services.eeg.formats`; any cap whose channels carry
+BrainVision and XDF are read by :mod:`services.eeg.recordings.formats`; any cap whose channels carry
 standard 10-20/10-10 names (directly or through the rig's channel map) and the ErrP's
-fronto-central sites is accepted (:mod:`services.eeg.channels`), at any rate from 128 Hz.
+fronto-central sites is accepted (:mod:`services.eeg.recordings.channels`), at any rate from 128 Hz.
 
 Recordings are read lazily (``preload=False``) and validated, written and epoched in chunks,
 so no step holds a full-length float64 copy of a long recording (a 20-minute 64-channel
 2048 Hz recording is 1.3 GB in float64).
 
-BDF files are written by :func:`services.eeg.bdf.write_bdf` (also importable from here).
+BDF files are written by :func:`services.eeg.recordings.bdf.write_bdf` (also importable from here).
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ import numpy as np
 from mne.io.edf.edf import RawBDF, RawEDF
 
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
-from services.eeg.bdf import BDF_DIGITAL_RANGE, CHUNK_VALUES, write_bdf
-from services.eeg.channels import ChannelError, resolve_channels
-from services.eeg.formats import (
+from services.eeg.recordings.bdf import BDF_DIGITAL_RANGE, CHUNK_VALUES, write_bdf
+from services.eeg.recordings.channels import ChannelError, resolve_channels
+from services.eeg.recordings.formats import (
     EventLabels,
     FormatError,
     _with_status,
@@ -42,8 +42,8 @@ from services.eeg.formats import (
     read_eeglab,
     read_xdf,
 )
-from services.eeg.preprocessing import PreprocessingParams
-from services.eeg.virtual_subject import STIM_CHANNEL, SYNTHETIC_TAG
+from services.eeg.signal.preprocessing import PreprocessingParams
+from services.eeg.virtual.subject import STIM_CHANNEL, SYNTHETIC_TAG
 
 __all__ = [
     "BDF_DIGITAL_RANGE",
@@ -428,7 +428,7 @@ def read_recording(
     ch_names : list of str | None
         EEG channels (standard names) that must be present, e.g. a classifier's; by
         default any cap of 8-256 standard-named channels with the ErrP's fronto-central
-        sites (:func:`services.eeg.channels.resolve_channels`). Other channels (e.g. EXG)
+        sites (:func:`services.eeg.recordings.channels.resolve_channels`). Other channels (e.g. EXG)
         are kept, typed ``misc``.
     channel_map : dict | None
         The rig's ``{device_name: standard_name}``; the recording's channels are renamed.

@@ -1,7 +1,7 @@
 """The EEG service: recordings, calibration jobs, classifiers, live decoding.
 
-Run with ``uvicorn services.eeg.app:app --port 8002`` (or ``bgrl serve``); configuration
-comes from ``BGRL_EEG_*`` (:class:`~services.eeg.settings.EEGSettings`). Endpoints are
+Run with ``uvicorn services.eeg.service.app:app --port 8002`` (or ``bgrl serve``); configuration
+comes from ``BGRL_EEG_*`` (:class:`~services.eeg.service.settings.EEGSettings`). Endpoints are
 documented in ``docs/eeg.md`` (section "EEG service") and at ``/docs``.
 
 Layout (the pattern of every service): ``settings`` (configuration), ``schemas`` (request
@@ -21,9 +21,9 @@ from fastapi import FastAPI
 from services.core.logging import configure_log_file, configure_logging
 from services.core.settings import load_settings
 from services.core.web import create_service_app
-from services.eeg.routes import classifiers, jobs, live, recordings
-from services.eeg.settings import EEGSettings
-from services.eeg.state import EEGService
+from services.eeg.service.routes import classifiers, jobs, live, recordings
+from services.eeg.service.settings import EEGSettings
+from services.eeg.service.state import EEGService
 
 
 def create_app(settings: EEGSettings | None = None) -> FastAPI:

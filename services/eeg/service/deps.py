@@ -7,10 +7,10 @@ from typing import Annotated
 from fastapi import Depends
 from starlette.requests import HTTPConnection
 
-from services.eeg.jobs import JobRunner
-from services.eeg.settings import EEGSettings
-from services.eeg.state import EEGService
-from services.eeg.store import ClassifierStore, JobStore, RecordingStore
+from services.eeg.service.jobs import JobRunner
+from services.eeg.service.settings import EEGSettings
+from services.eeg.service.state import EEGService
+from services.eeg.service.store import ClassifierStore, JobStore, RecordingStore
 
 
 def get_settings(connection: HTTPConnection) -> EEGSettings:

@@ -1,7 +1,7 @@
 """Calibration jobs: run one at a time in a worker thread, cancellable, recorded on disk.
 
 A job goes ``queued`` -> ``running`` -> ``succeeded`` | ``failed`` | ``cancelled``. Every
-change is written to its record (:class:`~services.eeg.store.JobStore`) under the store's
+change is written to its record (:class:`~services.eeg.service.store.JobStore`) under the store's
 lock, so a cancel never races with the worker picking the job up. A failed job keeps its
 error (one line) and traceback; a job cut off by a restart or a shutdown is marked failed
 with that reason; a cancelled or failed job leaves no classifier behind.
@@ -16,11 +16,11 @@ import uuid
 from concurrent.futures import Future, ThreadPoolExecutor
 
 from services.core.web import jsonable
-from services.eeg.calibration import CalibrationCancelled, TrainingConfig, calibrate
-from services.eeg.errors import JobStateError
-from services.eeg.io import read_recording
-from services.eeg.schemas import FINAL_JOB_STATUSES, JobCreate, JobPublic
-from services.eeg.store import ClassifierStore, JobStore, RecordingStore, utc_now
+from services.eeg.decoding.calibration import CalibrationCancelled, TrainingConfig, calibrate
+from services.eeg.recordings.io import read_recording
+from services.eeg.service.errors import JobStateError
+from services.eeg.service.schemas import FINAL_JOB_STATUSES, JobCreate, JobPublic
+from services.eeg.service.store import ClassifierStore, JobStore, RecordingStore, utc_now
 
 logger = logging.getLogger(__name__)
 

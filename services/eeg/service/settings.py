@@ -1,6 +1,6 @@
 """Settings of the EEG service (environment prefix ``BGRL_EEG_``).
 
-Example: ``BGRL_EEG_PORT=8102 BGRL_EEG_DATA_DIR=/srv/bgrl uvicorn services.eeg.app:app``.
+Example: ``BGRL_EEG_PORT=8102 BGRL_EEG_DATA_DIR=/srv/bgrl uvicorn services.eeg.service.app:app``.
 ``data_dir`` also honours the platform-wide ``BGRL_DATA_DIR``.
 """
 

@@ -13,10 +13,7 @@ from pathlib import Path
 from services.core.artifacts import ArtifactStore
 from services.core.errors import ConflictError, NotFoundError
 from services.core.files import write_json_atomic
-from services.eeg.errors import NoLiveSourceError, RecordingNotFoundError
-from services.eeg.io import file_sha256
-from services.eeg.jobs import JobRunner
-from services.eeg.live_recording import (
+from services.eeg.live.recording import (
     INDEX_FILE,
     STORED_FILE,
     LiveRecorder,
@@ -24,11 +21,14 @@ from services.eeg.live_recording import (
     read_log,
     write_bdf_from_log,
 )
-from services.eeg.live_session import FeedbackHub, LiveSession
-from services.eeg.schemas import LiveRecordingPublic, RecordingPublic
-from services.eeg.settings import EEGSettings
-from services.eeg.store import ClassifierStore, JobStore, RecordingStore
-from services.eeg.virtual_subject import STIM_CHANNEL
+from services.eeg.live.session import FeedbackHub, LiveSession
+from services.eeg.recordings.io import file_sha256
+from services.eeg.service.errors import NoLiveSourceError, RecordingNotFoundError
+from services.eeg.service.jobs import JobRunner
+from services.eeg.service.schemas import LiveRecordingPublic, RecordingPublic
+from services.eeg.service.settings import EEGSettings
+from services.eeg.service.store import ClassifierStore, JobStore, RecordingStore
+from services.eeg.virtual.subject import STIM_CHANNEL
 
 logger = logging.getLogger(__name__)
 

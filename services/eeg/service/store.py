@@ -29,16 +29,8 @@ import numpy as np
 from services.core.artifacts import ArtifactStore
 from services.core.files import private_folder, write_json_atomic
 from services.core.web import jsonable
-from services.eeg.classifier import ErrPClassifier
-from services.eeg.errors import (
-    ClassifierNotFoundError,
-    ClassifierUnusableError,
-    InvalidRecordingError,
-    JobNotFoundError,
-    RecordingNotFoundError,
-    UnsupportedFormatError,
-)
-from services.eeg.io import (
+from services.eeg.decoding.classifier import ErrPClassifier
+from services.eeg.recordings.io import (
     RecordingError,
     action_events,
     detect_format,
@@ -47,8 +39,16 @@ from services.eeg.io import (
     is_synthetic,
     read_recording,
 )
-from services.eeg.schemas import ClassifierPublic, JobPublic, RecordingPublic
-from services.eeg.uploads import Upload
+from services.eeg.service.errors import (
+    ClassifierNotFoundError,
+    ClassifierUnusableError,
+    InvalidRecordingError,
+    JobNotFoundError,
+    RecordingNotFoundError,
+    UnsupportedFormatError,
+)
+from services.eeg.service.schemas import ClassifierPublic, JobPublic, RecordingPublic
+from services.eeg.service.uploads import Upload
 
 logger = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ from starlette.requests import ClientDisconnect, Request
 
 from services.core.artifacts import ArtifactStore, DiskReserve, StoredFile
 from services.core.errors import BadRequestError
-from services.eeg.errors import UploadAbortedError
+from services.eeg.service.errors import UploadAbortedError
 
 logger = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Causal filters whose state persists across chunks (used by services.eeg.preprocessing).
+"""Causal filters whose state persists across chunks (used by services.eeg.signal.preprocessing).
 
 Feeding a signal to either in pieces of any size gives the same samples as feeding it at
 once, which is what makes offline (calibration) and online (live) preprocessing equal.

@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy import signal
 
 from services.core.actions import TRIGGER_ERROR
-from services.eeg.filters import CausalPolyphase, CausalSosStage
+from services.eeg.signal.filters import CausalPolyphase, CausalSosStage
 
 if TYPE_CHECKING:
     import mne
@@ -398,7 +398,7 @@ def epochs_from_raw(
     EpochSet
         Epochs whose window lies fully inside the recording, in onset order.
     """
-    from services.eeg.io import action_events, is_synthetic
+    from services.eeg.recordings.io import action_events, is_synthetic
 
     params = params or PreprocessingParams()
     pick_idx = _pick_indices(raw, picks)

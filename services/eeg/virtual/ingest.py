@@ -4,7 +4,7 @@ EEG service's ``WS /live/ingest`` as fast as the service takes it.
 :class:`VirtualIngestClient` has no wall-clock pacing: generated samples are sent with their
 timestamps (binary chunks) up to each marker's epoch end, so a session runs as fast as
 compute allows through the live decoding path (tests, ``bgrl demo --accelerated``,
-benchmarks). The real-time driver is :class:`services.eeg.virtual_stream.VirtualLslStream`.
+benchmarks). The real-time driver is :class:`services.eeg.virtual.stream.VirtualLslStream`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from services.core.markers import ActionMarker
-from services.eeg.virtual_source import VirtualEEGSource
+from services.eeg.virtual.source import VirtualEEGSource
 
 
 class IngestConnection(Protocol):

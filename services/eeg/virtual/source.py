@@ -1,7 +1,7 @@
 """The virtual subject as a live, **synthetic** EEG source driven by action markers.
 
 :class:`VirtualEEGSource` generates the virtual subject's EEG (the model of
-:mod:`services.eeg.virtual_subject`: the same ErrP, correct-trial and visual components with
+:mod:`services.eeg.virtual.subject`: the same ErrP, correct-trial and visual components with
 their per-trial jitter, the same background, artefacts and noise, the same ``quality`` knob)
 continuously, on its own clock, sample by sample as far as it is asked to. Each executed
 action is fed in with :meth:`VirtualEEGSource.add_marker`: the subject then responds to it
@@ -16,11 +16,11 @@ seed and the markers, not on how generation is chunked.
 
 Two drivers feed the source to the EEG service:
 
-* :class:`services.eeg.virtual_ingest.VirtualIngestClient` (accelerated): no wall-clock
+* :class:`services.eeg.virtual.ingest.VirtualIngestClient` (accelerated): no wall-clock
   pacing; generated samples are pushed with their timestamps to ``WS /live/ingest`` up to
   each marker's epoch end, so a session runs as fast as compute allows through the live
   decoding path.
-* :class:`services.eeg.virtual_stream.VirtualLslStream` (real time): an LSL outlet pushed
+* :class:`services.eeg.virtual.stream.VirtualLslStream` (real time): an LSL outlet pushed
   at wall-clock pace, following the sim's marker stream (``bgrl subject stream``).
 
 Everything is marked synthetic: :attr:`VirtualEEGSource.description` starts with
@@ -41,7 +41,7 @@ import numpy as np
 from scipy import signal
 
 from services.core.markers import ActionMarker
-from services.eeg.virtual_subject import (
+from services.eeg.virtual.subject import (
     ALPHA_RMS_UV,
     BLINK_PEAK_UV,
     BRAIN_RMS_UV,
@@ -101,7 +101,7 @@ class VirtualEEGSource:
     Parameters
     ----------
     quality : float
-        ErrP strength in [0, 1] (as :class:`~services.eeg.virtual_subject.VirtualSubject`).
+        ErrP strength in [0, 1] (as :class:`~services.eeg.virtual.subject.VirtualSubject`).
     seed : int
         Seed of the subject and of every random draw.
     sfreq : float

@@ -1,6 +1,6 @@
 """The virtual subject streaming over LSL in real time (``bgrl subject stream``).
 
-:class:`VirtualLslStream` runs a :class:`~services.eeg.virtual_source.VirtualEEGSource` on
+:class:`VirtualLslStream` runs a :class:`~services.eeg.virtual.source.VirtualEEGSource` on
 the LSL clock: one thread pushes its samples to an LSL outlet (type ``EEG``, the 64 BioSemi
 channels or a subset, ``Status`` last) at wall-clock pace, ``lag_s`` behind real time like an
 amplifier's buffer; another follows the sim's marker stream
@@ -9,7 +9,7 @@ drives the subject (an ErrP after an error). A marker must arrive within ``lag_s
 timestamp for its response to be whole; a later one is counted in ``late_markers``.
 
 The stream is marked synthetic: its LSL description has a ``synthetic`` element holding the
-source's ``SYNTHETIC ...`` description (:func:`services.eeg.lsl.stream_is_synthetic` reads
+source's ``SYNTHETIC ...`` description (:func:`services.eeg.live.lsl.stream_is_synthetic` reads
 it), and the EEG
 service carries the flag into its live recordings.
 
@@ -31,14 +31,14 @@ import numpy as np
 from mne_lsl.lsl import StreamInfo, StreamOutlet
 
 from services.core.markers import MARKER_STREAM_NAME
-from services.eeg.lsl import (
+from services.eeg.live.lsl import (
     EEG_STREAM_NAME,
     EEG_STREAM_TYPE,
     SYNTHETIC_ELEMENT,
     MarkerInlet,
     lsl_clock,
 )
-from services.eeg.virtual_source import DEFAULT_SFREQ, VirtualEEGSource
+from services.eeg.virtual.source import DEFAULT_SFREQ, VirtualEEGSource
 
 logger = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ class VirtualLslStream:
     Parameters
     ----------
     quality, seed, sfreq, channels, latency_shift_s
-        The subject (as :class:`~services.eeg.virtual_source.VirtualEEGSource`).
+        The subject (as :class:`~services.eeg.virtual.source.VirtualEEGSource`).
     name : str
         LSL stream name.
     marker_stream : str | None

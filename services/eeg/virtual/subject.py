@@ -2,7 +2,7 @@
 
 No real ErrP recordings can be downloaded here, so tests, demos and benchmarks use this
 generator. Everything it makes is marked ``SYNTHETIC`` in ``raw.info["description"]`` (and in
-the BDF header written by :func:`services.eeg.io.write_bdf`).
+the BDF header written by :func:`services.eeg.recordings.io.write_bdf`).
 
 Signal model (64 BioSemi channels, volts), all drawn from one seeded generator:
 

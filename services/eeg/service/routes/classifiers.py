@@ -6,9 +6,9 @@ import numpy as np
 from fastapi import APIRouter
 
 from services.core.feedback import is_error
-from services.eeg.deps import ClassifiersDep
-from services.eeg.errors import EpochMismatchError
-from services.eeg.schemas import ClassifierPublic, EpochClassify, Feedback
+from services.eeg.service.deps import ClassifiersDep
+from services.eeg.service.errors import EpochMismatchError
+from services.eeg.service.schemas import ClassifierPublic, EpochClassify, Feedback
 
 router = APIRouter(prefix="/classifiers", tags=["classifiers"])
 

@@ -6,8 +6,8 @@ from fastapi import APIRouter, status
 
 from services.core.disk import require_free_space
 from services.core.errors import BadRequestError
-from services.eeg.deps import JobsDep, RunnerDep, SettingsDep
-from services.eeg.schemas import JobCreate, JobPublic
+from services.eeg.service.deps import JobsDep, RunnerDep, SettingsDep
+from services.eeg.service.schemas import JobCreate, JobPublic
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 

@@ -7,7 +7,7 @@ HTTP: ``POST /live`` (connect an LSL EEG stream, optionally the sim's marker str
 
 Websockets (close codes, all with a reason):
 
-* ``WS /live/feedback`` sends every decoded :class:`~services.eeg.schemas.Feedback`.
+* ``WS /live/feedback`` sends every decoded :class:`~services.eeg.service.schemas.Feedback`.
 * ``WS /live/ingest?classifier_id=`` takes sample chunks from devices without LSL (without
   ``classifier_id``: recording only): first message ``{"ch_names": [...], "sfreq": 2048,
   "synthetic": false}``, then ``{"first_timestamp", "samples"}``
@@ -45,11 +45,11 @@ from services.core.websockets import (
     close_reason,
     origin_allowed,
 )
-from services.eeg.deps import ServiceDep, get_service
-from services.eeg.errors import LiveSourceError, NoLiveSourceError
-from services.eeg.live import LiveIngest
-from services.eeg.live_session import LiveSession
-from services.eeg.schemas import (
+from services.eeg.live.ingest import LiveIngest
+from services.eeg.live.session import LiveSession
+from services.eeg.service.deps import ServiceDep, get_service
+from services.eeg.service.errors import LiveSourceError, NoLiveSourceError
+from services.eeg.service.schemas import (
     Feedback,
     IngestChunk,
     IngestHeader,
@@ -59,7 +59,7 @@ from services.eeg.schemas import (
     LiveStatus,
     RecordingPublic,
 )
-from services.eeg.state import EEGService
+from services.eeg.service.state import EEGService
 
 router = APIRouter(prefix="/live", tags=["live"])
 logger = logging.getLogger(__name__)
@@ -88,7 +88,7 @@ def connect_live(body: LiveConnect, service: ServiceDep) -> LiveStatus:
     the stream and its markers can only be recorded (calibration). Replaces the current
     live source.
     """
-    from services.eeg import lsl
+    from services.eeg.live import lsl
 
     settings = service.settings
     clf = service.classifiers.get(body.classifier_id) if body.classifier_id else None

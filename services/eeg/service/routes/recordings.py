@@ -7,9 +7,9 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request, status
 from fastapi.responses import JSONResponse
 
-from services.eeg.deps import RecordingsDep, SettingsDep
-from services.eeg.schemas import RecordingPublic
-from services.eeg.uploads import UPLOAD_OPENAPI, receive_upload
+from services.eeg.service.deps import RecordingsDep, SettingsDep
+from services.eeg.service.schemas import RecordingPublic
+from services.eeg.service.uploads import UPLOAD_OPENAPI, receive_upload
 
 router = APIRouter(prefix="/recordings", tags=["recordings"])
 
