@@ -73,7 +73,7 @@ def _subject_epochs(seed: int, n_actions: int, error_rate: float) -> tuple[Any, 
     """The epochs of virtual subject ``seed`` simulated at quality 0 and 1, and its labels.
     Kept for the last subject: a serial sweep runs its two tasks (halves of the levels) one
     after the other, and the second reuses the first's simulations (read only)."""
-    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.recordings.epochs import epochs_from_raw
     from services.eeg.virtual.subject import simulate_recording
 
     labels = random_labels(n_actions, error_rate, seed)
@@ -106,7 +106,7 @@ def _sweep_subject(
     import torch
 
     from services.eeg.decoding.calibration import TrainingConfig, train_classifier
-    from services.eeg.signal.preprocessing import EpochSet, epochs_from_raw
+    from services.eeg.recordings.epochs import EpochSet, epochs_from_raw
     from services.eeg.virtual.subject import simulate_recording
 
     torch.set_num_threads(1)
@@ -401,7 +401,7 @@ def write_sweep_outputs(result: dict[str, Any], out: Path) -> list[Path]:
 def bench_training(n_actions: int = 600, seed: int = 0) -> tuple[dict[str, Any], Any]:
     """Time calibration training on ``n_actions`` epochs; returns (figures, classifier)."""
     from services.eeg.decoding.calibration import train_classifier
-    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.recordings.epochs import epochs_from_raw
     from services.eeg.virtual.subject import simulate_recording
 
     raw = simulate_recording(random_labels(n_actions, 0.3, seed), quality=0.4, seed=seed)
@@ -493,7 +493,7 @@ def bench_latency(
     from mne_lsl.lsl import StreamInfo, StreamInlet, StreamOutlet, resolve_streams
 
     from services.eeg.live.ingest import LiveIngest
-    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.recordings.epochs import epochs_from_raw
     from services.eeg.virtual.subject import simulate_recording
 
     torch.set_num_threads(1)

@@ -32,8 +32,9 @@ from sqlalchemy import select
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR, Action
 from services.core.db.models import Subject
 from services.eeg.recordings.bdf import write_bdf
+from services.eeg.recordings.conventions import STIM_CHANNEL
 from services.eeg.recordings.io import action_events, detect_format
-from services.eeg.virtual.subject import LINE_FREQ_HZ, STIM_CHANNEL
+from services.eeg.virtual.subject import LINE_FREQ_HZ
 from services.platform.jobs import BIDS_EXPORT
 from services.worker.runtime import JobConfigError, JobContext, JobOutcome, Runtime, parse_config
 from services.worker.session_data import (

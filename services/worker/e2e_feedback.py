@@ -45,7 +45,8 @@ from services.core.markers import ActionMarker
 from services.eeg.decoding.calibration import CalibrationResult, TrainingConfig, train_classifier
 from services.eeg.decoding.classifier import ErrPClassifier
 from services.eeg.decoding.training_config import DECODERS
-from services.eeg.signal.preprocessing import EpochSet, OnlinePreprocessor, PreprocessingParams
+from services.eeg.recordings.epochs import EpochSet
+from services.eeg.signal.preprocessing import OnlinePreprocessor, PreprocessingParams
 from services.eeg.virtual.source import VirtualEEGSource
 from services.learner.feedback_sources import DecodedLabel
 

@@ -3,7 +3,7 @@
 The session's EEG (its recording, or the virtual subject's stream regenerated: see
 :mod:`services.worker.session_data`) is fed chunk by chunk into the EEG service's own live
 decoding path (:class:`~services.eeg.live.ingest.LiveIngest` and
-:meth:`LiveSession.decode <services.eeg.live.session.LiveSession.decode>`) with a classifier
+:meth:`LiveSession.decode <services.eeg.service.live_session.LiveSession.decode>`) with a classifier
 (the session's own by default, or another one), one decision per stored marker. Every
 accepted decision becomes a label of a fresh online HF session
 (:class:`~services.learner.service.session.HFSession`, the learner service's own class, with
@@ -34,7 +34,7 @@ from services.core.markers import ActionMarker
 from services.core.model_formats import SUFFIXES
 from services.eeg.decoding.classifier import ErrPClassifier
 from services.eeg.live.ingest import LiveIngest
-from services.eeg.live.session import LiveSession
+from services.eeg.service.live_session import LiveSession
 from services.learner.feedback import FeedbackConfig
 from services.learner.hf_methods import PAPER_METHOD
 from services.learner.service.export import policy_files

@@ -15,7 +15,8 @@ import mne
 import numpy as np
 from scipy import signal
 
-from services.eeg.virtual.subject import STIM_CHANNEL, simulate_recording
+from services.eeg.recordings.conventions import STIM_CHANNEL
+from services.eeg.virtual.subject import simulate_recording
 
 CAP_8 = ["Fz", "FC1", "FCz", "FC2", "C3", "Cz", "C4", "Pz"]
 """A small ErrP cap (10-10 names)."""

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.eeg.signal.preprocessing import EpochSet, PreprocessingParams
+from services.eeg.recordings.epochs import EpochSet
+from services.eeg.signal.preprocessing import PreprocessingParams
 from services.eeg.virtual.subject import eeg_channel_names
 
 CH_NAMES = eeg_channel_names()

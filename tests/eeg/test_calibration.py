@@ -18,7 +18,8 @@ from services.eeg.decoding.calibration import (
     train_classifier,
 )
 from services.eeg.decoding.classifier import ONNX_FILE, TORCHSCRIPT_FILE, ErrPClassifier
-from services.eeg.signal.preprocessing import EpochSet, PreprocessingParams
+from services.eeg.recordings.epochs import EpochSet
+from services.eeg.signal.preprocessing import PreprocessingParams
 from services.eeg.virtual.subject import eeg_channel_names, simulate_recording
 
 CH_NAMES = eeg_channel_names()
@@ -69,7 +70,7 @@ def test_training_refuses_single_class() -> None:
 
 def test_calibration_on_virtual_subject_beats_chance() -> None:
     """A clean SYNTHETIC subject: the held-out ROC AUC and balanced accuracy exceed chance."""
-    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.recordings.epochs import epochs_from_raw
 
     labels = np.random.default_rng(5).random(300) >= 0.4
     epochs = epochs_from_raw(simulate_recording(labels, quality=1.0, seed=5))
@@ -245,7 +246,7 @@ def test_should_stop_cancels_between_passes_and_leaves_nothing(tmp_path) -> None
 
 def test_a_classifier_stays_bound_to_its_cap_and_rate(tmp_path) -> None:
     """Trained on a 32-channel cap at 500 Hz: other caps and rates are refused by reason."""
-    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.recordings.epochs import epochs_from_raw
     from tests.eeg.caps import CAP_8, CAP_32, virtual_recording
 
     raw = virtual_recording(500.0, CAP_32, labels=[True, False] * 20, seed=8)

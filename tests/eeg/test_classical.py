@@ -20,9 +20,9 @@ from services.eeg.decoding.classical import (
     window_index,
 )
 from services.eeg.decoding.classifier import ErrPClassifier
+from services.eeg.recordings.epochs import epochs_from_raw
 from services.eeg.service.app import create_app
 from services.eeg.service.settings import EEGSettings
-from services.eeg.signal.preprocessing import epochs_from_raw
 from services.eeg.virtual.subject import simulate_recording
 from tests.eeg.patterned import CH_NAMES, patterned_epochs
 

@@ -15,11 +15,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.core.markers import ActionMarker
+from services.eeg.recordings.conventions import STIM_CHANNEL
 from services.eeg.recordings.formats import EventLabels
 from services.eeg.recordings.io import RecordingError, action_events, detect_format, read_recording
 from services.eeg.service.app import create_app
 from services.eeg.service.settings import EEGSettings
-from services.eeg.virtual.subject import STIM_CHANNEL
 from tests.eeg.caps import CAP_8, LABELS, virtual_recording
 from tests.eeg.xdf_writer import XdfStream, write_xdf
 

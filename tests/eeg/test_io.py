@@ -10,6 +10,7 @@ import mne
 import numpy as np
 import pytest
 
+from services.eeg.recordings.conventions import STIM_CHANNEL
 from services.eeg.recordings.io import (
     RecordingError,
     action_events,
@@ -21,7 +22,7 @@ from services.eeg.recordings.io import (
     validate_recording,
     write_bdf,
 )
-from services.eeg.virtual.subject import STIM_CHANNEL, SyntheticRecording, simulate_recording
+from services.eeg.virtual.subject import SyntheticRecording, simulate_recording
 
 SFREQ = 512.0
 LABELS = [True, False, False, True, False, False, True, False]
@@ -263,7 +264,7 @@ def test_flat_check_is_exact_under_a_large_dc_offset(raw):
 )
 def test_any_cap_and_rate_is_read_and_epoched(sfreq, cap, tmp_path):
     """An OpenBCI-like 250 Hz, BrainAmp-like 500/1000 Hz and BioSemi 2048 Hz recording."""
-    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.recordings.epochs import epochs_from_raw
     from tests.eeg.caps import CAP_8, CAP_32, CAP_64, LABELS, virtual_recording
 
     names = {"8": CAP_8, "32": CAP_32, "64": CAP_64}[cap]

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from services.eeg.live.ingest import MAX_ISSUES, LiveIngest
-from services.eeg.signal.preprocessing import epochs_from_raw
-from services.eeg.virtual.subject import STIM_CHANNEL, simulate_recording
+from services.eeg.recordings.conventions import STIM_CHANNEL
+from services.eeg.recordings.epochs import epochs_from_raw
+from services.eeg.virtual.subject import simulate_recording
 
 SFREQ = 512.0
 CHANNELS = ["FCz", "Cz", "Pz", STIM_CHANNEL]

@@ -20,11 +20,11 @@ from fastapi.testclient import TestClient
 from services.eeg.decoding.classifier import ErrPClassifier
 from services.eeg.decoding.eegnet import EEGNet
 from services.eeg.recordings.channels import standard_name
+from services.eeg.recordings.conventions import STIM_CHANNEL
 from services.eeg.recordings.io import RecordingError, action_events, read_recording
 from services.eeg.service.app import create_app
 from services.eeg.service.settings import EEGSettings
 from services.eeg.signal.preprocessing import PreprocessingParams
-from services.eeg.virtual.subject import STIM_CHANNEL
 from tests.eeg.caps import CAP_8, LABELS, virtual_recording
 from tests.eeg.xdf_writer import XdfStream, write_xdf
 

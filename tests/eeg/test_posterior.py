@@ -17,7 +17,8 @@ from services.eeg.decoding.posterior import (
     fit_platt,
     reliability_bins,
 )
-from services.eeg.signal.preprocessing import EpochSet, PreprocessingParams
+from services.eeg.recordings.epochs import EpochSet
+from services.eeg.signal.preprocessing import PreprocessingParams
 from services.eeg.virtual.subject import eeg_channel_names
 
 

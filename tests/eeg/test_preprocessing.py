@@ -83,7 +83,7 @@ def test_chunked_stream_equals_single_push(recording) -> None:
 
 def test_offline_epochs_equal_live_epochs(recording) -> None:
     """epochs_from_raw (calibration path) == a live stream pushed in odd chunks."""
-    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.recordings.epochs import epochs_from_raw
 
     offline = epochs_from_raw(recording)
     samples, codes = _onsets(recording)
@@ -175,7 +175,7 @@ def test_reset_forgets_state() -> None:
 )
 def test_offline_equals_online_at_every_rate(sfreq, up, down) -> None:
     """The calibration path and a live stream in odd chunks agree at any rate >= 128 Hz."""
-    from services.eeg.signal.preprocessing import epochs_from_raw
+    from services.eeg.recordings.epochs import epochs_from_raw
     from tests.eeg.caps import CAP_8, LABELS, virtual_recording
 
     raw = virtual_recording(sfreq if sfreq >= 250 else 1000.0, CAP_8, seed=2)

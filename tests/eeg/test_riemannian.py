@@ -16,7 +16,7 @@ from services.eeg.decoding.calibration import DECODERS, TrainingConfig, calibrat
 from services.eeg.decoding.classifier import ONNX_FILE, TORCHSCRIPT_FILE, ErrPClassifier
 from services.eeg.decoding.riemannian import XdawnRiemann, fit_xdawn_riemann, xdawn_riemann_pipeline
 from services.eeg.decoding.split import stratified_split
-from services.eeg.signal.preprocessing import epochs_from_raw
+from services.eeg.recordings.epochs import epochs_from_raw
 from services.eeg.virtual.subject import simulate_recording
 from tests.eeg.patterned import CH_NAMES, patterned_epochs
 

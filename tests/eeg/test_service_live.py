@@ -16,9 +16,9 @@ from starlette.websockets import WebSocketDisconnect
 from services.core.markers import ActionMarker
 from services.eeg.live import lsl
 from services.eeg.live.ingest import LiveIngest
+from services.eeg.recordings.conventions import STIM_CHANNEL
 from services.eeg.service.app import create_app
 from services.eeg.service.settings import EEGSettings
-from services.eeg.virtual.subject import STIM_CHANNEL
 from tests.eeg.test_virtual_source import save_untrained_classifier
 
 SFREQ = 512.0

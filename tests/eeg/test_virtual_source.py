@@ -13,12 +13,13 @@ from fastapi.testclient import TestClient
 from services.core.markers import ActionMarker
 from services.eeg.decoding.classifier import ErrPClassifier
 from services.eeg.decoding.eegnet import EEGNet
+from services.eeg.recordings.conventions import SYNTHETIC_TAG
 from services.eeg.service.app import create_app
 from services.eeg.service.settings import EEGSettings
 from services.eeg.signal.preprocessing import PreprocessingParams
 from services.eeg.virtual.ingest import IngestError, VirtualIngestClient
 from services.eeg.virtual.source import VirtualEEGSource
-from services.eeg.virtual.subject import SYNTHETIC_TAG, SyntheticRecording
+from services.eeg.virtual.subject import SyntheticRecording
 
 SFREQ = 256.0
 EEG = ["Fz", "FC1", "FCz", "FC2", "C3", "Cz", "C4", "Pz"]

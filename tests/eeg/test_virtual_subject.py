@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from services.eeg.recordings.conventions import STIM_CHANNEL
 from services.eeg.virtual.subject import (
-    STIM_CHANNEL,
     VirtualSubject,
     eeg_channel_names,
     simulate_recording,

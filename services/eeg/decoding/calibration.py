@@ -32,20 +32,21 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from services.eeg.decoding.classifier import ErrPClassifier
 from services.eeg.decoding.decoders import fit_decoders, select_decoder
 from services.eeg.decoding.metrics import classification_metrics, roc_auc
 from services.eeg.decoding.outputs import HISTORY_FILE, METRICS_FILE, write_outputs
 from services.eeg.decoding.posterior import calibration_report, fit_platt
+from services.eeg.decoding.result import CalibrationResult
 from services.eeg.decoding.split import SPLIT_FRACTIONS, Split, stratified_split
 from services.eeg.decoding.training_config import DECODERS, CalibrationCancelled, TrainingConfig
-from services.eeg.signal.preprocessing import EpochSet, PreprocessingParams, epochs_from_raw
+from services.eeg.recordings.epochs import EpochSet, epochs_from_raw
+from services.eeg.signal.preprocessing import PreprocessingParams
 
 if TYPE_CHECKING:
     import mne
@@ -65,42 +66,6 @@ __all__ = [
     "stratified_split",
     "train_classifier",
 ]
-
-
-@dataclass
-class CalibrationResult:
-    """Outcome of :func:`calibrate`.
-
-    Attributes
-    ----------
-    classifier : ErrPClassifier
-        The kept decoder's classifier (the better on validation).
-    metrics : dict
-        Test metrics and run facts (also in ``metrics.json``).
-    history : dict of list
-        EEGNet's per-pass ``train_loss``, ``val_loss``, ``val_accuracy`` (empty lists
-        without EEGNet).
-    split : Split
-        Indices into ``epochs``.
-    epochs : EpochSet
-        The data set that was used.
-    out_dir : Path or None
-        Where the artefacts were written.
-    test_proba : ndarray
-        P(error) of the kept decoder for the test epochs (in ``split.test`` order).
-    candidates : dict of ErrPClassifier
-        Every trained decoder by name (``eegnet``, ``lda``, ``xdawn_rg``), the kept one
-        included.
-    """
-
-    classifier: ErrPClassifier
-    metrics: dict[str, Any]
-    history: dict[str, list[float]]
-    split: Split
-    epochs: EpochSet
-    out_dir: Path | None = None
-    test_proba: np.ndarray = field(default_factory=lambda: np.empty(0))
-    candidates: dict[str, ErrPClassifier] = field(default_factory=dict)
 
 
 def train_classifier(

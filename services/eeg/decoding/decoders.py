@@ -25,7 +25,7 @@ from services.eeg.decoding.metrics import validation_and_test_metrics
 from services.eeg.decoding.riemannian import fit_xdawn_riemann
 from services.eeg.decoding.split import Split
 from services.eeg.decoding.training_config import DECODERS, CalibrationCancelled, TrainingConfig
-from services.eeg.signal.preprocessing import EpochSet
+from services.eeg.recordings.epochs import EpochSet
 
 
 @dataclass

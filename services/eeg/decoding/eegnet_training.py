@@ -20,7 +20,7 @@ from torch import nn
 from services.eeg.decoding.eegnet import EEGNet
 from services.eeg.decoding.split import Split
 from services.eeg.decoding.training_config import CalibrationCancelled, TrainingConfig
-from services.eeg.signal.preprocessing import EpochSet
+from services.eeg.recordings.epochs import EpochSet
 
 
 @dataclass

@@ -11,7 +11,6 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from services.core.files import write_results_json
 from services.eeg.decoding.classifier import (
@@ -21,9 +20,8 @@ from services.eeg.decoding.classifier import (
     STATE_FILE,
     TORCHSCRIPT_FILE,
 )
-
-if TYPE_CHECKING:
-    from services.eeg.decoding.calibration import CalibrationResult
+from services.eeg.decoding.report import write_report
+from services.eeg.decoding.result import CalibrationResult
 
 METRICS_FILE = "metrics.json"
 HISTORY_FILE = "history.json"
@@ -59,8 +57,6 @@ def write_outputs(result: CalibrationResult, out: Path, *, report: bool, onnx: b
             result.classifier.export_onnx(staging)
         write_results_json(staging / HISTORY_FILE, result.history, indent=None)
         if report:
-            from services.eeg.decoding.report import write_report
-
             write_report(result, staging)
         write_results_json(staging / METRICS_FILE, result.metrics)
         out.mkdir(exist_ok=True)

@@ -17,8 +17,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 if TYPE_CHECKING:
-    from services.eeg.decoding.calibration import CalibrationResult
-    from services.eeg.signal.preprocessing import EpochSet
+    from services.eeg.decoding.result import CalibrationResult
+    from services.eeg.recordings.epochs import EpochSet
 
 REPORT_PNG = "report.png"
 REPORT_HTML = "report.html"

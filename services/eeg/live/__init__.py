@@ -1,2 +1,2 @@
-"""Live EEG: ingest with integrity checks, LSL inlets and replay, live recordings and the
-live session that decodes each action marker."""
+"""Live EEG streams: ingest with integrity checks, LSL inlets, outlets and replay, and live
+recordings written to disk as they come."""

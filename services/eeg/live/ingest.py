@@ -38,13 +38,12 @@ from typing import Literal
 import numpy as np
 
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
-from services.eeg.recordings.io import TRIGGER_MASK
+from services.eeg.recordings.conventions import STIM_CHANNEL, TRIGGER_MASK
 from services.eeg.signal.preprocessing import (
     EpochUnavailableError,
     OnlinePreprocessor,
     PreprocessingParams,
 )
-from services.eeg.virtual.subject import STIM_CHANNEL
 
 MAX_SEGMENTS = 3
 """Preprocessing segments kept (the current one and the two before the last breaks)."""

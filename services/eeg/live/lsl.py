@@ -36,6 +36,7 @@ from pydantic import ValidationError
 from services.core.markers import MARKER_STREAM_NAME, MARKER_STREAM_TYPE, ActionMarker
 from services.eeg.live.ingest import LiveIngest
 from services.eeg.recordings.channels import resolve_channels
+from services.eeg.recordings.conventions import SYNTHETIC_ELEMENT
 from services.eeg.signal.preprocessing import PreprocessingParams
 
 EEG_STREAM_NAME = "BrainNav-EEG"
@@ -43,7 +44,6 @@ EEG_STREAM_TYPE = "EEG"
 
 __all__ = [
     "EEG_STREAM_NAME",
-    "SYNTHETIC_ELEMENT",
     "LslEegIngest",
     "MarkerInlet",
     "PulledMarkers",
@@ -54,10 +54,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-
-SYNTHETIC_ELEMENT = "synthetic"
-"""Element of an LSL stream's description that marks generated data (a virtual subject)."""
 
 
 def stream_is_synthetic(sinfo: StreamInfo) -> bool:

@@ -41,8 +41,8 @@ import mne
 import numpy as np
 
 from services.core.markers import ActionMarker
+from services.eeg.recordings.conventions import STIM_CHANNEL, SYNTHETIC_TAG, TRIGGER_PULSE_S
 from services.eeg.recordings.io import write_bdf
-from services.eeg.virtual.subject import STIM_CHANNEL, SYNTHETIC_TAG, TRIGGER_PULSE_S
 
 logger = logging.getLogger(__name__)
 

@@ -17,21 +17,31 @@ import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import edfio
 import mne
 import numpy as np
 
-from services.eeg.virtual.subject import STIM_CHANNEL, SYNTHETIC_TAG
-
-if TYPE_CHECKING:
-    from services.eeg.virtual.subject import SyntheticRecording
+from services.eeg.recordings.conventions import STIM_CHANNEL, SYNTHETIC_TAG
 
 BDF_DIGITAL_RANGE = (-8388608, 8388607)
 CHUNK_VALUES = 1 << 22
 """Values (channels x samples) per chunk when a recording is read or written (32 MB)."""
 _EDF_FIELD_CHARS = 80
+
+
+class GeneratedRecording(Protocol):
+    """A recording made block by block as it is read (a virtual subject's
+    :class:`~services.eeg.virtual.subject.SyntheticRecording`, a live recording's folder):
+    its ``info`` and length, and its samples (all channels) in blocks from the start."""
+
+    info: mne.Info
+    n_times: int
+
+    def iter_chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        """(first sample, block (n_channels, k)) from the first sample to the last."""
+        ...
 
 
 def _edf_token(text: str, limit: int) -> str:
@@ -53,7 +63,7 @@ def _record_samples(n_times: int, sfreq: float) -> int:
 
 
 def _chunks(
-    recording: mne.io.BaseRaw | SyntheticRecording, stop: int
+    recording: mne.io.BaseRaw | GeneratedRecording, stop: int
 ) -> Iterator[tuple[int, np.ndarray]]:
     """(first sample, all channels (n_channels, k)) of ``recording[:, :stop]`` in chunks."""
     if isinstance(recording, mne.io.BaseRaw):
@@ -135,15 +145,15 @@ def _bdf_header(
     return bytes(header), gain, offset
 
 
-def write_bdf(recording: mne.io.BaseRaw | SyntheticRecording, path: str | Path) -> Path:
+def write_bdf(recording: mne.io.BaseRaw | GeneratedRecording, path: str | Path) -> Path:
     """Write a recording as a 24-bit BDF file with an exact ``Status`` trigger channel.
 
     Parameters
     ----------
-    recording : mne.io.BaseRaw | SyntheticRecording
+    recording : mne.io.BaseRaw | GeneratedRecording
         EEG channels in volts plus a stim channel named ``"Status"`` holding integer codes;
-        a virtual subject's :class:`~services.eeg.virtual.subject.SyntheticRecording` is
-        written block by block as it is generated.
+        a :class:`GeneratedRecording` (e.g. a virtual subject's) is written block by block
+        as it is generated.
     path : str | Path
         Target ``.bdf`` file; written to a temporary file first and renamed, so a failure
         never leaves a partial file behind.

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import mne
 
-from services.eeg.virtual.subject import STIM_CHANNEL
+from services.eeg.recordings.conventions import STIM_CHANNEL
 
 __all__ = [
     "FRONTO_CENTRAL_SITES",

@@ -33,7 +33,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
-from services.eeg.virtual.subject import STIM_CHANNEL, SYNTHETIC_TAG
+from services.core.markers import ActionMarker
+from services.eeg.recordings.conventions import STIM_CHANNEL, SYNTHETIC_ELEMENT, SYNTHETIC_TAG
 
 __all__ = [
     "BRAINVISION_MAGIC",
@@ -44,6 +45,7 @@ __all__ = [
     "read_brainvision",
     "read_eeglab",
     "read_xdf",
+    "with_status",
 ]
 
 Label = Literal["correct", "error"]
@@ -139,7 +141,7 @@ class EventLabels(BaseModel):
         return f"codes {codes}; descriptions {texts}"
 
 
-def _with_status(raw: mne.io.BaseRaw, status: np.ndarray) -> mne.io.BaseRaw:
+def with_status(raw: mne.io.BaseRaw, status: np.ndarray) -> mne.io.BaseRaw:
     """``raw`` (loaded) with ``status`` as its ``Status`` stim channel (replaced or added)."""
     raw.load_data(verbose="error")
     if STIM_CHANNEL in raw.ch_names:
@@ -168,7 +170,7 @@ def apply_event_labels(raw: mne.io.BaseRaw, labels: EventLabels) -> mne.io.BaseR
         new = np.zeros_like(old)
         for code, label in labels.codes.items():
             new[old == code] = _TRIGGER[label]
-        return _with_status(raw, new.astype(np.float64))
+        return with_status(raw, new.astype(np.float64))
     status = np.zeros(raw.n_times)
     sfreq = raw.info["sfreq"]
     for annotation in raw.annotations:
@@ -178,7 +180,7 @@ def apply_event_labels(raw: mne.io.BaseRaw, labels: EventLabels) -> mne.io.BaseR
         sample = round((annotation["onset"] - raw.first_time) * sfreq)
         if 0 <= sample < raw.n_times:
             status[sample] = trigger
-    return _with_status(raw, status) if status.any() else raw
+    return with_status(raw, status) if status.any() else raw
 
 
 # ----------------------------------------------------------------------------- BrainVision
@@ -484,8 +486,6 @@ def _marker_triggers(
     markers: dict, times: np.ndarray, labels: EventLabels
 ) -> list[tuple[int, int]]:
     """(sample, code) of every action marker inside the EEG stream's time span."""
-    from services.core.markers import ActionMarker
-
     out = []
     period = np.median(np.diff(times)) if times.size > 1 else 0.0
     for value, stamp in zip(markers["time_series"], markers["time_stamps"], strict=True):
@@ -522,8 +522,6 @@ def read_xdf(
     marker's (clock-synchronised) timestamp; markers outside the EEG stream are dropped.
     """
     import pyxdf
-
-    from services.eeg.virtual.stream import SYNTHETIC_ELEMENT
 
     try:
         streams, _ = pyxdf.load_xdf(str(path), verbose=False)

@@ -31,19 +31,19 @@ from mne.io.edf.edf import RawBDF, RawEDF
 from services.core.actions import TRIGGER_CORRECT, TRIGGER_ERROR
 from services.eeg.recordings.bdf import BDF_DIGITAL_RANGE, CHUNK_VALUES, write_bdf
 from services.eeg.recordings.channels import ChannelError, resolve_channels
+from services.eeg.recordings.conventions import STIM_CHANNEL, SYNTHETIC_TAG, TRIGGER_MASK
 from services.eeg.recordings.formats import (
     EventLabels,
     FormatError,
-    _with_status,
     apply_event_labels,
     is_brainvision,
     is_eeglab,
     read_brainvision,
     read_eeglab,
     read_xdf,
+    with_status,
 )
 from services.eeg.signal.preprocessing import PreprocessingParams
-from services.eeg.virtual.subject import STIM_CHANNEL, SYNTHETIC_TAG
 
 __all__ = [
     "BDF_DIGITAL_RANGE",
@@ -88,8 +88,6 @@ writer expects microvolts) leaves the digital extremes; real EEG takes thousands
 MAX_STD_V = 1.0
 """A channel whose standard deviation exceeds 1 V is not EEG in volts (no EEG amplifier's
 input range reaches it): typically microvolts stored as volts, or a unit the file misstates."""
-TRIGGER_MASK = 0xFF
-"""Low byte of ``Status``: BioSemi amplifiers set status flags in the upper bits."""
 _XDF_MAGIC = b"XDF:"
 _BDF_MAGIC = b"\xffBIOSEMI"
 _EDF_MAGIC = b"0       "
@@ -390,7 +388,7 @@ def _read_any(
         except ValueError as exc:
             raise RecordingError(f"{shown}: malformed BDF header ({exc})") from exc
         if codes is not None:
-            raw = _with_status(raw, codes)
+            raw = with_status(raw, codes)
     return apply_event_labels(raw, labels)
 
 

@@ -1,2 +1,2 @@
-"""The EEG service (FastAPI, port 8002): settings, stores, calibration jobs, live state and
-routes."""
+"""The EEG service (FastAPI, port 8002): settings, stores, calibration jobs, the live session
+that decodes each action marker, the service state and routes."""

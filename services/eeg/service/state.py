@@ -21,14 +21,14 @@ from services.eeg.live.recording import (
     read_log,
     write_bdf_from_log,
 )
-from services.eeg.live.session import FeedbackHub, LiveSession
+from services.eeg.recordings.conventions import STIM_CHANNEL
 from services.eeg.recordings.io import file_sha256
 from services.eeg.service.errors import NoLiveSourceError, RecordingNotFoundError
 from services.eeg.service.jobs import JobRunner
+from services.eeg.service.live_session import FeedbackHub, LiveSession
 from services.eeg.service.schemas import LiveRecordingPublic, RecordingPublic
 from services.eeg.service.settings import EEGSettings
 from services.eeg.service.store import ClassifierStore, JobStore, RecordingStore
-from services.eeg.virtual.subject import STIM_CHANNEL
 
 logger = logging.getLogger(__name__)
 

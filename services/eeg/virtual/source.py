@@ -41,6 +41,7 @@ import numpy as np
 from scipy import signal
 
 from services.core.markers import ActionMarker
+from services.eeg.recordings.conventions import STIM_CHANNEL, SYNTHETIC_TAG, TRIGGER_PULSE_S
 from services.eeg.virtual.subject import (
     ALPHA_RMS_UV,
     BLINK_PEAK_UV,
@@ -59,18 +60,15 @@ from services.eeg.virtual.subject import (
     N_BRAIN_SOURCES,
     N_DRIFT_SOURCES,
     SENSOR_NOISE_UV,
-    STIM_CHANNEL,
-    SYNTHETIC_TAG,
-    TRIGGER_PULSE_S,
     VISUAL_COMPONENTS,
     ErpComponent,
     VirtualSubject,
-    _blink_train,
-    _colored_noise,
-    _component_waveforms,
-    _electrode_positions,
-    _line_source,
-    _topography,
+    blink_train,
+    colored_noise,
+    component_waveforms,
+    electrode_positions,
+    line_source,
+    topography,
 )
 
 logger = logging.getLogger(__name__)
@@ -143,7 +141,7 @@ class VirtualEEGSource:
             raise ValueError(f"sfreq must be a finite rate >= {MIN_SFREQ} Hz, got {sfreq}")
         if not math.isfinite(start_timestamp):
             raise ValueError(f"start_timestamp must be finite, got {start_timestamp}")
-        names, positions = _electrode_positions()
+        names, positions = electrode_positions()
         index = {name: i for i, name in enumerate(names)}
         wanted = list(names) if channels is None else list(channels)
         unknown = [ch for ch in wanted if ch not in index]
@@ -175,9 +173,7 @@ class VirtualEEGSource:
                     scale
                     * c.amplitude_uv
                     * 1e-6
-                    * _topography(
-                        positions, positions[index[c.centre]] + topo_jitter[g], c.spread_m
-                    )
+                    * topography(positions, positions[index[c.centre]] + topo_jitter[g], c.spread_m)
                     for c in components
                 ]
             )[:, rows]
@@ -195,18 +191,18 @@ class VirtualEEGSource:
         brain = np.empty((N_BRAIN_SOURCES, n_all))
         for k in range(N_BRAIN_SOURCES):
             centre = positions[rng.integers(n_all)] * rng.uniform(0.6, 1.0)
-            brain[k] = rng.choice([-1.0, 1.0]) * _topography(
+            brain[k] = rng.choice([-1.0, 1.0]) * topography(
                 positions, centre, rng.uniform(0.03, 0.07)
             )
         brain *= BRAIN_RMS_UV * 1e-6 / np.sqrt(np.mean(np.sum(brain**2, axis=0)))
         self._alpha_peak = float(rng.uniform(9.0, 11.0))
-        alpha = ALPHA_RMS_UV * 1e-6 * _topography(positions, positions[index["Oz"]], 0.05)
+        alpha = ALPHA_RMS_UV * 1e-6 * topography(positions, positions[index["Oz"]], 0.05)
         drift = DRIFT_RMS_UV * 1e-6 * rng.normal(0, 1, (N_DRIFT_SOURCES, n_all)) / 2.0
         self._background_mixing = np.vstack([brain, alpha[None], drift])[:, rows].T.astype(
             np.float32
         )
         eye = np.array([0.0, 0.11, -0.02])
-        self._blink_pattern = (BLINK_PEAK_UV * 1e-6 * _topography(positions, eye, 0.045))[
+        self._blink_pattern = (BLINK_PEAK_UV * 1e-6 * topography(positions, eye, 0.045))[
             rows
         ].astype(np.float32)
         self._line: list[tuple[np.ndarray, Any]] = []
@@ -214,7 +210,7 @@ class VirtualEEGSource:
             for trig in (np.sin, np.cos):
                 pattern = rel * LINE_RMS_UV * 1e-6 * rng.uniform(0.2, 1.0, n_all)
                 self._line.append(
-                    (pattern[rows].astype(np.float32), _line_source(trig, freq, self.sfreq))
+                    (pattern[rows].astype(np.float32), line_source(trig, freq, self.sfreq))
                 )
         pole = math.exp(-2.0 * math.pi * LOCAL_NOISE_CORNER_HZ / self.sfreq)
         local_gain = LOCAL_NOISE_UV * 1e-6 * math.sqrt(1.0 - pole**2) / (1.0 - pole)
@@ -280,9 +276,9 @@ class VirtualEEGSource:
                 groups.insert(0, "correct" if marker.correct else "error")
             for name in groups:
                 components, patterns = self._groups[name]
-                waves = _component_waveforms(
-                    components, 1, self._window, self.latency_shift_s, rng
-                )[:, 0]
+                waves = component_waveforms(components, 1, self._window, self.latency_shift_s, rng)[
+                    :, 0
+                ]
                 evoked += patterns.T @ waves
             if onset < self.n_generated:
                 self.late_markers += 1
@@ -351,17 +347,17 @@ class VirtualEEGSource:
             peak = self._alpha_peak
             sources = np.vstack(
                 [
-                    _colored_noise(
+                    colored_noise(
                         rng, N_BRAIN_SOURCES, n, sfreq, lambda f: (f**2 + 0.5**2) ** (-1.5 / 4)
                     ),
-                    _colored_noise(rng, 1, n, sfreq, lambda f: np.exp(-0.5 * (f - peak) ** 2)),
-                    _colored_noise(
+                    colored_noise(rng, 1, n, sfreq, lambda f: np.exp(-0.5 * (f - peak) ** 2)),
+                    colored_noise(
                         rng, N_DRIFT_SOURCES, n, sfreq, lambda f: 1.0 / (f + 0.01) * (f < 0.5)
                     ),
                 ]
             )
             blink_rng = self._stream(_STREAM_BLINKS, k)
-            blinks = _blink_train(blink_rng, self._segment, sfreq)
+            blinks = blink_train(blink_rng, self._segment, sfreq)
             self._segments[k] = (self._background_mixing @ sources, blinks)
         return self._segments[k]
 

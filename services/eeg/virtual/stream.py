@@ -31,13 +31,8 @@ import numpy as np
 from mne_lsl.lsl import StreamInfo, StreamOutlet
 
 from services.core.markers import MARKER_STREAM_NAME
-from services.eeg.live.lsl import (
-    EEG_STREAM_NAME,
-    EEG_STREAM_TYPE,
-    SYNTHETIC_ELEMENT,
-    MarkerInlet,
-    lsl_clock,
-)
+from services.eeg.live.lsl import EEG_STREAM_NAME, EEG_STREAM_TYPE, MarkerInlet, lsl_clock
+from services.eeg.recordings.conventions import SYNTHETIC_ELEMENT
 from services.eeg.virtual.source import DEFAULT_SFREQ, VirtualEEGSource
 
 logger = logging.getLogger(__name__)

@@ -39,14 +39,11 @@ import numpy as np
 from scipy import fft, signal
 
 from services.core.actions import ACTION_PERIOD_S, TRIGGER_CORRECT, TRIGGER_ERROR
+from services.eeg.recordings.conventions import STIM_CHANNEL, SYNTHETIC_TAG, TRIGGER_PULSE_S
 
 MONTAGE_NAME = "biosemi64"
-STIM_CHANNEL = "Status"
-SYNTHETIC_TAG = "SYNTHETIC"
 MIN_SFREQ = 256.0
 """Lowest sampling rate the generator accepts (the 100 Hz line harmonic must be representable)."""
-TRIGGER_PULSE_S = 0.01
-"""Width of each trigger pulse in the Status channel (s)."""
 ERP_WINDOW_S = 1.3
 """Length after each onset over which evoked responses are synthesised (s)."""
 MAX_SUBJECT_SHIFT_S = 0.1
@@ -170,20 +167,21 @@ def eeg_channel_names() -> list[str]:
     return list(montage().ch_names)
 
 
-def _electrode_positions() -> tuple[list[str], np.ndarray]:
+def electrode_positions() -> tuple[list[str], np.ndarray]:
+    """The montage's channel names and their positions (m), shape (n_channels, 3)."""
     mont = montage()
     pos = mont.get_positions()["ch_pos"]
     names = list(mont.ch_names)
     return names, np.array([pos[name] for name in names])
 
 
-def _topography(positions: np.ndarray, centre: np.ndarray, spread_m: float) -> np.ndarray:
+def topography(positions: np.ndarray, centre: np.ndarray, spread_m: float) -> np.ndarray:
     """Gaussian fall-off with chord distance from ``centre`` (peak 1 at the centre)."""
     d2 = np.sum((positions - centre) ** 2, axis=1)
     return np.exp(-d2 / (2.0 * spread_m**2))
 
 
-def _colored_noise(
+def colored_noise(
     rng: np.random.Generator, n_sources: int, n_times: int, sfreq: float, amplitude_fn
 ) -> np.ndarray:
     """``n_sources`` rows of Gaussian noise with spectrum ``|amplitude_fn(f)|``, unit RMS."""
@@ -203,7 +201,7 @@ def _colored_noise(
     return out
 
 
-def _component_waveforms(
+def component_waveforms(
     components: Sequence[ErpComponent],
     n_trials: int,
     times: np.ndarray,
@@ -221,7 +219,7 @@ def _component_waveforms(
     return waves
 
 
-def _blink_train(rng: np.random.Generator, n_times: int, sfreq: float) -> np.ndarray:
+def blink_train(rng: np.random.Generator, n_times: int, sfreq: float) -> np.ndarray:
     """Unit-peak blink waveforms at Poisson times (a ~250 ms asymmetric bump)."""
     duration_s = n_times / sfreq
     n_blinks = rng.poisson(BLINKS_PER_MINUTE * duration_s / 60.0)
@@ -287,7 +285,7 @@ class SyntheticRecording:
         n_actions = labels_arr.size
         n_times = round((2 * lead_in_s + n_actions * action_period_s) * sfreq)
         onsets = np.round((lead_in_s + np.arange(n_actions) * action_period_s) * sfreq).astype(int)
-        names, positions = _electrode_positions()
+        names, positions = electrode_positions()
         index = {name: i for i, name in enumerate(names)}
         n_chans = len(names)
 
@@ -307,7 +305,7 @@ class SyntheticRecording:
         )
         topo_jitter = rng.normal(0.0, 0.008, size=(3, 3))
         for g, (components, mask, gain) in enumerate(groups):
-            waves = _component_waveforms(components, n_actions, win, shift_s, rng)
+            waves = component_waveforms(components, n_actions, win, shift_s, rng)
             for c, comp in enumerate(components):
                 course = np.zeros(n_times, dtype=np.float32)
                 trial_onsets = onsets[mask]
@@ -316,18 +314,18 @@ class SyntheticRecording:
                 np.add.at(course, idx[keep], waves[c][mask][keep].astype(np.float32))
                 centre = positions[index[comp.centre]] + topo_jitter[g]
                 patterns.append(
-                    gain * comp.amplitude_uv * 1e-6 * _topography(positions, centre, comp.spread_m)
+                    gain * comp.amplitude_uv * 1e-6 * topography(positions, centre, comp.spread_m)
                 )
                 sources.append(course)
 
         # Background brain activity: smooth random topographies, 1/f^1.5 spectrum.
-        brain = _colored_noise(
+        brain = colored_noise(
             rng, N_BRAIN_SOURCES, n_times, sfreq, lambda f: (f**2 + 0.5**2) ** (-1.5 / 4)
         )
         brain_patterns = np.empty((N_BRAIN_SOURCES, n_chans))
         for k in range(N_BRAIN_SOURCES):
             centre = positions[rng.integers(n_chans)] * rng.uniform(0.6, 1.0)
-            brain_patterns[k] = rng.choice([-1.0, 1.0]) * _topography(
+            brain_patterns[k] = rng.choice([-1.0, 1.0]) * topography(
                 positions, centre, rng.uniform(0.03, 0.07)
             )
         channel_rms = np.sqrt(np.sum(brain_patterns**2, axis=0))
@@ -337,26 +335,26 @@ class SyntheticRecording:
 
         # Occipital alpha with a subject-specific peak frequency.
         alpha_peak = rng.uniform(9.0, 11.0)
-        alpha = _colored_noise(
+        alpha = colored_noise(
             rng, 1, n_times, sfreq, lambda f: np.exp(-0.5 * ((f - alpha_peak) / 1.0) ** 2)
         )
-        patterns.append(ALPHA_RMS_UV * 1e-6 * _topography(positions, positions[index["Oz"]], 0.05))
+        patterns.append(ALPHA_RMS_UV * 1e-6 * topography(positions, positions[index["Oz"]], 0.05))
         sources.append(alpha[0])
 
         # Eye blinks: frontal, decaying towards the back of the head.
         eye = np.array([0.0, 0.11, -0.02])
-        patterns.append(BLINK_PEAK_UV * 1e-6 * _topography(positions, eye, 0.045))
-        sources.append(_blink_train(rng, n_times, sfreq))
+        patterns.append(BLINK_PEAK_UV * 1e-6 * topography(positions, eye, 0.045))
+        sources.append(blink_train(rng, n_times, sfreq))
 
         # Line noise: two quadrature components with independent per-channel gains (phase
         # varies), computed per block.
         for freq, rel in ((LINE_FREQ_HZ, 1.0), (2 * LINE_FREQ_HZ, 0.25)):
             for trig in (np.sin, np.cos):
                 patterns.append(rel * LINE_RMS_UV * 1e-6 * rng.uniform(0.2, 1.0, n_chans))
-                sources.append(_line_source(trig, freq, sfreq))
+                sources.append(line_source(trig, freq, sfreq))
 
         # Slow electrode drift, different on every channel.
-        drift = _colored_noise(
+        drift = colored_noise(
             rng, N_DRIFT_SOURCES, n_times, sfreq, lambda f: 1.0 / (f + 0.01) * (f < 0.5)
         )
         patterns.extend(DRIFT_RMS_UV * 1e-6 * rng.normal(0, 1, (N_DRIFT_SOURCES, n_chans)) / 2.0)
@@ -435,7 +433,7 @@ class SyntheticRecording:
         return raw
 
 
-def _line_source(trig, freq: float, sfreq: float) -> Callable[[int, int], np.ndarray]:
+def line_source(trig, freq: float, sfreq: float) -> Callable[[int, int], np.ndarray]:
     """Samples ``start:stop`` of sqrt(2) * trig(2 pi freq t), float32 (unit RMS)."""
 
     def samples(start: int, stop: int) -> np.ndarray:

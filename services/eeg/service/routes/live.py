@@ -46,9 +46,9 @@ from services.core.websockets import (
     origin_allowed,
 )
 from services.eeg.live.ingest import LiveIngest
-from services.eeg.live.session import LiveSession
 from services.eeg.service.deps import ServiceDep, get_service
 from services.eeg.service.errors import LiveSourceError, NoLiveSourceError
+from services.eeg.service.live_session import LiveSession
 from services.eeg.service.schemas import (
     Feedback,
     IngestChunk,
