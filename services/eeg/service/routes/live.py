@@ -88,7 +88,7 @@ def connect_live(body: LiveConnect, service: ServiceDep) -> LiveStatus:
     the stream and its markers can only be recorded (calibration). Replaces the current
     live source.
     """
-    from services.eeg.live import lsl
+    from services.eeg.live import lsl  # loads liblsl (mne_lsl): only when a stream connects
 
     settings = service.settings
     clf = service.classifiers.get(body.classifier_id) if body.classifier_id else None
