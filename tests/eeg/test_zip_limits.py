@@ -17,7 +17,7 @@ from services.eeg.recordings.io import RecordingError, read_recording
 from services.eeg.service.app import create_app
 from services.eeg.service.settings import EEGSettings
 from tests.eeg.caps import CAP_8, LABELS, virtual_recording
-from tests.eeg.test_formats import CODES, SFREQ, _onsets, _write_vhdr
+from tests.eeg.test_formats import CODES, SFREQ, action_samples, write_vhdr
 
 FRAME = len(CAP_8) * 4  # pybv writes float32 samples
 
@@ -28,12 +28,14 @@ def raw() -> mne.io.RawArray:
 
 
 def _set(raw: mne.io.BaseRaw, folder: Path) -> list[Path]:
-    events = [{"onset": int(s), "description": c} for s, c in zip(_onsets(raw), CODES, strict=True)]
-    _write_vhdr(raw, folder, events)
+    events = [
+        {"onset": int(s), "description": c} for s, c in zip(action_samples(raw), CODES, strict=True)
+    ]
+    write_vhdr(raw, folder, events)
     return sorted(folder.glob("sub01.*"))
 
 
-def _zip(files: list[Path], path: Path) -> Path:
+def zip_files(files: list[Path], path: Path) -> Path:
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
         for file in files:
             archive.write(file, file.name)
@@ -56,7 +58,7 @@ def _bomb(raw: mne.io.BaseRaw, folder: Path) -> Path:
     eeg = next(file for file in files if file.suffix == ".eeg")
     n_bytes = 24 << 20  # past RATIO_FREE_BYTES
     eeg.write_bytes(bytes(n_bytes - n_bytes % FRAME))
-    return _zip(files, folder / "bomb.zip")
+    return zip_files(files, folder / "bomb.zip")
 
 
 def test_a_zip_bomb_is_refused_before_it_is_unzipped(raw, tmp_path, no_temp_files):
@@ -85,7 +87,7 @@ def _declare_size(path: Path, member: str, size: int) -> None:
 
 
 def test_a_member_declaring_a_huge_size_is_refused_unread(raw, tmp_path, no_temp_files):
-    archive = _zip(_set(raw, tmp_path), tmp_path / "liar.zip")
+    archive = zip_files(_set(raw, tmp_path), tmp_path / "liar.zip")
     huge = (3 << 30) - (3 << 30) % FRAME  # 3 GiB, a whole number of samples
     _declare_size(archive, "sub01.eeg", huge)
     with zipfile.ZipFile(archive) as opened:
@@ -101,7 +103,7 @@ def test_a_samples_file_that_does_not_fit_its_header_is_refused_unread(
     files = _set(raw, tmp_path)
     eeg = next(file for file in files if file.suffix == ".eeg")
     eeg.write_bytes(eeg.read_bytes() + b"\x00" * 3)  # no whole sample
-    archive = _zip(files, tmp_path / "odd.zip")
+    archive = zip_files(files, tmp_path / "odd.zip")
     with pytest.raises(RecordingError, match=r"^odd\.zip: truncated: the \.eeg file ends inside"):
         read_recording(archive)
     assert list(no_temp_files.iterdir()) == []
@@ -120,6 +122,6 @@ def test_the_eeg_service_refuses_a_zip_bomb_upload_and_keeps_nothing(raw, tmp_pa
 
 
 def test_a_well_formed_zip_still_reads(raw, tmp_path, no_temp_files):
-    back = read_recording(_zip(_set(raw, tmp_path), tmp_path / "good.zip"))
+    back = read_recording(zip_files(_set(raw, tmp_path), tmp_path / "good.zip"))
     assert back.n_times == raw.n_times and len(LABELS) > 0
     assert list(no_temp_files.iterdir()) == []

@@ -305,20 +305,31 @@ def test_bids_export_of_a_session_whose_recording_came_from_other_software(
     """A session's uploaded recording in any format the platform reads is exported as BDF
     with its actions (mne.io.read_raw read it by name: no zip, no XDF, and an EDF's copy)."""
     from tests.eeg.caps import CAP_8, LABELS, virtual_recording
-    from tests.eeg.test_formats import CODES, SFREQ, _onsets, _write_set, _write_vhdr, _xdf, _zip
+    from tests.eeg.test_formats import (
+        CODES,
+        SFREQ,
+        action_samples,
+        write_set,
+        write_vhdr,
+        xdf_recording,
+        zip_files,
+    )
 
     _, runtime = lab
     raw = virtual_recording(SFREQ, CAP_8, seed=4)
     if fmt == "xdf":
-        path = _xdf(raw, tmp_path / "session.xdf", ["correct" if ok else "error" for ok in LABELS])
+        path = xdf_recording(
+            raw, tmp_path / "session.xdf", ["correct" if ok else "error" for ok in LABELS]
+        )
     elif fmt == "brainvision":
         events = [
-            {"onset": int(s), "description": c} for s, c in zip(_onsets(raw), CODES, strict=True)
+            {"onset": int(s), "description": c}
+            for s, c in zip(action_samples(raw), CODES, strict=True)
         ]
-        _write_vhdr(raw, tmp_path, events)
-        path = _zip(sorted(tmp_path.glob("sub01.*")), tmp_path / "sub01.zip")
+        write_vhdr(raw, tmp_path, events)
+        path = zip_files(sorted(tmp_path.glob("sub01.*")), tmp_path / "sub01.zip")
     elif fmt == "eeglab":
-        path = _write_set(raw, tmp_path / "session.set")
+        path = write_set(raw, tmp_path / "session.set")
     else:
         path, plain = tmp_path / "session.edf", raw.copy().pick(CAP_8)
         exg = mne.io.RawArray(  # recorded beside the cap
@@ -327,7 +338,7 @@ def test_bids_export_of_a_session_whose_recording_came_from_other_software(
         exg.info["description"] = plain.info["description"]
         plain.add_channels([exg])
         texts = ["correct" if ok else "error" for ok in LABELS]
-        plain.set_annotations(mne.Annotations(_onsets(raw) / SFREQ, 0.0, texts))
+        plain.set_annotations(mne.Annotations(action_samples(raw) / SFREQ, 0.0, texts))
         mne.export.export_raw(path, plain, fmt="edf", verbose="error")
     artifact_id, stored = stored_file(runtime, path.read_bytes(), "recording", path.name)
     start = datetime(2026, 12, 1, 9, tzinfo=UTC)
@@ -360,7 +371,9 @@ def test_bids_export_of_a_session_whose_recording_came_from_other_software(
     assert bids_path.fpath.suffix == ".bdf"
     back = mne_bids.read_raw_bids(bids_path, verbose="error")
     assert list(back.annotations.description) == ["correct" if ok else "error" for ok in LABELS]
-    np.testing.assert_allclose(back.annotations.onset, _onsets(raw) / SFREQ, atol=1.5 / SFREQ)
+    np.testing.assert_allclose(
+        back.annotations.onset, action_samples(raw) / SFREQ, atol=1.5 / SFREQ
+    )
     np.testing.assert_allclose(back.get_data(picks=CAP_8), raw.get_data(picks=CAP_8), atol=2e-7)
     channels = bids_path.copy().update(suffix="channels", extension=".tsv").fpath.read_text()
     types = dict(line.split("\t")[:2] for line in channels.splitlines()[1:])
