@@ -243,8 +243,11 @@ class PlatformClient:
         rig_id: int | None = None,
         duration_minutes: int = 60,
         notes: str = "",
+        allow_past: bool = False,
     ) -> LabSession:
-        """Schedule a session (``scheduled_at`` must carry a timezone); 409 on an overlap."""
+        """Schedule a session (``scheduled_at`` must carry a timezone); 409 on an overlap,
+        422 at ``scheduled_at`` for a start in the past unless ``allow_past`` (a session that
+        has happened)."""
         body = {
             "subject_id": subject_id,
             "kind": kind,
@@ -252,6 +255,7 @@ class PlatformClient:
             "rig_id": rig_id,
             "duration_minutes": duration_minutes,
             "notes": notes,
+            "allow_past": allow_past,
         }
         return self._post(f"{API}/sessions", LabSession, body)
 

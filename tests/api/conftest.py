@@ -142,7 +142,7 @@ def calibration_session(api: Api) -> int:
         json={
             "subject_id": subject.json()["id"],
             "kind": "calibration",
-            "scheduled_at": "2026-12-07T10:00:00Z",
+            "scheduled_at": "2037-12-07T10:00:00Z",
         },
         headers=staff,
     )

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from datetime import UTC, datetime
 from pathlib import Path
 
 import httpx
@@ -257,7 +258,7 @@ def test_data_files_are_600_in_folders_of_700(tmp_path: Path) -> None:
         headers = {"Authorization": f"Bearer {token}"}
         subject = client.post("/api/v1/subjects", json={"code": "S-m"}, headers=headers).json()
         body = {"subject_id": subject["id"], "kind": "calibration",
-                "scheduled_at": "2026-12-02T09:00:00+00:00"}  # fmt: skip
+                "scheduled_at": datetime.now(UTC).isoformat()}  # fmt: skip
         session = client.post("/api/v1/sessions", json=body, headers=headers).json()
         uploaded = client.post(
             f"/api/v1/sessions/{session['id']}/recordings?filename=r.bdf",

@@ -159,6 +159,14 @@ def test_subjects_and_sessions(staff: PlatformClient) -> None:
     assert [s.id for s in staff.list_sessions(subject_id=subject.id).items] == [session.id]
     assert staff.cancel_session(session.id).status == "cancelled"
 
+    happened = datetime(2020, 1, 1, 9, 0, tzinfo=UTC)
+    with pytest.raises(PlatformError) as past:
+        staff.schedule_session(subject.id, "calibration", happened)
+    assert (past.value.status, past.value.field) == (422, "scheduled_at")
+    assert "send allow_past: true" in str(past.value)
+    confirmed = staff.schedule_session(subject.id, "calibration", happened, allow_past=True)
+    assert confirmed.scheduled_at == happened
+
 
 def test_unreachable_api_is_a_platform_error() -> None:
     client = PlatformClient("http://127.0.0.1:9", timeout_s=2)

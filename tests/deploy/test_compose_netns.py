@@ -13,7 +13,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -166,9 +166,10 @@ def test_an_online_session_runs_across_sim_eeg_learner_and_a_worker_host(
 
     subject = post("/subjects", {"code": "S-LIVE"})
     hosts: set[str] = set()
+    today = datetime.now(UTC)  # sessions start later today: a start in the past needs allow_past
 
     def session(kind: str, hour: int, options: dict[str, Any]) -> dict[str, Any]:
-        when = datetime(2026, 12, 3, hour, tzinfo=UTC).isoformat()
+        when = (today + timedelta(hours=hour)).isoformat()
         lab = post("/sessions", {"subject_id": subject["id"], "kind": kind, "scheduled_at": when})
         run = post(f"/sessions/{lab['id']}/start", options)
 
@@ -261,7 +262,7 @@ def test_the_api_killed_mid_upload_leaves_no_half_file(
     lab_pc: LabPC, compose_lab: ComposeLab
 ) -> None:
     subject = lab_pc.call(lambda: lab_pc.client.create_subject("S-NETNS"))
-    when = datetime(2026, 12, 3, 9, tzinfo=UTC)
+    when = datetime.now(UTC)
     session = lab_pc.call(lambda: lab_pc.client.schedule_session(subject.id, "calibration", when))
     sent = threading.Event()
 

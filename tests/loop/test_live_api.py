@@ -24,7 +24,7 @@ def lab_session(api: Api, kind: str) -> int:
     staff = api.as_("staff")
     subject = api.client.post("/api/v1/subjects", json={"code": f"S-{kind}"}, headers=staff)
     body = {"subject_id": subject.json()["id"], "kind": kind,
-            "scheduled_at": "2026-12-02T09:00:00+00:00"}  # fmt: skip
+            "scheduled_at": datetime.now(UTC).isoformat()}  # fmt: skip
     response = api.client.post("/api/v1/sessions", json=body, headers=staff)
     assert response.status_code == 201, response.text
     return int(response.json()["id"])

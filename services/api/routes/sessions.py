@@ -35,6 +35,20 @@ NEXT_STATUSES = {
     "running": {"completed", "failed"},
 }
 """Status changes allowed through PATCH (cancel has its own route)."""
+PAST_GRACE = timedelta(minutes=5)
+"""A start this recent is not "in the past" (the form was filled in a few minutes ago)."""
+
+
+def _refuse_past(scheduled_at: datetime, allow_past: bool) -> None:
+    """422 at ``scheduled_at`` if it is in the past (by more than :data:`PAST_GRACE`) and
+    the request does not confirm it with ``allow_past``."""
+    if allow_past or scheduled_at >= datetime.now(UTC) - PAST_GRACE:
+        return
+    raise BadRequestError(
+        f"starts in the past ({scheduled_at:%Y-%m-%d %H:%M} UTC); send allow_past: true to "
+        "schedule it anyway (a session that has happened)",
+        field="scheduled_at",
+    )
 
 
 def _check_refs(
@@ -110,8 +124,10 @@ def _refuse_overlap(db: Session, session: LabSession) -> None:
 
 @router.post("", status_code=201)
 def create(body: SessionCreate, user: StaffUser, db: DbDep) -> SessionPublic:
-    """Schedule a session (staff); 409 if it overlaps one of the same subject or rig."""
+    """Schedule a session (staff); 409 if it overlaps one of the same subject or rig, 422 if
+    it starts in the past unless ``allow_past`` confirms it."""
     _check_refs(db, body.subject_id, body.rig_id, body.operator_id)
+    _refuse_past(body.scheduled_at, body.allow_past)
     session = LabSession(
         subject_id=body.subject_id,
         rig_id=body.rig_id,
@@ -207,9 +223,11 @@ def read(session_id: RowId, db: DbDep) -> SessionPublic:
 
 @router.patch("/{session_id}")
 def update(session_id: RowId, body: SessionUpdate, user: StaffUser, db: DbDep) -> SessionPublic:
-    """Reschedule or edit a session, or move its status along (staff)."""
+    """Reschedule or edit a session, or move its status along (staff); a new start in the
+    past needs ``allow_past``."""
     session = get_or_404(db, LabSession, session_id, "session_id")
     changes = body.model_dump(exclude_unset=True)
+    allow_past = changes.pop("allow_past", False)
     timing = {"scheduled_at", "duration_minutes", "rig_id", "kind"} & changes.keys()
     if timing and session.status != "scheduled":
         raise ConflictError(
@@ -224,6 +242,9 @@ def update(session_id: RowId, body: SessionUpdate, user: StaffUser, db: DbDep) -
                 field="status",
             )
     _check_refs(db, None, changes.get("rig_id"), changes.get("operator_id"))
+    new_start = changes.get("scheduled_at")
+    if new_start is not None and new_start != session.scheduled_at:
+        _refuse_past(new_start, allow_past)
     for key in ("kind", "scheduled_at", "duration_minutes", "operator_id", "notes", "status"):
         if changes.get(key) is not None:
             setattr(session, key, changes[key])

@@ -26,6 +26,11 @@ class SessionCreate(ApiRequest):
         None, ge=1, le=MAX_ROW_ID, description="User running it (default: you)."
     )
     notes: str = Field("", max_length=10_000)
+    allow_past: bool = Field(
+        False,
+        description="Schedule it even though it starts in the past (a session that has "
+        "happened); without it such a start is refused (422 at scheduled_at).",
+    )
 
 
 class SessionUpdate(ApiRequest):
@@ -41,6 +46,9 @@ class SessionUpdate(ApiRequest):
     operator_id: int | None = Field(None, ge=1, le=MAX_ROW_ID)
     notes: str | None = Field(None, max_length=10_000)
     status: Literal["running", "completed", "failed"] | None = None
+    allow_past: bool = Field(
+        False, description="Move it to a start in the past (else 422 at scheduled_at)."
+    )
 
 
 class SessionPublic(PublicModel):

@@ -1,7 +1,7 @@
 // Sessions: a week per rig; schedule, reschedule and cancel (staff). Overlaps are refused by
 // the API (409) and its message is shown in the form the user acted in.
 
-import { all, patch, post, request } from "../api.js";
+import { all, ApiError, patch, post, request } from "../api.js";
 import {
   field, fmtDateTime, fmtTime, h, messageBox, oneAtATime, showRefusal, statusBadge, timeZone,
 } from "../dom.js";
@@ -111,17 +111,23 @@ export function defaultStart(monday, now = new Date()) {
 }
 
 /**
- * A start in the past is asked about once: the first submit says so at the start field and
- * the button becomes "Schedule in the past"; submitting again (same start) schedules it.
- * Returns true when the request may go.
+ * A start in the past is asked about once. The API refuses it (422 at scheduled_at, naming
+ * ``allow_past``) unless the request confirms it; that refusal is shown at the start field
+ * in the browser's time and the button becomes "Schedule in the past"; submitting again
+ * (same start) sends ``allow_past: true``. Returns true when ``err`` was that refusal.
  */
-function confirmPast(startIso, field, button, state) {
-  if (new Date(startIso).getTime() >= Date.now() || state.confirmed === startIso) return true;
+function askAboutPast(err, startIso, field, button, state) {
+  const past = err instanceof ApiError && err.status === 422 && err.field === "scheduled_at" &&
+    err.message.includes("allow_past");
+  if (!past) return false;
   state.confirmed = startIso;
   field.setError(`${fmtDateTime(startIso)} (${timeZone()}) is in the past: submit again to record a session that has happened.`);
   button.textContent = `${state.label} in the past`;
-  return false;
+  return true;
 }
+
+/** The body's ``allow_past``: whether the user confirmed this start in the past. */
+const allowPast = (state, startIso) => state.confirmed === startIso;
 
 function scheduleForm(subjects, rigs, monday, onDone) {
   const subject = h(
@@ -153,14 +159,15 @@ function scheduleForm(subjects, rigs, monday, onDone) {
   const past = { label: "Schedule", confirmed: null };
   form.addEventListener("submit", oneAtATime([submit], async () => {
     clearErrors(fields, message);
+    let values = null;
     try {
-      const values = timing.values();
-      if (!confirmPast(values.scheduled_at, fields.scheduled_at, submit, past)) return null;
+      values = timing.values();
       const created = await post("/api/v1/sessions", {
         subject_id: Number(subject.value),
         kind: kind.value,
         notes: notes.value,
         ...values,
+        allow_past: allowPast(past, values.scheduled_at),
       });
       const when = new Date(created.scheduled_at) < new Date() ? " (in the past)" : "";
       onDone(
@@ -169,7 +176,9 @@ function scheduleForm(subjects, rigs, monday, onDone) {
       );
       return "leaving";
     } catch (err) {
-      showRefusal(err, fields, message);
+      if (!askAboutPast(err, values?.scheduled_at, fields.scheduled_at, submit, past)) {
+        showRefusal(err, fields, message);
+      }
       return null;
     }
   }));
@@ -207,15 +216,18 @@ function editDialog(session, subjectCode, rigs, canEdit, onDone) {
   const past = { label: "Reschedule", confirmed: null };
   form.addEventListener("submit", oneAtATime([submit, cancel], async () => {
     clearErrors(timing.fields, message);
+    let values = null;
     try {
-      const values = timing.values();
-      if (!confirmPast(values.scheduled_at, timing.fields.scheduled_at, submit, past)) return null;
-      await patch(`/api/v1/sessions/${session.id}`, values);
+      values = timing.values();
+      await patch(`/api/v1/sessions/${session.id}`,
+        { ...values, allow_past: allowPast(past, values.scheduled_at) });
       dialog.close();
       onDone(`Session ${session.id} rescheduled.`);
       return "leaving";
     } catch (err) {
-      showRefusal(err, timing.fields, message);
+      if (!askAboutPast(err, values?.scheduled_at, timing.fields.scheduled_at, submit, past)) {
+        showRefusal(err, timing.fields, message);
+      }
       return null;
     }
   }));
