@@ -369,6 +369,35 @@ def test_progress_websocket_unknown_job_and_header_auth(api: Api) -> None:
     assert refused.value.code == 4404
 
 
+def test_the_form_hints_of_the_schemas_name_real_fields_and_lists(api: Api) -> None:
+    """What the dashboard's generated job form relies on: each ``x-shown-when`` names sibling
+    fields and values they can hold, each ``x-references`` a list route of the api."""
+    viewer = api.as_("viewer")
+    kinds = api.client.get("/api/v1/job-kinds", headers=viewer).json()
+    shown_when, references = 0, set()
+    for kind in kinds:
+        schema = kind["config_schema"]
+        if schema is None:
+            continue
+        objects = [schema, *schema.get("$defs", {}).values()]
+        for obj in objects:
+            for prop in obj["properties"].values():
+                for name, values in prop.get("x-shown-when", {}).items():
+                    sibling = obj["properties"][name]
+                    allowed = sibling.get("enum") or [
+                        v for s in sibling.get("anyOf", []) for v in s.get("enum", [None])
+                    ]
+                    assert set(values) <= {*allowed, None}, (kind["name"], name, values)
+                    shown_when += 1
+                if "x-references" in prop:
+                    references.add(prop["x-references"])
+    assert shown_when >= 5
+    assert references == {"hf-models", "recordings", "subjects", "classifiers"}
+    for collection in references:
+        listed = api.client.get(f"/api/v1/{collection}", headers=viewer)
+        assert listed.status_code == 200 and "items" in listed.json(), collection
+
+
 def test_job_kinds_give_each_kinds_config_schema(api: Api) -> None:
     """The registry's kinds with the JSON Schema the api validates with: a job built from the
     schema's required fields and bounds is accepted, one past a bound is refused."""

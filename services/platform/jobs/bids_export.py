@@ -8,13 +8,15 @@ from typing import Any
 from pydantic import Field
 
 from services.core.schemas import MAX_ROW_ID
-from services.platform.jobs.kind import JobConfig, JobKind
+from services.platform.jobs.kind import JobConfig, JobKind, form_hints
 
 
 class BIDSExportConfig(JobConfig):
     """Export a subject's sessions as a BIDS dataset (a zip artifact of kind ``bids``)."""
 
-    subject_id: int = Field(ge=1, le=MAX_ROW_ID)
+    subject_id: int = Field(
+        ge=1, le=MAX_ROW_ID, title="Subject", json_schema_extra=form_hints(references="subjects")
+    )
 
 
 def summary(config: Mapping[str, Any]) -> str:

@@ -9,7 +9,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from services.core.hf_methods import HFMethodName
 from services.core.schemas import MAX_ROW_ID
-from services.platform.jobs.kind import JobConfig, JobKind
+from services.platform.jobs.kind import JobConfig, JobKind, form_hints
 from services.platform.jobs.ppo import (
     Method,
     PPOOverrides,
@@ -20,21 +20,40 @@ from services.platform.jobs.ppo import (
     lower_task,
 )
 
+HF_ONLY = form_hints(shown_when={"method": ["hf_sparse"]})
+"""Settings of HF-guided runs only (the form shows them for ``hf_sparse``)."""
+
 
 class GuidedPPOConfig(JobConfig):
     """One training run of (guided) PPO: ``bgrl`` learner's run of one task, method and seed."""
 
-    task: Task = Field(description="SSSG or VSSG (case-insensitive).")
-    method: Method
-    accuracy: float | None = Field(
-        None, ge=0, le=1, description="Simulated feedback accuracy C (hf_sparse only)."
+    task: Task = Field(title="Task", description="SSSG or VSSG (case-insensitive).")
+    method: Method = Field(
+        title="Method",
+        description="rl_sparse, rl_rich, rl_shaped: PPO alone; hf_sparse: guided by pi_HF.",
     )
-    seed: int = bounded("seed", 0)
-    total_steps: int = bounded("total_steps", 40_000)
-    hf_treatment: Treatment = "authors"
-    ppo: PPOOverrides = Field(default_factory=PPOOverrides)
+    accuracy: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        title="Feedback accuracy C",
+        description="Accuracy of the simulated feedback pi_HF learns from (0 to 1; e.g. 0.7), "
+        "unless a stored pi_HF is given.",
+        json_schema_extra=HF_ONLY,
+    )
+    seed: int = bounded("seed", 0, title="Seed")
+    total_steps: int = bounded("total_steps", 40_000, title="Total steps")
+    hf_treatment: Treatment = Field(
+        "authors",
+        title="HF treatment",
+        description="How PPO treats pi_HF's actions: the authors' way or truncated "
+        "importance sampling.",
+        json_schema_extra=HF_ONLY,
+    )
+    ppo: PPOOverrides = Field(default_factory=PPOOverrides, title="PPO settings")
     preset: Preset = Field(
         "paper",
+        title="Preset",
         description="PPO settings: paper (the paper's) or platform (the recommended ones: "
         "hf_treatment 'authors' becomes 'truncated_is', ppo.hf_guide_sampling true and "
         "ppo.sil_coef 1 unless given). The stage-2 method is hf_method's either way.",
@@ -43,18 +62,31 @@ class GuidedPPOConfig(JobConfig):
         None,
         ge=1,
         le=MAX_ROW_ID,
+        title="Human-feedback policy",
         description="A stored pi_HF to guide with (hf_sparse) instead of training one.",
+        json_schema_extra=form_hints(shown_when={"method": ["hf_sparse"]}, references="hf-models"),
     )
     n_labels: int = Field(
-        1000, ge=1, le=1_000_000, description="Feedback labels pi_HF is trained on (hf_sparse)."
+        1000,
+        ge=1,
+        le=1_000_000,
+        title="Feedback labels",
+        description="Feedback labels pi_HF is trained on (hf_sparse).",
+        json_schema_extra=HF_ONLY,
     )
     hf_method: HFMethodName | None = Field(
         None,
+        title="Stage-2 method",
         description="Stage-2 method that learns pi_HF (hf_sparse; docs/stage2.md); default "
-        "the platform's recommended one, 'paper' the paper's Fhat.",
+        "the platform's recommended one, 'paper' the paper's Fhat. Not with a stored pi_HF.",
+        json_schema_extra=form_hints(shown_when={"method": ["hf_sparse"], "hf_model_id": [None]}),
     )
     checkpoint_every: int | None = Field(
-        None, ge=1, le=100_000, description="PPO updates between checkpoints (worker default)."
+        None,
+        ge=1,
+        le=100_000,
+        title="Checkpoint every",
+        description="PPO updates between checkpoints (worker default).",
     )
 
     _lower_task = field_validator("task", mode="before")(lower_task)

@@ -19,6 +19,21 @@ class JobConfig(StrictRequest):
     model_config = ConfigDict(strict=True)
 
 
+def form_hints(
+    *, shown_when: Mapping[str, list[Any]] | None = None, references: str | None = None
+) -> dict[str, Any]:
+    """Extension keywords of a config field's JSON Schema for the forms built from it (the
+    dashboard's job form): ``x-shown-when`` (the field applies only while each named sibling
+    field holds one of the values listed; ``None``: left empty) and ``x-references`` (the
+    field is the id of an item of ``GET /api/v1/<references>``, offered as a choice)."""
+    hints: dict[str, Any] = {}
+    if shown_when is not None:
+        hints["x-shown-when"] = {name: list(values) for name, values in shown_when.items()}
+    if references is not None:
+        hints["x-references"] = references
+    return hints
+
+
 Summary = Callable[[Mapping[str, Any]], str]
 """One line saying what a job runs, from its stored config."""
 

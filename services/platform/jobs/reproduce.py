@@ -30,28 +30,51 @@ class ReproduceConfig(JobConfig):
     every job on the sim's default map).
     """
 
-    quick: bool = Field(False, description="2 seeds (unless seeds is given).")
-    seeds: int | None = Field(None, ge=1, le=100, description="Seeds per configuration.")
-    first_seed: int = bounded("seed", 0)
-    tasks: list[Task] = Field(default_factory=lambda: ["sssg", "vssg"], min_length=1)
-    methods: list[Method] = Field(
-        default_factory=lambda: ["rl_sparse", "rl_rich", "hf_sparse"], min_length=1
+    quick: bool = Field(False, title="Quick", description="2 seeds (unless seeds is given).")
+    seeds: int | None = Field(
+        None,
+        ge=1,
+        le=100,
+        title="Seeds per configuration",
+        description="Default 10 (2 if quick).",
     )
-    accuracies: list[float] = Field(default_factory=lambda: [0.55, 0.6, 0.7], min_length=1)
-    treatments: list[Treatment] = Field(default_factory=lambda: ["authors"], min_length=1)
-    ppo: PPOOverrides = Field(default_factory=PPOOverrides)
+    first_seed: int = bounded("seed", 0, title="First seed")
+    # plain defaults (pydantic copies them per config) so that the JSON Schema shows them
+    tasks: list[Task] = Field(["sssg", "vssg"], min_length=1, title="Tasks")
+    methods: list[Method] = Field(
+        ["rl_sparse", "rl_rich", "hf_sparse"], min_length=1, title="Methods"
+    )
+    accuracies: list[float] = Field(
+        [0.55, 0.6, 0.7],
+        min_length=1,
+        title="Accuracies C",
+        description="Simulated feedback accuracies of the hf_sparse runs, each 0 to 1.",
+        json_schema_extra={"items": {"type": "number", "minimum": 0, "maximum": 1}},
+    )
+    treatments: list[Treatment] = Field(
+        ["authors"],
+        min_length=1,
+        title="HF treatments",
+        description="How PPO treats pi_HF's actions in the hf_sparse runs.",
+    )
+    ppo: PPOOverrides = Field(default_factory=PPOOverrides, title="PPO settings")
     preset: Preset = Field(
         "paper",
+        title="Preset",
         description="paper: the paper's settings; platform: the recommended ones (treatments "
         "['authors'] become ['truncated_is'], ppo.hf_guide_sampling true and ppo.sil_coef 1 "
         "(self-imitation, every method alike) unless given, pi_HF learned with the "
         "recommended stage-2 method).",
     )
     checkpoint_every: int | None = Field(
-        None, ge=1, le=100_000, description="PPO updates between checkpoints of each run."
+        None,
+        ge=1,
+        le=100_000,
+        title="Checkpoint every",
+        description="PPO updates between checkpoints of each run.",
     )
     n_labels: int = Field(
-        1000, ge=1, le=1_000_000,
+        1000, ge=1, le=1_000_000, title="Feedback labels",
         description="Labels each hf_sparse run learns pi_HF from (every labelled action).",
     )  # fmt: skip
 

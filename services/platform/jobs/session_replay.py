@@ -9,21 +9,32 @@ from typing import Any
 from pydantic import Field
 
 from services.core.schemas import MAX_ROW_ID
-from services.platform.jobs.kind import JobConfig, JobKind
+from services.platform.jobs.kind import JobConfig, JobKind, form_hints
 
 
 class SessionReplayConfig(JobConfig):
     """Replay an online session through the live decoder and the learner (a new pi_HF)."""
 
-    session_id: int = Field(ge=1, le=MAX_ROW_ID)
+    session_id: int = Field(
+        ge=1,
+        le=MAX_ROW_ID,
+        title="Session",
+        description="The id of an online session that has run (its page links the replay).",
+    )
     classifier_id: int | None = Field(
         None,
         ge=1,
         le=MAX_ROW_ID,
+        title="Classifier",
         description="Decode with this classifier (default: the session's).",
+        json_schema_extra=form_hints(references="classifiers"),
     )
     label_budget: int | None = Field(
-        None, ge=1, le=100_000, description="Labels of the new pi_HF (default: the session's)."
+        None,
+        ge=1,
+        le=100_000,
+        title="Label budget",
+        description="Labels of the new pi_HF (default: the session's).",
     )
 
 
