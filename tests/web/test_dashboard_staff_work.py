@@ -428,3 +428,173 @@ def test_ids_people_can_type_and_the_schedule_forms_care(context: tuple, server:
     alert.filter(has_text="overlaps session").wait_for()
     assert "T10:00:00" not in alert.inner_text() and "(times in " in alert.inner_text()
     assert watch.errors_except(r"status of 409", r"status of 422") == []
+
+
+def _cancel_all(server: Server, kind: str) -> None:
+    """Queued jobs of ``kind`` cancelled (this module runs no worker)."""
+    for job in server.call("GET", "/api/v1/jobs", params={"kind": kind})["items"]:
+        if job["status"] == "queued":
+            server.call("POST", f"/api/v1/jobs/{job['id']}/cancel")
+
+
+def test_the_job_form_is_generated_from_the_job_kinds(
+    context: tuple, server: Server, screenshot_dir: Path
+) -> None:
+    """The form's kinds, fields, bounds, defaults and help come from GET /api/v1/job-kinds:
+    a guided-PPO run (a bound checked as the user types, HF-only fields shown for hf_sparse,
+    the PPO settings folded, the API's refusal of a rule of the whole config at the field it
+    names) and a BIDS export (its subject chosen by code)."""
+    ctx, watch = context
+    subject = server.call("POST", "/api/v1/subjects", json={"code": "FORM-1"})
+    kinds = server.call("GET", "/api/v1/job-kinds", role="staff")
+    page = open_as(ctx, server, "staff", "/jobs")
+    form = page.locator("#job-form")
+    form.wait_for()
+    offered = form.locator("select[name=kind] option").all_inner_texts()
+    assert offered == [k["title"] for k in kinds if k["submittable"]]
+
+    form.locator("select[name=method]").select_option("rl_sparse")
+    accuracy = form.locator("input[name=accuracy]")
+    assert accuracy.is_hidden()
+    form.locator("select[name=method]").select_option("hf_sparse")
+    assert accuracy.is_visible()
+    hf_method = form.locator("select[name=hf_method]")
+    guided = next(k for k in kinds if k["name"] == "guided_ppo")["config_schema"]
+    methods = guided["properties"]["hf_method"]["anyOf"][0]["enum"]
+    assert hf_method.locator("option").evaluate_all("os => os.map((o) => o.value)") == [
+        "", *methods,
+    ]  # fmt: skip
+    assert form.locator("input[name=total_steps]").input_value() == "40000"  # its default
+    form.locator("input[name=total_steps]").fill("0")
+    assert form.locator("input[name=total_steps] ~ .field-error").inner_text() == (
+        "must be between 1 and 2,000,000"
+    )
+    form.locator("input[name=total_steps]").fill("1024")
+    accuracy.fill("0.7")
+    ppo = form.locator("details[data-field=ppo]")
+    assert form.locator("input[name='ppo.n_steps']").is_hidden()  # folded
+    ppo.locator("summary").click()
+    form.locator("input[name='ppo.n_steps']").fill("100")
+    form.get_by_role("button", name="Submit job").click()
+    form.locator("input[name='ppo.n_steps'] ~ .field-error").filter(
+        has_text="n_steps (100) must be a multiple of minibatch_size (64)"
+    ).wait_for()
+    assert server.call("GET", "/api/v1/jobs", params={"kind": "guided_ppo"})["total"] == 0
+    form.locator("input[name='ppo.n_steps']").fill("128")
+    form.get_by_role("button", name="Submit job").click()
+    page.get_by_text(re.compile(r"^Job \w{8} submitted\.$")).wait_for()
+    ppo.locator("summary").click()  # folded again for the screenshot
+    (job,) = server.call("GET", "/api/v1/jobs", params={"kind": "guided_ppo"})["items"]
+    assert job["config"] == {
+        "task": "sssg", "method": "hf_sparse", "accuracy": 0.7, "seed": 0, "total_steps": 1024,
+        "hf_treatment": "authors", "ppo": {"n_steps": 128}, "preset": "paper",
+        "n_labels": 1000,
+    }  # fmt: skip
+    page.screenshot(path=str(screenshot_dir / "jobs-form.png"), full_page=True)
+    _cancel_all(server, "guided_ppo")
+
+    form.locator("select[name=kind]").select_option("bids_export")
+    form.get_by_role("button", name="Submit job").click()
+    assert form.locator("select[name=subject_id] ~ .field-error").inner_text() == "required"
+    form.locator("select[name=subject_id]").select_option(label=f"#{subject['id']} FORM-1")
+    form.get_by_role("button", name="Submit job").click()
+    form.get_by_role("link", name="follow it").wait_for()
+    (export,) = server.call("GET", "/api/v1/jobs", params={"kind": "bids_export"})["items"]
+    assert export["config"] == {"subject_id": subject["id"]}
+    _cancel_all(server, "bids_export")
+    assert watch.errors_except(r"status of 422") == []
+
+
+def test_a_finished_online_session_is_replayed_from_its_page(
+    context: tuple, server: Server, screenshot_dir: Path
+) -> None:
+    """The replay link of an ended online session opens the generated form with the kind
+    chosen and the session filled in; a bound and an unknown id are refused at their
+    fields; the submitted job is followed on its page."""
+    ctx, watch = context
+    subject = server.call("POST", "/api/v1/subjects", json={"code": "REPLAY-1"})
+    start = (datetime.now(UTC) - timedelta(hours=3)).isoformat()
+    session = server.call(
+        "POST", "/api/v1/sessions",
+        json={"subject_id": subject["id"], "kind": "online", "scheduled_at": start,
+              "allow_past": True},
+    )  # fmt: skip
+    server.call("PATCH", f"/api/v1/sessions/{session['id']}", json={"status": "running"})
+    server.call("PATCH", f"/api/v1/sessions/{session['id']}", json={"status": "completed"})
+    (live_id,) = seed(
+        server, Job(kind="live_session", status="succeeded", config={"session_id": session["id"]})
+    )
+    (classifier_id,) = seed(server, Classifier(name="REPLAY-1 errp", subject_id=subject["id"]))
+    seed(
+        server,
+        LiveRun(session_id=session["id"], job_id=live_id, mode="online", status="completed",
+                options={"accelerated": True, "classifier_id": classifier_id}),
+    )  # fmt: skip
+    page = open_as(ctx, server, "staff", f"/sessions/{session['id']}/live")
+    page.get_by_role("link", name="Replay this session…").click()
+    form = page.locator("#job-form")
+    assert form.locator("select[name=kind]").input_value() == "session_replay"
+    assert form.locator("input[name=session_id]").input_value() == str(session["id"])
+    form.locator("select[name=classifier_id]").select_option(str(classifier_id))
+    form.locator("input[name=label_budget]").fill("0")
+    assert form.locator("input[name=label_budget] ~ .field-error").inner_text() == (
+        "must be between 1 and 100,000"
+    )
+    form.locator("input[name=label_budget]").fill("50")
+    form.locator("input[name=session_id]").fill("999999")
+    form.get_by_role("button", name="Submit job").click()
+    form.locator("input[name=session_id] ~ .field-error").filter(
+        has_text="no session with id 999999"
+    ).wait_for()
+    form.locator("input[name=session_id]").fill(str(session["id"]))
+    form.get_by_role("button", name="Submit job").click()
+    follow = form.get_by_role("link", name="follow it")
+    follow.wait_for()
+    page.screenshot(path=str(screenshot_dir / "job-replay.png"), full_page=True)
+    follow.click()
+    page.get_by_role("heading", name=re.compile(r"^Job \w{8} queued$")).wait_for()
+    (job,) = server.call("GET", "/api/v1/jobs", params={"kind": "session_replay"})["items"]
+    assert page.url.endswith(f"/jobs/{job['id']}")
+    assert job["config"] == {
+        "session_id": session["id"], "classifier_id": classifier_id, "label_budget": 50,
+    }  # fmt: skip
+    _cancel_all(server, "session_replay")
+    assert watch.errors_except(r"status of (404|422)", r"WebSocket") == []
+
+
+def test_a_reschedule_into_the_past_is_confirmed_first(context: tuple, server: Server) -> None:
+    """The API refuses a start in the past until the request confirms it; the dashboard asks
+    at the start field and sends ``allow_past`` only once the user has confirmed."""
+    ctx, watch = context
+    subject = server.call("POST", "/api/v1/subjects", json={"code": "PAST-2"})
+    start = datetime.now(UTC).replace(microsecond=0) + timedelta(days=1)
+    session = server.call(
+        "POST", "/api/v1/sessions",
+        json={"subject_id": subject["id"], "kind": "test", "scheduled_at": start.isoformat()},
+    )  # fmt: skip
+    page = open_as(ctx, server, "staff", f"/sessions?week={start.astimezone():%G-W%V}")
+    sent: list[dict] = []
+    page.on(
+        "request",
+        lambda r: sent.append(r.post_data_json) if r.method == "PATCH" else None,
+    )
+    page.locator(f"button[data-session='{session['id']}']").click()
+    dialog = page.locator("dialog[open]")
+    dialog.locator("input[name=date]").fill("2020-01-01")
+    dialog.locator("input[name=time]").fill("10:00")
+    dialog.get_by_role("button", name="Reschedule").click()
+    dialog.locator("input[name=time] ~ .field-error").filter(
+        has_text="is in the past: submit again to record a session that has happened."
+    ).wait_for()
+    assert server.call("GET", f"/api/v1/sessions/{session['id']}")["scheduled_at"] == (
+        start.isoformat().replace("+00:00", "Z")
+    )
+    dialog.get_by_role("button", name="Reschedule in the past").click()
+    page.get_by_text(f"Session {session['id']} rescheduled.").wait_for()
+    moved = server.call("GET", f"/api/v1/sessions/{session['id']}")
+    assert (
+        datetime.fromisoformat(moved["scheduled_at"]).astimezone().strftime("%Y-%m-%d %H:%M")
+        == "2020-01-01 10:00"
+    )
+    assert [body["allow_past"] for body in sent] == [False, True]
+    assert watch.errors_except(r"status of 422") == []

@@ -1,297 +1,388 @@
-// The job submission form: a guided-PPO run or a reproduction sweep, checked as the user types
-// against the API's limits (POST /api/v1/jobs; services/api/schemas/jobs.py).
+// The job submission form, generated from each kind's JSON Schema (GET /api/v1/job-kinds, the
+// job contract's pydantic models): a new kind needs no change here. Types, bounds, defaults,
+// enums and descriptions come from the schema; nested settings (e.g. PPO's) fold into a
+// collapsible section; two extension keywords say more: ``x-shown-when`` (a field that
+// applies only while sibling fields hold given values) and ``x-references`` (the id of an
+// item of GET /api/v1/<collection>, offered as a choice). Checked as the user types against
+// the schema; the API's refusals (422) appear at the field they name.
 
-import { ApiError, post } from "../api.js";
-import { field, h, messageBox } from "../dom.js";
+import { all, ApiError, get, post } from "../api.js";
+import { field, h, messageBox, oneAtATime } from "../dom.js";
 
-export const LIMITS = {
-  maxTotalSteps: 2_000_000,
-  maxSeed: 2 ** 31 - 1,
-  maxRuns: 2000,
-  defaultNSteps: 128,
-  defaultMinibatch: 64,
-};
+let kindsAnswer = null;
 
-/** Stage-2 methods that learn pi_HF (docs/stage2.md); the API's HF_METHOD_NAMES. */
-export const HF_METHODS = [
-  ["paper", "paper (the paper's Fhat)"],
-  ["noise_aware", "noise_aware"],
-  ["categorical", "categorical"],
-  ["thompson", "thompson"],
-  ["categorical_thompson", "categorical_thompson"],
-  ["categorical_info", "categorical_info"],
-  ["categorical_onpolicy", "categorical_onpolicy"],
-  ["categorical_kernel", "categorical_kernel"],
-];
-
-function intIn(value, min, max, name) {
-  if (value === "") return null;
-  const n = Number(value);
-  if (!Number.isInteger(n)) return `${name} must be a whole number`;
-  if (n < min || n > max) return `${name} must be between ${min} and ${max.toLocaleString("en")}`;
-  return null;
+/** Every job kind with its config schema (asked once per page). */
+export function jobKinds() {
+  kindsAnswer ??= get("/api/v1/job-kinds");
+  return kindsAnswer;
 }
 
-function numberInput(name, attrs = {}) {
-  return h("input", { type: "number", name, inputmode: "numeric", ...attrs });
+/** The stage-2 methods that learn pi_HF (the choices of a config's ``hf_method``; the live
+ *  session start takes the same), from the kinds' schemas. */
+export function stage2Methods(kinds) {
+  for (const k of kinds) {
+    const prop = k.config_schema?.properties?.hf_method;
+    if (prop) return resolve(prop, k.config_schema)[0].enum || [];
+  }
+  return [];
 }
 
-function checkboxes(name, options, checked) {
-  return h(
-    "fieldset",
-    { class: "checks" },
-    h("legend", {}, name),
-    options.map(([value, label]) =>
-      h("label", {}, h("input", { type: "checkbox", name, value, checked: checked.includes(value) }), ` ${label}`),
-    ),
-  );
+const fmt = (n) => (Number.isFinite(n) ? n.toLocaleString("en") : String(n));
+
+/** The first paragraph of a schema description, without reStructuredText's double quotes. */
+function prose(text) {
+  return (text || "").split("\n\n")[0].replace(/``/g, "").replace(/\s+/g, " ").trim();
 }
 
-const checked = (fieldset) => [...fieldset.querySelectorAll("input:checked")].map((i) => i.value);
-
-/** PPO settings both kinds share; returns {fields, values(), errors(totalSteps)}. */
-function ppoFields() {
-  const nSteps = numberInput("n_steps", { min: 1, max: 100000, placeholder: String(LIMITS.defaultNSteps) });
-  const minibatch = numberInput("minibatch_size", { min: 1, max: 100000, placeholder: String(LIMITS.defaultMinibatch) });
-  const epochs = numberInput("n_epochs", { min: 1, max: 1000, placeholder: "default" });
-  const evalEvery = numberInput("eval_every", { min: 1, max: LIMITS.maxTotalSteps, placeholder: "default" });
-  const fields = {
-    n_steps: field("PPO n_steps", nSteps, "Steps per update (default 128)."),
-    minibatch_size: field("Minibatch size", minibatch, "Divides n_steps (default 64)."),
-    n_epochs: field("Epochs per update", epochs),
-    eval_every: field("Evaluate every (steps)", evalEvery),
-  };
-  return {
-    fields,
-    values() {
-      const ppo = {};
-      for (const [key, f] of Object.entries(fields)) if (f.input.value !== "") ppo[key] = Number(f.input.value);
-      return ppo;
-    },
-    errors(totalSteps) {
-      const errors = {
-        n_steps: intIn(nSteps.value, 1, 100000, "n_steps"),
-        minibatch_size: intIn(minibatch.value, 1, 100000, "minibatch size"),
-        n_epochs: intIn(epochs.value, 1, 1000, "epochs"),
-        eval_every: intIn(evalEvery.value, 1, LIMITS.maxTotalSteps, "eval_every"),
-      };
-      const n = nSteps.value === "" ? LIMITS.defaultNSteps : Number(nSteps.value);
-      const mb = minibatch.value === "" ? LIMITS.defaultMinibatch : Number(minibatch.value);
-      if (!errors.n_steps && !errors.minibatch_size && n % mb) {
-        errors.minibatch_size = `n_steps (${n}) must be a multiple of the minibatch size (${mb})`;
-      }
-      if (!errors.n_steps && Number.isInteger(totalSteps) && totalSteps < n) {
-        errors.n_steps = `n_steps (${n}) may not exceed the total steps (${totalSteps})`;
-      }
-      return errors;
-    },
-  };
+/** A property's schema with ``anyOf: [X, null]`` and ``$ref`` resolved: [schema, nullable]. */
+function resolve(prop, root) {
+  let schema = prop;
+  let nullable = false;
+  if (Array.isArray(prop.anyOf)) {
+    const others = prop.anyOf.filter((s) => s.type !== "null");
+    nullable = others.length < prop.anyOf.length;
+    const { anyOf, ...outer } = prop;
+    schema = others.length === 1 ? { ...others[0], ...outer } : prop;
+  }
+  if (schema.$ref) {
+    const name = schema.$ref.split("/").pop();
+    const { $ref, ...outer } = schema;
+    schema = { ...root.$defs[name], ...outer };
+  }
+  return [schema, nullable];
 }
 
-/** The settings preset of a run or a reproduction (the API's ``preset``). */
-function presetSelect() {
-  return h("select", { name: "preset" }, h("option", { value: "paper" }, "paper: the paper's settings"),
-    h("option", { value: "platform" }, "platform: the recommended ones"));
+/** Why a number breaks the schema's bounds, or null. */
+function boundsError(n, s) {
+  if (s.type === "integer" && !Number.isInteger(n)) return "must be a whole number";
+  const low = s.minimum ?? s.exclusiveMinimum;
+  const high = s.maximum ?? s.exclusiveMaximum;
+  const tooLow = s.minimum !== undefined ? n < s.minimum : s.exclusiveMinimum !== undefined && n <= s.exclusiveMinimum;
+  const tooHigh = s.maximum !== undefined ? n > s.maximum : s.exclusiveMaximum !== undefined && n >= s.exclusiveMaximum;
+  if (!tooLow && !tooHigh) return null;
+  if (low !== undefined && high !== undefined) {
+    const open = s.exclusiveMinimum !== undefined ? " (not " + fmt(low) + ")" : "";
+    return `must be between ${fmt(low)} and ${fmt(high)}${open}`;
+  }
+  if (tooLow) return s.exclusiveMinimum !== undefined ? `must be more than ${fmt(low)}` : `must be at least ${fmt(low)}`;
+  return `must be at most ${fmt(high)}`;
 }
 
-function guidedForm(hfModels) {
-  const task = h("select", { name: "task" }, h("option", { value: "sssg" }, "SSSG"), h("option", { value: "vssg" }, "VSSG"));
-  const method = h("select", { name: "method" },
-    [["rl_sparse", "RL, sparse reward"], ["rl_rich", "RL, rich reward"], ["hf_sparse", "HF-guided, sparse reward"]]
-      .map(([v, l]) => h("option", { value: v }, l)));
-  const accuracy = h("input", { type: "number", name: "accuracy", min: 0, max: 1, step: 0.01, value: "0.7" });
-  const hfModel = h("select", { name: "hf_model_id" }, h("option", { value: "" }, "Train one from simulated feedback"),
-    hfModels.map((m) => h("option", { value: m.id }, `${m.name} (${m.task.toUpperCase()})`)));
-  const hfMethod = h("select", { name: "hf_method" }, h("option", { value: "" }, "Recommended (default)"),
-    HF_METHODS.map(([v, l]) => h("option", { value: v }, l)));
-  const nLabels = numberInput("n_labels", { min: 1, max: 1_000_000, value: "1000" });
-  const seed = numberInput("seed", { min: 0, max: LIMITS.maxSeed, value: "0" });
-  const totalSteps = numberInput("total_steps", { min: 1, max: LIMITS.maxTotalSteps, value: "40000", step: 1 });
-  const preset = presetSelect();
-  const ppo = ppoFields();
-  const fields = {
-    task: field("Task", task),
-    method: field("Method", method),
-    accuracy: field("Feedback accuracy C", accuracy, "0 to 1; the simulated feedback's accuracy."),
-    hf_model_id: field("Human-feedback policy", hfModel),
-    hf_method: field("Stage-2 method", hfMethod, "How pi_HF is learned from the labels (docs/stage2.md)."),
-    n_labels: field("Feedback labels", nLabels, "1 to 1,000,000"),
-    seed: field("Seed", seed),
-    total_steps: field("Total steps", totalSteps, `1 to ${LIMITS.maxTotalSteps.toLocaleString("en")}`),
-    preset: field("Preset", preset,
-      "platform: HF steps truncated IS instead of authors, guide sampling, self-imitation."),
-    ...ppo.fields,
-  };
-  const hfOnly = [fields.accuracy, fields.hf_model_id, fields.n_labels];
-  return {
-    fields,
-    update() {
-      for (const f of hfOnly) f.hidden = method.value !== "hf_sparse";
-      // a stored pi_HF was learned with its own method
-      fields.hf_method.hidden = method.value !== "hf_sparse" || hfModel.value !== "";
-    },
-    errors() {
-      const total = Number(totalSteps.value);
-      const errors = {
-        seed: intIn(seed.value, 0, LIMITS.maxSeed, "seed") || (seed.value === "" ? "seed is required" : null),
-        total_steps: intIn(totalSteps.value, 1, LIMITS.maxTotalSteps, "total steps") ||
-          (totalSteps.value === "" ? "total steps are required" : null),
-        ...ppo.errors(total),
-      };
-      if (method.value === "hf_sparse") {
-        const c = accuracy.value === "" ? null : Number(accuracy.value);
-        if (c === null && !hfModel.value) errors.accuracy = "HF-guided runs need C (or a stored policy)";
-        else if (c !== null && !(c >= 0 && c <= 1)) errors.accuracy = "C must be between 0 and 1";
-        errors.n_labels = intIn(nLabels.value, 1, 1_000_000, "labels");
-      }
-      return errors;
-    },
-    body() {
-      const config = { task: task.value, method: method.value, seed: Number(seed.value), total_steps: Number(totalSteps.value),
-        preset: preset.value };
-      if (method.value === "hf_sparse") {
-        if (accuracy.value !== "") config.accuracy = Number(accuracy.value);
-        if (hfModel.value) config.hf_model_id = Number(hfModel.value);
-        else if (hfMethod.value) config.hf_method = hfMethod.value;
-        config.n_labels = Number(nLabels.value);
-      }
-      const overrides = ppo.values();
-      if (Object.keys(overrides).length) config.ppo = overrides;
-      return { kind: "guided_ppo", config };
-    },
-  };
+/** What a reference's item is called in a choice: "#3 S-014" (its name, code or file). */
+function itemLabel(item) {
+  const name = item.name ?? item.code ?? item.filename ?? "";
+  const task = item.task ? ` (${String(item.task).toUpperCase()})` : "";
+  return `#${item.id} ${name}${task}`.trim();
 }
 
-function reproduceForm() {
-  const quick = h("input", { type: "checkbox", name: "quick" });
-  const seeds = numberInput("seeds", { min: 1, max: 100, placeholder: "10 (2 if quick)" });
-  const firstSeed = numberInput("first_seed", { min: 0, max: LIMITS.maxSeed, value: "0" });
-  const tasks = checkboxes("Tasks", [["sssg", "SSSG"], ["vssg", "VSSG"]], ["sssg", "vssg"]);
-  const methods = checkboxes("Methods", [["rl_sparse", "RL sparse"], ["rl_rich", "RL rich"], ["hf_sparse", "HF sparse"]],
-    ["rl_sparse", "rl_rich", "hf_sparse"]);
-  const accuracies = h("input", { name: "accuracies", value: "0.55, 0.6, 0.7" });
-  const nLabels = numberInput("n_labels", { min: 1, max: 1_000_000, value: "1000" });
-  const treatments = checkboxes("HF treatments", [["authors", "authors"], ["truncated_is", "truncated IS"]], ["authors"]);
-  const totalSteps = numberInput("total_steps", { min: 1, max: LIMITS.maxTotalSteps, value: "40000" });
-  const preset = presetSelect();
-  const ppo = ppoFields();
-  const runs = h("p", { class: "hint", "aria-live": "polite" });
-  const fields = {
-    quick: field("Quick (2 seeds)", quick),
-    seeds: field("Seeds per configuration", seeds, "1 to 100"),
-    first_seed: field("First seed", firstSeed),
-    tasks: h("div", { class: "field" }, tasks),
-    methods: h("div", { class: "field" }, methods),
-    accuracies: field("Accuracies C", accuracies, "Comma-separated, each 0 to 1 (HF runs)."),
-    n_labels: field("Feedback labels", nLabels, "Labels each HF run learns pi_HF from; 1 to 1,000,000 (the paper: 1000)."),
-    treatments: h("div", { class: "field" }, treatments),
-    preset: field("Preset", preset,
-      "platform: HF steps truncated IS instead of authors, guide sampling, self-imitation, the recommended stage-2 method."),
-    total_steps: field("Steps per run", totalSteps),
-    ...ppo.fields,
-  };
-  for (const key of ["tasks", "methods", "treatments"]) {
+/**
+ * One control per schema property. Each has ``node`` (what the form shows), ``raw()`` (the
+ * value as typed, for x-shown-when), ``read()`` -> {given, value, error} and ``setError``.
+ * A value is sent when the field is required, was prefilled or was changed by the user
+ * (an untouched default is left to the API, which fills it in: a preset's "unless given"
+ * stays true).
+ */
+function control(name, prop, { root, required, prefill, references, prefix }) {
+  const [s, nullable] = resolve(prop, root);
+  const path = prefix + name; // the input's name: "ppo.n_steps", as the API's errors name it
+  // pydantic titles a field without one "N Steps": the setting's own name says more
+  const automatic = name.split("_").map((w) => w.charAt(0).toUpperCase() + w.slice(1)).join(" ");
+  const title = !s.title || (s.title === automatic && name.includes("_")) ? name : s.title;
+  const hint = prose(s.description);
+  const hasDefault = s.default !== undefined && s.default !== null;
+  let touched = prefill !== undefined;
+  const touch = () => { touched = true; };
+  const initial = prefill !== undefined ? prefill : s.default;
+
+  if (s.type === "object" && s.properties) {
+    const group = objectControls(s, { root, prefill: prefill || {}, references, prefix: `${path}.` });
     const error = h("span", { class: "field-error", "aria-live": "polite" });
-    fields[key].append(error);
-    fields[key].setError = (m) => { error.textContent = m || ""; };
+    const node = h("details", { class: "config-group", "data-field": path, open: prefill !== undefined },
+      h("summary", {}, title), hint ? h("p", { class: "hint" }, hint) : null, group.nodes, error);
+    return {
+      name, node, children: group.controls,
+      raw: () => null,
+      read() {
+        const { value, errors } = group.read();
+        return { given: Object.keys(value).length > 0, value, errors };
+      },
+      setError(message) {
+        error.textContent = message || "";
+        if (message) node.open = true;
+      },
+      update: group.update,
+    };
   }
-  const parseAccuracies = () => accuracies.value.split(",").map((v) => v.trim()).filter(Boolean).map(Number);
+
+  let input;
+  let raw;
+  let parse;
+  if (s["x-references"]) {
+    const items = references.get(s["x-references"]) || [];
+    const blank = required ? "Choose…" : "(default)";
+    input = h("select", { name: path },
+      h("option", { value: "" }, blank),
+      items.map((item) => h("option", { value: item.id }, itemLabel(item))));
+    if (initial !== undefined && initial !== null && !items.some((i) => String(i.id) === String(initial))) {
+      input.append(h("option", { value: initial }, `#${initial}`));
+    }
+    if (initial !== undefined && initial !== null) input.value = String(initial);
+    raw = () => (input.value === "" ? null : Number(input.value));
+    parse = () => (raw() === null && required ? { error: "required" } : { value: raw() });
+  } else if (s.enum) {
+    const options = s.enum.map((v) => h("option", { value: v }, v));
+    const blank = nullable || (!required && !hasDefault) ? [h("option", { value: "" }, "(default)")] : [];
+    input = h("select", { name: path }, blank, options);
+    if (initial !== undefined && initial !== null) input.value = initial;
+    raw = () => (input.value === "" ? null : input.value);
+    parse = () => ({ value: raw() });
+  } else if (s.type === "boolean" && !nullable) {
+    input = h("input", { type: "checkbox", name: path, checked: initial === true || initial === "true" });
+    raw = () => input.checked;
+    parse = () => ({ value: input.checked });
+  } else if (s.type === "boolean") {
+    input = h("select", { name: path }, h("option", { value: "" }, "(default)"),
+      h("option", { value: "true" }, "yes"), h("option", { value: "false" }, "no"));
+    if (initial === true || initial === false) input.value = String(initial);
+    raw = () => (input.value === "" ? null : input.value === "true");
+    parse = () => ({ value: raw() });
+  } else if (s.type === "array" && s.items?.enum) {
+    const checked = Array.isArray(initial) ? initial : [];
+    const boxes = s.items.enum.map((v) => h("input", { type: "checkbox", name: path, value: v, checked: checked.includes(v) }));
+    input = h("fieldset", { class: "checks" }, h("legend", {}, title),
+      boxes.map((box) => h("label", {}, box, ` ${box.value}`)));
+    raw = () => boxes.filter((b) => b.checked).map((b) => b.value);
+    parse = () => {
+      const value = raw();
+      if (s.minItems && value.length < s.minItems) return { error: `choose at least ${s.minItems}` };
+      return { value };
+    };
+  } else if (s.type === "array") {
+    const items = s.items || {};
+    input = h("input", { name: path, value: Array.isArray(initial) ? initial.join(", ") : "",
+      placeholder: "comma-separated" });
+    raw = () => input.value;
+    parse = () => {
+      const parts = input.value.split(",").map((v) => v.trim()).filter(Boolean);
+      if (!parts.length) return required || touched ? { error: "give at least one value, comma-separated" } : { value: null };
+      const value = [];
+      for (const part of parts) {
+        const n = items.type === "integer" || items.type === "number" ? Number(part) : part;
+        if (typeof n === "number") {
+          if (Number.isNaN(n)) return { error: `${part} is not a number` };
+          const bad = boundsError(n, items);
+          if (bad) return { error: `each value ${bad}: not ${part}` };
+        }
+        value.push(n);
+      }
+      if (s.minItems && value.length < s.minItems) return { error: `give at least ${s.minItems}` };
+      if (s.maxItems && value.length > s.maxItems) return { error: `give at most ${s.maxItems}` };
+      return { value };
+    };
+  } else if (s.type === "integer" || s.type === "number") {
+    input = h("input", {
+      type: "number", name: path, step: s.type === "integer" ? 1 : "any", inputmode: s.type === "integer" ? "numeric" : "decimal",
+      min: s.minimum ?? s.exclusiveMinimum, max: s.maximum ?? s.exclusiveMaximum,
+      value: initial ?? "", placeholder: hasDefault ? "" : "default",
+    });
+    raw = () => (input.value === "" ? null : Number(input.value));
+    parse = () => {
+      if (input.value === "") {
+        // a number input holding text the browser cannot read reports "" and badInput
+        if (input.validity?.badInput) return { error: "must be a number" };
+        return required ? { error: "required" } : { value: null };
+      }
+      const n = Number(input.value);
+      const bad = boundsError(n, s);
+      return bad ? { error: bad } : { value: n };
+    };
+  } else {
+    input = h("input", { name: path, value: initial ?? "", maxlength: s.maxLength });
+    raw = () => input.value;
+    parse = () => (input.value === "" && required ? { error: "required" } : { value: input.value || null });
+  }
+  input.addEventListener("input", touch);
+  input.addEventListener("change", touch);
+  const wrapper = input.tagName === "FIELDSET"
+    ? h("div", { class: "field" }, input, hint ? h("span", { class: "hint" }, hint) : null)
+    : field(title, input, hint);
+  if (input.tagName === "FIELDSET") {
+    const error = h("span", { class: "field-error", "aria-live": "polite" });
+    wrapper.append(error);
+    wrapper.setError = (message) => { error.textContent = message || ""; };
+  }
+  if (s.type === "boolean" && !nullable) wrapper.classList.add("check-field");
+  wrapper.dataset.field = path;
   return {
-    fields,
-    extra: runs,
-    update() {},
-    errors() {
-      const errors = {
-        seeds: intIn(seeds.value, 1, 100, "seeds"),
-        first_seed: intIn(firstSeed.value, 0, LIMITS.maxSeed, "first seed"),
-        n_labels: intIn(nLabels.value, 1, 1_000_000, "labels") || (nLabels.value === "" ? "labels are required" : null),
-        total_steps: intIn(totalSteps.value, 1, LIMITS.maxTotalSteps, "steps per run") ||
-          (totalSteps.value === "" ? "steps per run are required" : null),
-        ...ppo.errors(Number(totalSteps.value)),
-        tasks: checked(tasks).length ? null : "choose at least one task",
-        methods: checked(methods).length ? null : "choose at least one method",
-        treatments: checked(treatments).length ? null : "choose at least one treatment",
-      };
-      const cs = parseAccuracies();
-      if (!cs.length || cs.some((c) => !(c >= 0 && c <= 1))) errors.accuracies = "give accuracies between 0 and 1, comma-separated";
-      const nSeeds = seeds.value === "" ? (quick.checked ? 2 : 10) : Number(seeds.value);
-      const perSeed = checked(methods).reduce(
-        (sum, m) => sum + (m === "hf_sparse" ? cs.length * checked(treatments).length : 1), 0,
-      ) * checked(tasks).length;
-      const total = perSeed * nSeeds;
-      runs.textContent = Number.isFinite(total) ? `This sweep is ${total} run(s) of ${Number(totalSteps.value).toLocaleString("en")} steps.` : "";
-      if (total > LIMITS.maxRuns) errors.seeds = `${total} runs; a reproduction may have ${LIMITS.maxRuns}`;
-      return errors;
+    name, node: wrapper, shownWhen: s["x-shown-when"],
+    raw,
+    read() {
+      const { value, error } = parse();
+      if (error) return { given: true, value: null, errors: { [name]: error } };
+      const given = value !== null && value !== undefined && (required || touched);
+      return { given, value, errors: {} };
     },
-    body() {
-      const config = {
-        quick: quick.checked,
-        first_seed: Number(firstSeed.value || 0),
-        tasks: checked(tasks),
-        methods: checked(methods),
-        accuracies: parseAccuracies(),
-        n_labels: Number(nLabels.value),
-        treatments: checked(treatments),
-        preset: preset.value,
-        ppo: { total_steps: Number(totalSteps.value), ...ppo.values() },
-      };
-      if (seeds.value !== "") config.seeds = Number(seeds.value);
-      return { kind: "reproduce", config };
+    setError: (message) => wrapper.setError(message),
+  };
+}
+
+/** The controls of an object schema's properties, with x-shown-when applied among them. */
+function objectControls(schema, { root, prefill, references, prefix = "" }) {
+  const required = new Set(schema.required || []);
+  const controls = Object.entries(schema.properties).map(([name, prop]) =>
+    control(name, prop, { root, required: required.has(name), prefill: prefill[name], references, prefix }));
+  const byName = new Map(controls.map((c) => [c.name, c]));
+  const shown = (c) => !c.shownWhen || Object.entries(c.shownWhen).every(([other, values]) => {
+    const current = byName.get(other)?.raw() ?? null;
+    return values.some((v) => (v === null ? current === null : String(v) === String(current)));
+  });
+  return {
+    controls,
+    nodes: controls.map((c) => c.node),
+    update() {
+      for (const c of controls) {
+        c.node.hidden = !shown(c);
+        c.update?.();
+      }
+    },
+    read() {
+      const value = {};
+      const errors = {};
+      for (const c of controls) {
+        if (!shown(c)) continue;
+        const got = c.read();
+        for (const [key, message] of Object.entries(got.errors)) errors[c.children ? `${c.name}.${key}` : key] = message;
+        if (got.given) value[c.name] = got.value;
+      }
+      return { value, errors };
     },
   };
 }
 
-/** The submission form; ``onSubmitted(job)`` is called with the API's new job. */
-export function jobForm(hfModels, onSubmitted) {
-  const kinds = { guided_ppo: guidedForm(hfModels), reproduce: reproduceForm() };
-  const kind = h("select", { name: "kind", id: "job-kind" },
-    h("option", { value: "guided_ppo" }, "Guided-PPO run"), h("option", { value: "reproduce" }, "Reproduction sweep (Fig. 3)"));
-  const body = h("div");
-  const message = messageBox();
-  const submit = h("button", { type: "submit", class: "btn primary" }, "Submit job");
-  const form = h("form", { class: "card", id: "job-form", novalidate: true, "aria-labelledby": "job-form-title" },
-    h("h2", { id: "job-form-title" }, "Submit a job"), field("Kind", kind), body, submit, message);
+/** Every control by its dotted path ("ppo.n_steps"). */
+function byPath(controls, prefix = "") {
+  const out = new Map();
+  for (const c of controls) {
+    out.set(prefix + c.name, c);
+    if (c.children) for (const [k, v] of byPath(c.children, `${prefix}${c.name}.`)) out.set(k, v);
+  }
+  return out;
+}
 
-  const current = () => kinds[kind.value];
-  function check() {
-    const form = current();
-    form.update();
-    const errors = form.errors();
-    for (const [key, f] of Object.entries(form.fields)) f.setError?.(f.hidden ? null : errors[key]);
-    const valid = Object.entries(errors).every(([key, e]) => !e || form.fields[key]?.hidden);
-    submit.disabled = !valid;
-    return valid;
-  }
-  function show() {
-    const form = current();
-    body.replaceChildren(...Object.values(form.fields), form.extra || "");
-    message.clear();
-    check();
-  }
-  kind.addEventListener("change", show);
-  form.addEventListener("input", check);
-  form.addEventListener("change", check);
-  form.addEventListener("submit", async (event) => {
-    event.preventDefault();
-    if (!check()) return;
-    message.clear();
-    submit.disabled = true;
-    try {
-      const job = await post("/api/v1/jobs", current().body());
-      message.show(`Job ${job.id.slice(0, 8)} queued.`);
-      onSubmitted(job);
-    } catch (err) {
-      if (err instanceof ApiError) {
-        for (const [name, text] of Object.entries(err.fields)) {
-          const key = name.replace(/^config\.(ppo\.)?/, "");
-          current().fields[key]?.setError?.(text);
-        }
-      }
-      message.error(err);
-    } finally {
-      submit.disabled = false;
+/** The items each x-references of the schemas names (GET /api/v1/<collection>), but for
+ *  the ``fixed`` fields. */
+async function referenceItems(kinds, fixed) {
+  const names = new Set();
+  const walk = (value) => {
+    if (Array.isArray(value)) value.forEach(walk);
+    else if (value && typeof value === "object") {
+      if (typeof value["x-references"] === "string") names.add(value["x-references"]);
+      Object.values(value).forEach(walk);
     }
-  });
-  show();
+  };
+  for (const k of kinds) {
+    const { properties, ...rest } = k.config_schema;
+    walk(rest); // $defs
+    walk(Object.entries(properties).filter(([name]) => !(name in fixed)).map(([, prop]) => prop));
+  }
+  const lists = await Promise.all([...names].map((n) => all(`/api/v1/${n}`).catch(() => [])));
+  return new Map([...names].map((n, i) => [n, lists[i]]));
+}
+
+/**
+ * The submission form of the submittable ``kinds`` (``GET /api/v1/job-kinds``' answer).
+ * Options: ``kind`` preselected, ``values`` prefilled (e.g. from a session's page),
+ * ``fixed`` sent as they are and not shown (e.g. the recording a row calibrates),
+ * ``title``/``submitLabel``/``compact`` for where it is shown; ``onSubmitted(job, message)``
+ * is called with the API's new job.
+ */
+export async function jobForm(kinds, { kind = null, values = {}, fixed = {}, title = "Submit a job",
+  submitLabel = "Submit job", compact = false, onSubmitted = () => {} } = {}) {
+  const offered = kinds.filter((k) => k.submittable);
+  const references = await referenceItems(offered, fixed);
+  const select = h("select", { name: "kind", id: compact ? null : "job-kind" },
+    offered.map((k) => h("option", { value: k.name }, k.title)));
+  if (kind) select.value = kind;
+  const about = h("p", { class: "hint" });
+  const body = h("div", { class: "job-config" });
+  const message = messageBox();
+  const submit = h("button", { type: "submit", class: compact ? "btn primary small" : "btn primary" }, submitLabel);
+  const form = h("form", {
+    class: compact ? "inline-form job-form" : "card job-form", id: compact ? null : "job-form", novalidate: true,
+    "aria-label": compact ? title : null, "aria-labelledby": compact ? null : "job-form-title",
+  },
+  compact ? null : h("h2", { id: "job-form-title" }, title),
+  offered.length > 1 ? field("Kind", select) : null, about, body, submit, message);
+
+  let current = null; // {kind, group, paths}
+  function build() {
+    const chosen = offered.find((k) => k.name === select.value) || offered[0];
+    const schema = chosen.config_schema;
+    const shown = { ...schema, properties: Object.fromEntries(
+      Object.entries(schema.properties).filter(([name]) => !(name in fixed))) };
+    const group = objectControls(shown, { root: schema, prefill: chosen.name === kind ? values : {}, references });
+    current = { kind: chosen.name, group, paths: byPath(group.controls) };
+    about.textContent = prose(schema.description);
+    body.replaceChildren(...group.nodes);
+    message.clear();
+    group.update();
+  }
+  /** Client-side check: errors at their fields; returns the config, or null. */
+  function check({ quiet = false } = {}) {
+    current.group.update();
+    const { value, errors } = current.group.read();
+    // while the user types, a field left empty is not yet an error (it is on submit)
+    for (const [path, c] of current.paths) c.setError(quiet && errors[path] === "required" ? "" : errors[path] || "");
+    return Object.keys(errors).length ? null : { ...value, ...fixed };
+  }
+  /** The API's refusal at the field it names (``config.ppo.n_steps``; a rule of the whole
+   *  config, ``config``, at the first field its message names) and below the form. */
+  function showRefusal(err) {
+    for (const c of current.paths.values()) c.setError("");
+    if (err instanceof ApiError) {
+      for (const [name, text] of Object.entries(err.fields)) {
+        let path = name.replace(/^config\.?/, "");
+        while (path && !current.paths.has(path)) path = path.split(".").slice(0, -1).join(".");
+        if (!path) path = firstNamed(text);
+        current.paths.get(path)?.setError(text);
+      }
+    }
+    message.error(err);
+  }
+
+  /** The shown field whose name comes first in ``text`` (the outer one of equals). */
+  function firstNamed(text) {
+    let best = "";
+    let at = Infinity;
+    for (const [path, c] of current.paths) {
+      if (c.node.closest("[hidden]")) continue;
+      const found = new RegExp(`\\b${path.split(".").pop()}\\b`).exec(text);
+      if (found && found.index <= at) {
+        best = found.index < at || path.length < best.length ? path : best;
+        at = found.index;
+      }
+    }
+    return best;
+  }
+
+  select.addEventListener("change", build);
+  form.addEventListener("input", () => check({ quiet: true }));
+  form.addEventListener("change", () => check({ quiet: true }));
+  form.addEventListener("submit", oneAtATime([submit], async () => {
+    message.clear();
+    const config = check();
+    if (config === null) {
+      message.show("Correct the fields marked above.", "error");
+      return null;
+    }
+    try {
+      const job = await post("/api/v1/jobs", { kind: current.kind, config });
+      onSubmitted(job, message);
+    } catch (err) {
+      showRefusal(err);
+    }
+    return null;
+  }));
+  build();
   return form;
 }

@@ -1,15 +1,13 @@
 // Jobs: submit (staff), a list with live progress, cancel and retry.
 
-import { all, get, post } from "../api.js";
+import { get, post } from "../api.js";
 import { fmtShort, h, messageBox, oneAtATime, SHORT_ID_CHARS, shortId, statusBadge } from "../dom.js";
 import { FINAL, progressBar, watchJob } from "../live.js";
-import { jobForm } from "./jobform.js";
+import { jobForm, jobKinds } from "./jobform.js";
 
 const PAGE = 50;
 const LIST_REFRESH_MS = 15_000;
 const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
-// the kinds the API's job list filters on (JobListKind)
-const KINDS = ["guided_ppo", "reproduce", "reproduce_run", "eeg_calibration", "live_session", "bids_export", "session_replay"];
 
 /** One line saying what a job runs. */
 export function jobSummary(job) {
@@ -75,12 +73,27 @@ export function jobActions(job, canEdit, message, onChange) {
   return buttons;
 }
 
+/** The values of a new job's config given in the address (``/jobs?new=session_replay&
+ *  session_id=7``, the links from a session's page): the kind's top-level fields, as numbers
+ *  where the schema says so. */
+function prefill(kind, query) {
+  const values = {};
+  for (const [name, prop] of Object.entries(kind?.config_schema?.properties || {})) {
+    const text = query.get(name);
+    if (text === null) continue;
+    const types = [prop.type, ...(prop.anyOf || []).map((p) => p.type)];
+    values[name] = types.includes("integer") || types.includes("number") ? Number(text) : text;
+  }
+  return values;
+}
+
 export async function jobsPage(root, { canEdit, query }) {
   document.title = "Jobs · Brain-guided RL platform";
+  const kinds = await jobKinds();
   const status = h("select", { id: "filter-status", name: "status" },
     h("option", { value: "" }, "any"), STATUSES.map((s) => h("option", { value: s, selected: query.get("status") === s }, s)));
   const kind = h("select", { id: "filter-kind", name: "kind" },
-    h("option", { value: "" }, "any"), KINDS.map((k) => h("option", { value: k, selected: query.get("kind") === k }, k)));
+    h("option", { value: "" }, "any"), kinds.map((k) => h("option", { value: k.name, selected: query.get("kind") === k.name }, k.name)));
   const message = messageBox();
   const tbody = h("tbody");
   const caption = h("caption");
@@ -161,18 +174,24 @@ export async function jobsPage(root, { canEdit, query }) {
     pager);
   let form = null;
   if (canEdit) {
-    const hfModels = await all("/api/v1/hf-models");
-    form = h("aside", {}, jobForm(hfModels, (job) => {
-      offset = 0;
-      status.value = "";
-      kind.value = "";
-      remember();
-      load();
-      message.show(`Job ${job.id.slice(0, SHORT_ID_CHARS)} submitted.`);
+    const asked = kinds.find((k) => k.submittable && k.name === query.get("new"));
+    form = h("aside", {}, await jobForm(kinds, {
+      kind: asked?.name, values: prefill(asked, query),
+      onSubmitted(job, note) {
+        offset = 0;
+        status.value = "";
+        kind.value = "";
+        remember();
+        load();
+        note.show(`Job ${job.id.slice(0, SHORT_ID_CHARS)} queued: `);
+        note.append(h("a", { href: `/jobs/${job.id}` }, "follow it"), ".");
+        message.show(`Job ${job.id.slice(0, SHORT_ID_CHARS)} submitted.`);
+      },
     }));
   }
   root.append(h("h1", {}, "Jobs"), h("div", { class: "columns" }, list, form));
   await load();
+  if (form && query.get("new")) form.querySelector("#job-form")?.scrollIntoView();
   // jobs submitted elsewhere (other users, scripts) appear within LIST_REFRESH_MS
   const refresh = setInterval(async () => {
     try {

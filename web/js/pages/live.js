@@ -4,7 +4,7 @@
 import { all, get, post } from "../api.js";
 import { field, fmtNumber, h, messageBox, oneAtATime, statusBadge } from "../dom.js";
 import { followEvents, followFrames, whenStarted } from "../frames.js";
-import { HF_METHODS } from "./jobform.js";
+import { jobKinds, stage2Methods } from "./jobform.js";
 
 const ACTIONS = ["forward", "turn left", "turn right"];
 const label = (correct) => (correct === null || correct === undefined ? "–" : correct ? "correct" : "error");
@@ -20,8 +20,9 @@ export function offersLiveView(session, canEdit) {
 }
 
 /** Links from a session to what it made: its live run's job, recording, follow-up
- *  calibration or online job, classifier and human-feedback model. */
-function sessionLinks(live, classifiers = []) {
+ *  calibration or online job, classifier and human-feedback model; for staff, once an
+ *  online session has ended, its replay (the job form, prefilled). */
+function sessionLinks(session, live, canEdit, classifiers = []) {
   const run = live.run;
   const links = [];
   if (run.job_id) links.push(["Run", h("a", { href: `/jobs/${run.job_id}` }, `live job ${run.job_id.slice(0, 8)}`)]);
@@ -31,6 +32,10 @@ function sessionLinks(live, classifiers = []) {
   }
   for (const c of classifiers) links.push(["Classifier", h("a", { href: `/classifiers/${c.id}` }, c.name)]);
   if (run.hf_model_id) links.push(["π_HF model", h("a", { href: "/models" }, `HF model #${run.hf_model_id}`)]);
+  if (canEdit && session.kind === "online" && ENDED.has(run.status)) {
+    links.push(["Replay", h("a", { href: `/jobs?new=session_replay&session_id=${session.id}#job-form` },
+      "Replay this session…")]);
+  }
   return links;
 }
 
@@ -46,14 +51,14 @@ function runBanner(live) {
   return null;
 }
 
-function startForm(session, classifiers, message, onStarted) {
+function startForm(session, classifiers, methods, message, onStarted) {
   const classifier = h("select", { name: "classifier_id" },
     classifiers.map((c) => h("option", { value: c.id },
       `${c.name} (#${c.id}, balanced accuracy ${fmtNumber(c.metrics.balanced_accuracy)})`)));
   const actions = h("input", { type: "number", min: 1, max: 100000, name: "n_actions" });
   const budget = h("input", { type: "number", min: 1, max: 100000, name: "label_budget", value: 1000 });
   const hfMethod = h("select", { name: "hf_method" }, h("option", { value: "" }, "Recommended (default)"),
-    HF_METHODS.map(([v, l]) => h("option", { value: v }, l)));
+    methods.map((m) => h("option", { value: m }, m === "paper" ? "paper (the paper's Fhat)" : m)));
   const channel = h("select", { name: "label_channel" },
     h("option", { value: "hard" }, "Hard: the thresholded feedback (default)"),
     h("option", { value: "soft" }, "Soft: the calibrated likelihood ratio"));
@@ -194,7 +199,8 @@ export async function livePage(root, { canEdit }, sessionId) {
 
   /** Once the run has something to link (its job, recording, follow-up job, models). */
   async function showLinks(live) {
-    const key = [live.run.job_id, live.run.recording_id, live.run.follow_up_job_id, live.run.hf_model_id].join();
+    const key = [live.run.job_id, live.run.recording_id, live.run.follow_up_job_id, live.run.hf_model_id,
+      live.run.status].join();
     if (key === linked) return;
     linked = key;
     let classifiers = [];
@@ -207,7 +213,7 @@ export async function livePage(root, { canEdit }, sessionId) {
       }
       if (!classifiers.length) linked = ""; // its calibration job has not made it yet
     }
-    const links = sessionLinks(live, classifiers);
+    const links = sessionLinks(session, live, canEdit, classifiers);
     made.hidden = !links.length;
     made.replaceChildren(...links.flatMap(([name, link]) => [h("dt", {}, name), h("dd", {}, link)]));
   }
@@ -274,9 +280,11 @@ export async function livePage(root, { canEdit }, sessionId) {
     }));
     controls.append(stopButton, resumeButton);
     if (session.status === "scheduled") {
-      const classifiers = session.kind === "calibration"
-        ? [] : await all("/api/v1/classifiers", { subject_id: session.subject_id });
-      form = startForm(session, classifiers, message, () => {
+      const [classifiers, kinds] = await Promise.all([
+        session.kind === "calibration" ? [] : all("/api/v1/classifiers", { subject_id: session.subject_id }),
+        jobKinds(),
+      ]);
+      form = startForm(session, classifiers, stage2Methods(kinds), message, () => {
         banner = "Session started.";
         message.show(banner);
         form.hidden = true;

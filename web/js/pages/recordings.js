@@ -7,6 +7,7 @@ import { all, post, request, uploadFile } from "../api.js";
 import {
   downloadButton, field, fmtBytes, fmtDateTime, fmtNumber, h, messageBox, oneAtATime, shortId, statusBadge, table,
 } from "../dom.js";
+import { jobForm, jobKinds } from "./jobform.js";
 
 /** The file types the EEG service reads (the API's RECORDING_SUFFIXES). */
 export const RECORDING_TYPES = [".bdf", ".edf", ".fif", ".set", ".xdf", ".zip"];
@@ -109,33 +110,13 @@ function uploadForm(subjects, chosenSubject, onUploaded) {
   return form;
 }
 
-function calibrateForm(recording, onSubmitted) {
-  const seed = h("input", { type: "number", name: "seed", min: 0, max: 2147483647, value: 0 });
-  const passes = h("input", { type: "number", name: "max_passes", min: 1, max: 10000, placeholder: "default" });
-  const onnx = h("input", { type: "checkbox", name: "onnx", checked: true });
-  const report = h("input", { type: "checkbox", name: "report", checked: true });
-  const fields = { seed: field("Seed", seed), max_passes: field("Training passes", passes, "empty: the pipeline's") };
-  const message = messageBox();
-  const submit = h("button", { type: "submit", class: "btn primary small" }, "Submit calibration");
-  const form = h("form", { class: "inline-form", "aria-label": `Calibrate on recording ${recording.id}`, novalidate: true },
-    ...Object.values(fields),
-    h("label", { class: "check" }, onnx, " ONNX"), h("label", { class: "check" }, report, " Report"),
-    submit, message);
-  form.addEventListener("submit", oneAtATime([submit], async () => {
-    for (const f of Object.values(fields)) f.setError("");
-    message.clear();
-    const config = { recording_id: recording.id, seed: Number(seed.value), onnx: onnx.checked, report: report.checked };
-    if (passes.value) config.max_passes = Number(passes.value);
-    try {
-      const job = await post("/api/v1/jobs", { kind: "eeg_calibration", config });
-      onSubmitted(job, message);
-    } catch (err) {
-      for (const [name, text] of Object.entries(err.fields || {})) fields[name.replace(/^config\./, "")]?.setError(text);
-      message.error(err);
-    }
-    return null;
-  }));
-  return form;
+/** The eeg_calibration job form (generated from its schema) for one recording. */
+async function calibrateForm(recording, onSubmitted) {
+  const kinds = (await jobKinds()).filter((k) => k.name === "eeg_calibration");
+  return jobForm(kinds, {
+    fixed: { recording_id: recording.id }, compact: true, title: `Calibrate on recording ${recording.id}`,
+    submitLabel: "Submit calibration", onSubmitted,
+  });
 }
 
 export async function recordingsPage(root, { user, canEdit, query }) {
@@ -191,12 +172,17 @@ export async function recordingsPage(root, { user, canEdit, query }) {
     box.append(downloadButton("Download", `/api/v1/recordings/${recording.id}/file`, recording.filename));
     if (canEdit && recording.validation_status === "valid") {
       const calibrate = h("button", { type: "button", class: "btn small" }, "Calibrate…");
-      calibrate.addEventListener("click", () => {
-        calibrate.replaceWith(calibrateForm(recording, (job, note) => {
-          note.show("Calibration job submitted: ");
-          note.append(shortId(job.id, `/jobs/${job.id}`));
-        }));
-      });
+      calibrate.addEventListener("click", oneAtATime([calibrate], async () => {
+        try {
+          calibrate.replaceWith(await calibrateForm(recording, (job, note) => {
+            note.show("Calibration job submitted: ");
+            note.append(shortId(job.id, `/jobs/${job.id}`));
+          }));
+        } catch (err) {
+          message.error(err);
+        }
+        return "leaving"; // replaced by the form
+      }));
       box.append(" ", calibrate);
     }
     if (canEdit && recording.validation_status === "pending") {
