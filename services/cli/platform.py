@@ -1,4 +1,5 @@
-"""``bgrl login``, ``bgrl jobs ...``, ``bgrl models pull``: the platform api from a shell."""
+"""``bgrl login``, ``bgrl jobs ...``, ``bgrl sessions ...``, ``bgrl models pull``: the
+platform api from a shell."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated, Any, NoReturn, get_args
+from typing import Annotated, Any, Literal, NoReturn, get_args
 
 import typer
 
@@ -32,6 +33,7 @@ jobs_app = typer.Typer(
     help="Submit, follow, inspect, cancel and retry jobs on the platform.", no_args_is_help=True
 )
 models_app = typer.Typer(help="Download trained models.", no_args_is_help=True)
+sessions_app = typer.Typer(help="Schedule and list lab sessions.", no_args_is_help=True)
 
 UrlOption = Annotated[
     str | None,
@@ -417,8 +419,106 @@ def pull(
     typer.echo(f"saved {saved.path} ({saved.size_bytes} bytes, sha256 {saved.sha256})")
 
 
+SessionKind = Literal["calibration", "test", "online", "rl"]
+
+
+def _start(text: str) -> datetime:
+    """An ISO 8601 start; one without a timezone is in this machine's local time."""
+    try:
+        start = datetime.fromisoformat(text)
+    except ValueError:
+        _fail(
+            f"START {text!r} is not an ISO 8601 date and time (e.g. 2027-01-18T09:30)",
+            EXIT_BAD_INPUT,
+        )
+    return start if start.tzinfo is not None else start.astimezone()
+
+
+def _subject_id(client: PlatformClient, subject: str) -> int:
+    """A subject given by id or by its code."""
+    if subject.isdigit():
+        return int(subject)
+    for found in client.list_subjects(code=subject, limit=50).items:
+        if found.code == subject:
+            return found.id
+    _fail(f"no subject with code {subject!r}", EXIT_BAD_INPUT)
+
+
+def schedule(
+    subject: Annotated[str, typer.Argument(help="The subject's code or id.")],
+    kind: Annotated[SessionKind, typer.Argument(help="calibration, test, online or rl.")],
+    start: Annotated[
+        str,
+        typer.Argument(
+            help="Start, ISO 8601 (2027-01-18T09:30; without a timezone: this machine's)."
+        ),
+    ],
+    minutes: Annotated[int, typer.Option(min=1, max=1440, help="Duration.")] = 60,
+    rig: Annotated[int | None, typer.Option(help="The rig's id.")] = None,
+    notes: Annotated[str, typer.Option(help="Notes.")] = "",
+    allow_past: Annotated[
+        bool,
+        typer.Option(
+            "--allow-past", help="Schedule it even though it starts in the past (it happened)."
+        ),
+    ] = False,
+    as_json: JsonOption = False,
+    url: UrlOption = None,
+) -> None:
+    """Schedule a lab session; prints its id. A start in the past is refused unless
+    --allow-past; an overlap with the subject's or the rig's sessions is refused."""
+    when = _start(start)
+    with _client(url) as client:
+        subject_id = _subject_id(client, subject)
+        try:
+            session = client.schedule_session(
+                subject_id, kind, when, rig_id=rig, duration_minutes=minutes, notes=notes,
+                allow_past=allow_past,
+            )  # fmt: skip
+        except PlatformError as exc:
+            if exc.field == "scheduled_at" and "allow_past" in exc.detail:
+                _fail(
+                    f"{when.isoformat()} is in the past: add --allow-past to record a session "
+                    "that has happened",
+                    EXIT_BAD_INPUT,
+                )
+            raise
+    if as_json:
+        typer.echo(session.model_dump_json(indent=2))
+        return
+    typer.echo(
+        f"scheduled {session.kind} session {session.id} of subject {subject_id} at "
+        f"{_age(session.scheduled_at)} UTC for {session.duration_minutes} min",
+        err=True,
+    )
+    typer.echo(session.id)
+
+
+def list_sessions(
+    subject: Annotated[str | None, typer.Option(help="Only this subject's (code or id).")] = None,
+    week: Annotated[str | None, typer.Option(help="Only this ISO week (2027-W03).")] = None,
+    limit: Annotated[int, typer.Option(min=1, max=500, help="Sessions shown.")] = 50,
+    as_json: JsonOption = False,
+    url: UrlOption = None,
+) -> None:
+    """Sessions in time order: id, subject, kind, status, start (UTC), minutes."""
+    with _client(url) as client:
+        subject_id = _subject_id(client, subject) if subject is not None else None
+        page = client.list_sessions(subject_id=subject_id, week=week, limit=limit)
+    if as_json:
+        typer.echo(page.model_dump_json(indent=2))
+        return
+    typer.echo(f"{'id':>6}  {'subject':>7}  {'kind':<11}  {'status':<9}  start (UTC)          min")
+    for s in page.items:
+        typer.echo(
+            f"{s.id:>6}  {s.subject_id:>7}  {s.kind:<11}  {s.status:<9}  "
+            f"{_age(s.scheduled_at)}  {s.duration_minutes:>3}"
+        )
+    typer.echo(f"{len(page.items)} of {page.total} session(s)", err=True)
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``login``, ``jobs`` and ``models``."""
+    """Add ``login``, ``jobs``, ``sessions`` and ``models``."""
     app.command("login")(login)
     jobs_app.command("submit")(submit)
     jobs_app.command("list")(list_jobs)
@@ -428,5 +528,8 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     jobs_app.command("wait")(wait)
     jobs_app.command("cancel")(cancel)
     models_app.command("pull")(pull)
+    sessions_app.command("schedule")(schedule)
+    sessions_app.command("list")(list_sessions)
     app.add_typer(jobs_app, name="jobs")
+    app.add_typer(sessions_app, name="sessions")
     app.add_typer(models_app, name="models")

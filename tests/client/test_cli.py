@@ -203,6 +203,35 @@ def test_wait_and_pull_a_finished_job(live_api: LiveApi, signed_in: Path, tmp_pa
     assert not corrupt.exists()
 
 
+def test_schedule_a_session_and_one_that_happened(live_api: LiveApi, signed_in: Path) -> None:
+    """``bgrl sessions schedule`` by subject code; a start in the past is refused with the
+    option that confirms it, and scheduled with it."""
+    token = json.loads(signed_in.read_text())["token"]
+    with PlatformClient(live_api.url, token) as client:
+        subject = client.create_subject("S-CLI-SESSIONS")
+    code, out, err = bgrl("sessions", "schedule", "S-CLI-SESSIONS", "test", "2037-12-07T09:00Z")
+    assert code == 0, err
+    session_id = int(out)
+    assert err == (
+        f"scheduled test session {session_id} of subject {subject.id} at 2037-12-07 09:00:00 "
+        "UTC for 60 min\n"
+    )
+    code, out, err = bgrl("sessions", "schedule", str(subject.id), "rl", "2020-01-01T09:00Z")
+    assert (code, out, err) == (
+        2, "", "error: 2020-01-01T09:00:00+00:00 is in the past: add --allow-past to record a "
+        "session that has happened\n",
+    )  # fmt: skip
+    code, out, _ = bgrl(
+        "sessions", "schedule", str(subject.id), "rl", "2020-01-01T09:00Z", "--allow-past",
+        "--json",
+    )  # fmt: skip
+    assert code == 0
+    assert json.loads(out)["scheduled_at"] == "2020-01-01T09:00:00Z"
+    code, out, _ = bgrl("sessions", "list", "--subject", "S-CLI-SESSIONS", "--json")
+    starts = [s["scheduled_at"] for s in json.loads(out)["items"]]
+    assert (code, starts) == (0, ["2020-01-01T09:00:00Z", "2037-12-07T09:00:00Z"])
+
+
 def test_api_token_from_the_environment(
     live_api: LiveApi, credentials: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
