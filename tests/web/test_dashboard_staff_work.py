@@ -430,6 +430,12 @@ def test_ids_people_can_type_and_the_schedule_forms_care(context: tuple, server:
     assert watch.errors_except(r"status of 409", r"status of 422") == []
 
 
+def _new_jobs(server: Server, kind: str, before: set[str]) -> list[dict]:
+    """The jobs of ``kind`` not among ``before``."""
+    jobs = server.call("GET", "/api/v1/jobs", params={"kind": kind, "limit": 500})["items"]
+    return [j for j in jobs if j["id"] not in before]
+
+
 def _cancel_all(server: Server, kind: str) -> None:
     """Queued jobs of ``kind`` cancelled (this module runs no worker)."""
     for job in server.call("GET", "/api/v1/jobs", params={"kind": kind})["items"]:
@@ -447,6 +453,7 @@ def test_the_job_form_is_generated_from_the_job_kinds(
     ctx, watch = context
     subject = server.call("POST", "/api/v1/subjects", json={"code": "FORM-1"})
     kinds = server.call("GET", "/api/v1/job-kinds", role="staff")
+    before = {j["id"] for j in server.call("GET", "/api/v1/jobs", params={"limit": 500})["items"]}
     page = open_as(ctx, server, "staff", "/jobs")
     form = page.locator("#job-form")
     form.wait_for()
@@ -479,12 +486,12 @@ def test_the_job_form_is_generated_from_the_job_kinds(
     form.locator("input[name='ppo.n_steps'] ~ .field-error").filter(
         has_text="n_steps (100) must be a multiple of minibatch_size (64)"
     ).wait_for()
-    assert server.call("GET", "/api/v1/jobs", params={"kind": "guided_ppo"})["total"] == 0
+    assert _new_jobs(server, "guided_ppo", before) == []
     form.locator("input[name='ppo.n_steps']").fill("128")
     form.get_by_role("button", name="Submit job").click()
     page.get_by_text(re.compile(r"^Job \w{8} submitted\.$")).wait_for()
     ppo.locator("summary").click()  # folded again for the screenshot
-    (job,) = server.call("GET", "/api/v1/jobs", params={"kind": "guided_ppo"})["items"]
+    (job,) = _new_jobs(server, "guided_ppo", before)
     assert job["config"] == {
         "task": "sssg", "method": "hf_sparse", "accuracy": 0.7, "seed": 0, "total_steps": 1024,
         "hf_treatment": "authors", "ppo": {"n_steps": 128}, "preset": "paper",
@@ -499,7 +506,7 @@ def test_the_job_form_is_generated_from_the_job_kinds(
     form.locator("select[name=subject_id]").select_option(label=f"#{subject['id']} FORM-1")
     form.get_by_role("button", name="Submit job").click()
     form.get_by_role("link", name="follow it").wait_for()
-    (export,) = server.call("GET", "/api/v1/jobs", params={"kind": "bids_export"})["items"]
+    (export,) = _new_jobs(server, "bids_export", before)
     assert export["config"] == {"subject_id": subject["id"]}
     _cancel_all(server, "bids_export")
     assert watch.errors_except(r"status of 422") == []
