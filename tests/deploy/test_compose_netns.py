@@ -166,10 +166,10 @@ def test_an_online_session_runs_across_sim_eeg_learner_and_a_worker_host(
 
     subject = post("/subjects", {"code": "S-LIVE"})
     hosts: set[str] = set()
-    today = datetime.now(UTC)  # sessions start later today: a start in the past needs allow_past
+    now = datetime.now(UTC)  # sessions start `hour` hours from now (a past start needs allow_past)
 
     def session(kind: str, hour: int, options: dict[str, Any]) -> dict[str, Any]:
-        when = (today + timedelta(hours=hour)).isoformat()
+        when = (now + timedelta(hours=hour)).isoformat()
         lab = post("/sessions", {"subject_id": subject["id"], "kind": kind, "scheduled_at": when})
         run = post(f"/sessions/{lab['id']}/start", options)
 
