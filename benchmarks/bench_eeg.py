@@ -622,7 +622,7 @@ _AS_OTHER_SOFTWARE = """
 import sys, zipfile
 from pathlib import Path
 import mne, pybv
-from services.eeg.io import action_events, read_recording
+from services.eeg.recordings.io import action_events, read_recording
 raw, out = read_recording(sys.argv[1]), Path(sys.argv[2])
 events = action_events(raw)
 eeg = [c for c, kind in zip(raw.ch_names, raw.get_channel_types()) if kind == "eeg"]

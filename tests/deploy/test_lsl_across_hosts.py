@@ -33,8 +33,8 @@ RECORD_S = 7.0
 HEADSET = """
 import itertools, sys, time
 from services.core.markers import ActionMarker
-from services.eeg import lsl
-from services.eeg.virtual_subject import simulate_recording
+from services.eeg.live import lsl
+from services.eeg.virtual.subject import simulate_recording
 from services.sim.lsl_markers import MarkerPublisher
 raw = simulate_recording([True, False] * 5, quality=1.0, seed=3, sfreq=256.0)
 player = lsl.replay(raw, name=sys.argv[1], chunk_size=32, n_repeat=100, source_id="netns-eeg")

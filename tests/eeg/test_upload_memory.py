@@ -128,7 +128,8 @@ def test_status_from_markers_is_read_lazily_with_the_same_samples(tmp_path):
     from tests.eeg.caps import virtual_recording
 
     raw = virtual_recording(SFREQ, CAP_8, seed=4)
-    events = [{"onset": int(s), "description": c} for s, c in zip(action_samples(raw), CODES, strict=True)]
+    onsets = action_samples(raw)
+    events = [{"onset": int(s), "description": c} for s, c in zip(onsets, CODES, strict=True)]
     vhdr = write_vhdr(raw, tmp_path, events)
     with zipfile.ZipFile(tmp_path / "sub01.zip", "w") as archive:
         for suffix in ("vhdr", "vmrk", "eeg"):
