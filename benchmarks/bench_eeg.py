@@ -618,6 +618,35 @@ print(len(events), epochs.X.shape)
 """
 
 
+_AS_OTHER_SOFTWARE = """
+import sys, zipfile
+from pathlib import Path
+import mne, pybv
+from services.eeg.recordings.io import action_events, read_recording
+raw, out = read_recording(sys.argv[1]), Path(sys.argv[2])
+events = action_events(raw)
+eeg = [c for c, kind in zip(raw.ch_names, raw.get_channel_types()) if kind == "eeg"]
+data = raw.get_data(picks=eeg)
+onsets = events[:, 0] - raw.first_samp
+pybv.write_brainvision(  # BrainVision: float32 samples, the actions as stimulus markers
+    data=data, sfreq=raw.info["sfreq"], ch_names=eeg, fname_base="upload", folder_out=out,
+    events=[{"onset": int(s), "description": int(c)} for s, c in zip(onsets, events[:, 2])],
+    unit="µV",
+)
+with zipfile.ZipFile(out / "upload.zip", "w", compression=zipfile.ZIP_DEFLATED) as archive:
+    for suffix in ("vhdr", "vmrk", "eeg"):
+        archive.write(out / f"upload.{suffix}", f"upload.{suffix}")
+        (out / f"upload.{suffix}").unlink()
+plain = mne.io.RawArray(data, mne.create_info(eeg, raw.info["sfreq"], "eeg"), verbose="error")
+del data
+codes = [str(code) for code in events[:, 2]]
+plain.set_annotations(mne.Annotations(onsets / raw.info["sfreq"], 0.0, codes))
+mne.export.export_raw(out / "upload.set", plain, fmt="eeglab", verbose="error")  # eeglabio
+"""
+"""The recording as other software writes it: a zipped BrainVision set (pybv) with the
+actions as markers, and an EEGLAB dataset (``mne.export``: samples inside the ``.set``)."""
+
+
 def peak_rss_mb(command: list[str]) -> tuple[float, float]:
     """Run ``command`` in a child process; (its peak RSS in MB, wall seconds).
 
@@ -643,7 +672,9 @@ def bench_memory(minutes: float = 20.0, max_passes: int = 20, seed: int = 0) -> 
     --actions N`` (N actions of 1.5 s fill ``minutes``), ``bgrl eeg calibrate`` on that
     file (``--max-passes`` bounds the training time; memory does not grow with passes),
     and the EEG service's path (``read_recording`` + ``action_events`` + sha256 at upload,
-    ``read_recording`` + ``epochs_from_raw`` in the job).
+    ``read_recording`` + ``epochs_from_raw`` in the job) on that BDF, and on the recording
+    as a zipped BrainVision set with markers and as an EEGLAB dataset
+    (``_AS_OTHER_SOFTWARE``, a setup step).
     """
     n_actions = round(minutes * 60 / ACTION_PERIOD_S) - 2
     bgrl = [sys.executable, "-m", "services.cli.main"]
@@ -661,6 +692,14 @@ def bench_memory(minutes: float = 20.0, max_passes: int = 20, seed: int = 0) -> 
                 *("--max-passes", str(max_passes), "--seed", str(seed)),
             ],
             "service_read_and_preprocess": [sys.executable, "-c", _SERVICE_READ, recording],
+            # setup: the two files below (this step's memory is the converter's, not ours)
+            "as_other_software": [sys.executable, "-c", _AS_OTHER_SOFTWARE, recording, tmp],
+            "service_brainvision_zip": [
+                *(sys.executable, "-c", _SERVICE_READ, str(Path(tmp) / "upload.zip"))
+            ],
+            "service_eeglab_set": [
+                *(sys.executable, "-c", _SERVICE_READ, str(Path(tmp) / "upload.set"))
+            ],
         }
         figures: dict[str, Any] = {}
         for step, command in steps.items():
@@ -695,6 +734,8 @@ def run_benchmark(
             "peak_rss_mb_simulate": memory["simulate"]["peak_rss_mb"],
             "peak_rss_mb_calibrate": memory["calibrate"]["peak_rss_mb"],
             "peak_rss_mb_service_read": memory["service_read_and_preprocess"]["peak_rss_mb"],
+            "peak_rss_mb_service_brainvision_zip": memory["service_brainvision_zip"]["peak_rss_mb"],
+            "peak_rss_mb_service_eeglab_set": memory["service_eeglab_set"]["peak_rss_mb"],
             "decision_latency_p50_ms": latency["ours"]["p50_ms"],
             "decision_latency_p99_ms": latency["ours"]["p99_ms"],
             "mne_peer_latency_p50_ms": latency["mne_peer"]["p50_ms"],

@@ -154,8 +154,10 @@ def test_services_listen_where_their_health_checks_and_clients_look() -> None:
     assert {var: api[var] for var in expected if var in env_names(ApiSettings)} == {
         var: url for var, url in expected.items() if var != "BGRL_LEARNER_URL"
     }
-    # One door: only the api publishes a port (Flower on loopback only).
-    assert [s for s in OURS if "ports" in OURS[s]] == ["api"]
+    # One door: only the api publishes a TCP port (Flower on loopback only); the EEG service
+    # takes only liblsl's answers to its stream queries (docs/deploy.md, LSL on a lab LAN)
+    assert [s for s in OURS if "ports" in OURS[s]] == ["api", "eeg"]
+    assert OURS["eeg"]["ports"] == ["16572-16603:16572-16603/udp"]
     assert all(p.startswith("127.0.0.1:") for p in SERVICES["flower"]["ports"])
 
 

@@ -90,8 +90,9 @@ def unavailable() -> str | None:
 class ComposeLab:
     """The compose services on namespace hosts: ``up()`` starts them in dependency order."""
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, dot_env: dict[str, str] | None = None) -> None:
         self.root = root
+        self.dot_env = {**DOT_ENV, **(dot_env or {})}  # the lab's .env
         self.lab = Lab(f"bgrl{os.getpid() % 100000}")
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.pg_dir = Path(tempfile.mkdtemp(prefix="bgrl-netns-pg-"))
@@ -119,7 +120,7 @@ class ComposeLab:
         for mount in self.specs[service].get("volumes", []):
             source, rest = mount.split("}", 1) if mount.startswith("${") else ("", mount)
             first, target, *_ = rest.split(":")
-            path = ROOT / interpolate(source + "}" + first, DOT_ENV) if source else None
+            path = ROOT / interpolate(source + "}" + first, self.dot_env) if source else None
             mounts.append((target, path or self.volume(first, host)))
         for target, path in sorted(mounts, key=lambda m: m[0].count("/")):
             link = root / target.lstrip("/")  # through an outer mount's link, as nested
@@ -134,7 +135,7 @@ class ComposeLab:
         root = self.filesystem(service, host)
         env = {}
         for key, value in self.specs[service].get("environment", {}).items():
-            value = interpolate(str(value), DOT_ENV)
+            value = interpolate(str(value), self.dot_env)
             env[key] = str(root) + value if value.startswith("/") else value
         # the test suite's free-space reserve (tests/conftest.py), not a lab's 1 GB
         env["BGRL_MIN_FREE_MB"] = os.environ.get("BGRL_MIN_FREE_MB", "1")
@@ -144,7 +145,7 @@ class ComposeLab:
         return {**env_without_bgrl(), **role_environment(role, self.root / "roles" / role), **env}
 
     def argv(self, service: str) -> list[str]:
-        command = [interpolate(str(a), DOT_ENV) for a in self.specs[service]["command"]]
+        command = [interpolate(str(a), self.dot_env) for a in self.specs[service]["command"]]
         assert command[0] == "bgrl", command
         return [sys.executable, "-m", "services.cli.main", *command[1:]]
 
@@ -163,7 +164,7 @@ class ComposeLab:
         if not data.exists():
             shutil.chown(self.pg_dir, "postgres", "postgres")
             pwfile = self.pg_dir / "pw"
-            pwfile.write_text(DOT_ENV["POSTGRES_PASSWORD"] + "\n")
+            pwfile.write_text(self.dot_env["POSTGRES_PASSWORD"] + "\n")
             shutil.chown(pwfile, "postgres", "postgres")
             subprocess.run(
                 ["runuser", "-u", "postgres", "--", str(PG_BIN / "initdb"), "-D", str(data),
@@ -186,7 +187,7 @@ class ComposeLab:
             user="postgres",
         )  # fmt: skip
         pg_env = {"PATH": os.environ["PATH"], "PGHOST": "127.0.0.1",
-                  "PGPASSWORD": DOT_ENV["POSTGRES_PASSWORD"]}  # fmt: skip
+                  "PGPASSWORD": self.dot_env["POSTGRES_PASSWORD"]}  # fmt: skip
         self.wait_until("postgres", lambda: self.lab.run(
             "postgres", [str(PG_BIN / "pg_isready"), "-U", "bgrl", "-d", "postgres"], pg_env
         ).returncode == 0)  # fmt: skip

@@ -4,6 +4,7 @@ and wrote 2 GiB to disk)."""
 
 from __future__ import annotations
 
+import gc
 import struct
 import tempfile
 import zipfile
@@ -122,6 +123,16 @@ def test_the_eeg_service_refuses_a_zip_bomb_upload_and_keeps_nothing(raw, tmp_pa
 
 
 def test_a_well_formed_zip_still_reads(raw, tmp_path, no_temp_files):
+    """Its samples are read from the unzipped files as long as the recording (or a copy of
+    it) exists; the files go with the last of them."""
     back = read_recording(zip_files(_set(raw, tmp_path), tmp_path / "good.zip"))
     assert back.n_times == raw.n_times and len(LABELS) > 0
+    (unzipped,) = no_temp_files.iterdir()
+    copy = back.copy()
+    del back
+    gc.collect()
+    assert copy.get_data().shape == (len(CAP_8) + 1, raw.n_times)
+    del copy
+    gc.collect()
+    assert not unzipped.exists()
     assert list(no_temp_files.iterdir()) == []

@@ -22,6 +22,7 @@ import json
 import re
 import shutil
 import tempfile
+import weakref
 import zipfile
 import zlib
 from contextlib import suppress
@@ -40,6 +41,7 @@ __all__ = [
     "BRAINVISION_MAGIC",
     "EventLabels",
     "FormatError",
+    "RawWithStatus",
     "apply_event_labels",
     "is_eeglab",
     "read_brainvision",
@@ -66,6 +68,8 @@ marker files are small and compress well)."""
 MAX_RATE_MISMATCH = 0.01
 """Largest relative difference between an XDF EEG stream's nominal rate and the rate its
 timestamps give (clock drift is ppm; a percent is a wrong rate or lost samples)."""
+UNZIPPED_KEY = "bgrl_unzipped"
+"""Key of a recording's reader data holding the :class:`UnzippedFolder` it reads from."""
 _TRIGGER = {"correct": TRIGGER_CORRECT, "error": TRIGGER_ERROR}
 _BINARY_FORMAT_BYTES = {"INT_16": 2, "UINT_16": 2, "INT_32": 4, "IEEE_FLOAT_32": 4}
 _MARKER_POSITION = re.compile(r"^Mk\d+=[^,\r\n]*,[^,\r\n]*,\s*(\d+)", re.MULTILINE)
@@ -141,16 +145,65 @@ class EventLabels(BaseModel):
         return f"codes {codes}; descriptions {texts}"
 
 
+class RawWithStatus(mne.io.BaseRaw):
+    """A recording read lazily with its ``Status`` channel replaced (or added) by ``status``.
+
+    The other channels' samples are read from ``raw`` (lazily read or loaded) when asked
+    for, a chunk at a time, exactly as ``raw`` gives them; ``Status`` is the last channel.
+    So a Status channel made from annotations or BrainVision markers costs one value per
+    sample, never a float64 copy of the whole recording.
+    """
+
+    def __init__(self, raw: mne.io.BaseRaw, status: np.ndarray) -> None:
+        if status.shape != (raw.n_times,):
+            raise ValueError(f"{status.shape[0]} Status values for {raw.n_times} samples")
+        keep = [k for k, name in enumerate(raw.ch_names) if name != STIM_CHANNEL]
+        info = mne.pick_info(raw.info, keep)
+        stim = mne.create_info([STIM_CHANNEL], raw.info["sfreq"], ["stim"])["chs"][0]
+        with info._unlock():
+            info["chs"].append(stim)
+            info._update_redundant()
+        info._check_consistency()
+        super().__init__(
+            info,
+            preload=False,
+            first_samps=[raw.first_samp],
+            last_samps=[raw.last_samp],
+            filenames=[None],
+            raw_extras=[{"source": raw, "picks": np.array(keep), "status": status}],
+            orig_format="double",
+            verbose="error",
+        )
+        # The source gives calibrated values (volts): read them as they are.
+        self._cals = np.ones(info["nchan"])
+        self.set_annotations(raw.annotations, verbose="error")
+
+    def _read_segment_file(self, data, idx, fi, start, stop, cals, mult):
+        """Fill ``data`` with channels ``idx`` of samples ``start:stop`` (MNE's reader API)."""
+        extras = self._raw_extras[fi]
+        source, picks, status = extras["source"], extras["picks"], extras["status"]
+        wanted = np.arange(len(picks) + 1)[idx]
+        block = np.empty((len(wanted), stop - start))
+        from_source = wanted < len(picks)
+        first = source.first_samp
+        if from_source.any():
+            block[from_source] = source.get_data(
+                picks=picks[wanted[from_source]], start=start - first, stop=stop - first
+            )
+        block[~from_source] = status[start - first : stop - first]
+        if mult is not None:
+            data[:] = mult @ block
+        else:
+            np.multiply(block, cals, out=data, casting="unsafe")
+
+
 def with_status(raw: mne.io.BaseRaw, status: np.ndarray) -> mne.io.BaseRaw:
-    """``raw`` (loaded) with ``status`` as its ``Status`` stim channel (replaced or added)."""
-    raw.load_data(verbose="error")
-    if STIM_CHANNEL in raw.ch_names:
-        raw.drop_channels([STIM_CHANNEL])
-    info = mne.create_info([STIM_CHANNEL], raw.info["sfreq"], ["stim"])
-    stim = mne.io.RawArray(status[None, :], info, first_samp=raw.first_samp, verbose="error")
-    stim.set_meas_date(raw.info["meas_date"])
-    raw.add_channels([stim], force_update_info=True)
-    return raw
+    """``raw`` with ``status`` as its ``Status`` stim channel (replaced or added), read
+    lazily (:class:`RawWithStatus`); a loaded ``raw`` gives a loaded result."""
+    with_status = RawWithStatus(raw, np.asarray(status, dtype=np.float64))
+    if raw.preload:
+        with_status.load_data(verbose="error")
+    return with_status
 
 
 def apply_event_labels(raw: mne.io.BaseRaw, labels: EventLabels) -> mne.io.BaseRaw:
@@ -165,7 +218,6 @@ def apply_event_labels(raw: mne.io.BaseRaw, labels: EventLabels) -> mne.io.BaseR
     if STIM_CHANNEL in raw.ch_names:
         if labels.is_default_codes:
             return raw
-        raw.load_data(verbose="error")
         old = raw.get_data(picks=[STIM_CHANNEL])[0].astype(np.int64) & 0xFF
         new = np.zeros_like(old)
         for code, label in labels.codes.items():
@@ -282,6 +334,29 @@ def _check_members(members: list[zipfile.ZipInfo], shown: str) -> None:
             )
 
 
+class UnzippedFolder:
+    """A temporary folder holding the files unzipped from an upload, removed once no
+    recording reads from it (its recordings hold it; their copies share it)."""
+
+    def __init__(self, prefix: str) -> None:
+        self.path = Path(tempfile.mkdtemp(prefix=prefix))
+        self._remove = weakref.finalize(self, shutil.rmtree, self.path, ignore_errors=True)
+
+    def __deepcopy__(self, memo: dict) -> UnzippedFolder:
+        return self  # a copied recording reads the same files
+
+    def remove(self) -> None:
+        """Remove the folder now (recordings reading from it can no longer read)."""
+        self._remove()
+
+    @staticmethod
+    def attach(raw: mne.io.BaseRaw, folder: UnzippedFolder) -> mne.io.BaseRaw:
+        """Keep ``folder`` as long as ``raw`` (or a copy of it) exists."""
+        for extras in raw._raw_extras:
+            extras[UNZIPPED_KEY] = folder
+        return raw
+
+
 def _unzip(archive: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path, shown: str) -> None:
     """Copy one member to ``target``, never more bytes than its header declares (zipfile
     stops there, and a member whose data does not match its header fails its CRC)."""
@@ -316,7 +391,8 @@ def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io
     """Read a BrainVision set from its ``.vhdr`` or from a zip holding the three files.
 
     A zip must hold exactly one ``.vhdr``; only it and the two files it names are taken
-    out (into a temporary folder, read into memory, then removed).
+    out, into an :class:`UnzippedFolder` the recording reads its samples from (lazily unless
+    ``preload``) and that is removed once the recording is gone.
     """
     if not zipfile.is_zipfile(path):
         return _read_vhdr(path, shown, preload)
@@ -360,10 +436,15 @@ def read_brainvision(path: Path, shown: str, *, preload: bool = False) -> mne.io
             raise FormatError(refusal)
         header_name = f"{Path(headers[0].filename).stem or 'recording'}.vhdr"
         targets = [header_name, data_file, marker_file]  # MNE wants a lower-case .vhdr
-        with tempfile.TemporaryDirectory(prefix="bgrl-vhdr-") as folder:
+        folder = UnzippedFolder("bgrl-vhdr-")
+        try:
             for info, target in zip([headers[0], *chosen], targets, strict=True):
-                _unzip(archive, info, Path(folder) / target, shown)
-            return _read_vhdr(Path(folder) / header_name, shown, preload=True)
+                _unzip(archive, info, folder.path / target, shown)
+            raw = _read_vhdr(folder.path / header_name, shown, preload=preload)
+        except BaseException:
+            folder.remove()
+            raise
+        return UnzippedFolder.attach(raw, folder)
 
 
 def _zip_holds(path: Path, head: bytes, suffix: str) -> bool:
@@ -385,10 +466,71 @@ def is_brainvision(path: Path, head: bytes) -> bool:
 # ----------------------------------------------------------------------------- EEGLAB
 
 
-def _read_set(set_path: Path, shown: str) -> mne.io.BaseRaw:
-    """A ``.set`` (its ``.fdt``, if it names one, beside it), loaded."""
+def _embedded_samples_class(set_path: Path) -> str | None:
+    """The MATLAB class (``single``, ``double``...) of the samples a ``.set`` holds itself,
+    or None when it names a ``.fdt`` (or cannot be listed)."""
+    import scipy.io
+
     try:
-        return mne.io.read_raw_eeglab(set_path, preload=True, verbose="error")
+        listed = scipy.io.whosmat(set_path)
+    except Exception:  # not a MATLAB 5 file: MNE says why below
+        return None
+    return next((kind for name, _, kind in listed if name == "data" and kind != "char"), None)
+
+
+class _SamplesInFile:
+    """Samples (channels x samples, column-major) at ``offset`` in a file, read a slice of
+    samples at a time as ``samples[:, start:stop]`` (how MNE slices embedded samples)."""
+
+    def __init__(self, path: Path, offset: int, shape: tuple[int, int], dtype: str) -> None:
+        self.path, self.offset, self.shape, self.dtype = path, offset, shape, np.dtype(dtype)
+        self.ndim = 2
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rows, columns = key
+        start, stop, step = columns.indices(self.shape[1])
+        if rows != slice(None) or step != 1:
+            raise IndexError("only samples[:, start:stop] is read")
+        n_channels = self.shape[0]
+        with self.path.open("rb") as fh:
+            fh.seek(self.offset + start * n_channels * self.dtype.itemsize)
+            values = np.fromfile(fh, self.dtype, count=max(0, stop - start) * n_channels)
+        return values.reshape(-1, n_channels).T
+
+    def __deepcopy__(self, memo: dict) -> _SamplesInFile:
+        return self  # nothing in memory to copy
+
+
+def _samples_in_set(set_path: Path) -> _SamplesInFile | None:
+    """The single-precision samples a ``.set`` holds as its uncompressed top-level ``data``
+    variable (as eeglabio, hence ``mne.export``, writes them), to be read a slice at a
+    time; None for any other layout (MNE then reads them whole)."""
+    from scipy.io.matlab._mio5 import MatFile5Reader
+    from scipy.io.matlab._mio5_params import miSINGLE
+
+    with set_path.open("rb") as fh:
+        reader = MatFile5Reader(fh)
+        reader.initialize_read()
+        reader.read_file_header()
+        while not reader.end_of_stream():
+            header, next_position = reader.read_var_header()
+            if header.name == b"data":
+                if len(header.dims) != 2:
+                    return None
+                order = reader.byte_order
+                mdtype, n_bytes = np.frombuffer(fh.read(8), dtype=f"{order}u4")
+                shape = tuple(int(n) for n in header.dims)
+                if mdtype != miSINGLE or n_bytes != 4 * shape[0] * shape[1]:
+                    return None  # compressed (then a tag of its own), double, ...
+                return _SamplesInFile(set_path, fh.tell(), shape, f"{order}f4")
+            fh.seek(next_position)
+    return None
+
+
+def _open_set(set_path: Path, shown: str, preload: bool) -> mne.io.BaseRaw:
+    """MNE's reading of a ``.set``, its errors as :class:`FormatError`."""
+    try:
+        return mne.io.read_raw_eeglab(set_path, preload=preload, verbose="error")
     except FileNotFoundError as exc:
         named = _SAMPLES_FILE.search(str(exc))
         raise FormatError(
@@ -398,20 +540,63 @@ def _read_set(set_path: Path, shown: str) -> mne.io.BaseRaw:
         ) from exc
     except Exception as exc:
         reason = str(exc)
-        if "incorrect number of samples" in reason.lower():
-            raise FormatError(
-                f"{shown}: truncated: the .fdt holds fewer samples than the .set says "
-                "(was the copy cut short?)"
-            ) from exc
         if "number of trials" in reason.lower():
             reason = "an epoched dataset; export the continuous recording"
         raise FormatError(f"{shown}: not a readable EEGLAB dataset ({reason})") from exc
 
 
+def _read_set(set_path: Path, shown: str) -> mne.io.BaseRaw:
+    """A ``.set`` (its ``.fdt``, if it names one, beside it), read lazily.
+
+    MNE reads the samples a ``.set`` holds itself lazily only from a file named ``.set``
+    (the EEG service stores uploads as ``.eeglab``: read through a link of that name), and
+    only in single precision: those are read a slice at a time (:func:`_samples_in_set`);
+    ``double`` samples are loaded (read lazily, MNE would cast them to float32)."""
+    embedded = _embedded_samples_class(set_path)
+    folder = None
+    if embedded is not None and set_path.suffix.lower() != ".set":
+        folder = UnzippedFolder("bgrl-set-")
+        (folder.path / "recording.set").symlink_to(set_path.resolve())
+    try:
+        raw = _open_set(
+            folder.path / "recording.set" if folder else set_path,
+            shown,
+            preload=embedded not in (None, "single"),
+        )
+        if embedded == "single" and not raw.preload:
+            # MNE reads embedded samples whole at the first access, then slices them: give
+            # it them as slices read from the file, so only the slices asked for are read
+            samples_in_set = _samples_in_set(Path(raw.filenames[0]))
+            if samples_in_set is not None and samples_in_set.shape == (
+                raw.info["nchan"],
+                raw.n_times,
+            ):
+                raw._raw_extras[0]["cached_data"] = samples_in_set
+        samples = Path(raw.filenames[0]) if raw.filenames[0] else None
+        expected = 4 * raw.info["nchan"] * raw.n_times  # float32, channels x samples
+        if (
+            embedded is None
+            and samples is not None
+            and samples.suffix.lower() == ".fdt"
+            and samples.stat().st_size < expected
+        ):
+            raise FormatError(
+                f"{shown}: truncated: the .fdt holds fewer samples than the .set says "
+                f"({samples.stat().st_size} of {expected} bytes; was the copy cut short?)"
+            )
+    except BaseException:
+        if folder is not None:
+            folder.remove()
+        raise
+    return raw if folder is None else UnzippedFolder.attach(raw, folder)
+
+
 def read_eeglab(path: Path, shown: str) -> mne.io.BaseRaw:
     """Read an EEGLAB dataset from its ``.set`` or from a zip holding the ``.set`` and its
-    ``.fdt`` (one of each at the most: only they are taken out, into a temporary folder,
-    read into memory, then removed). Samples are always loaded."""
+    ``.fdt`` (one of each at the most: only they are taken out, into an
+    :class:`UnzippedFolder` removed once the recording is gone). Samples are read lazily:
+    from the ``.fdt`` a chunk at a time; samples inside the ``.set`` (MATLAB) are read whole
+    at the first access."""
     if not zipfile.is_zipfile(path):
         return _read_set(path, shown)
     with zipfile.ZipFile(path) as archive:
@@ -426,10 +611,15 @@ def read_eeglab(path: Path, shown: str) -> mne.io.BaseRaw:
         chosen = [*sets, *samples]
         _check_members(chosen, shown)
         names = [Path(info.filename).name for info in chosen]
-        with tempfile.TemporaryDirectory(prefix="bgrl-set-") as folder:
+        folder = UnzippedFolder("bgrl-set-")
+        try:
             for info, name in zip(chosen, names, strict=True):
-                _unzip(archive, info, Path(folder) / name, shown)
-            return _read_set(Path(folder) / names[0], shown)
+                _unzip(archive, info, folder.path / name, shown)
+            raw = _read_set(folder.path / names[0], shown)
+        except BaseException:
+            folder.remove()
+            raise
+        return UnzippedFolder.attach(raw, folder)
 
 
 def is_eeglab(path: Path, head: bytes) -> bool:

@@ -420,9 +420,10 @@ def read_recording(
         own name. Messages never contain directories.
     preload : bool
         Load all samples into memory (float64: 1.3 GB for 20 minutes of 64 channels at
-        2048 Hz). By default BDF/EDF/FIF samples are read from the file when asked for,
-        and validation reads the file in chunks (BrainVision zips, EEGLAB and XDF files and files
-        whose events come from annotations are loaded).
+        2048 Hz). By default samples are read from the file when asked for, and
+        validation reads the file in chunks; a ``Status`` channel made from annotations or
+        markers is one value per sample (:class:`~services.eeg.recordings.formats.RawWithStatus`).
+        XDF files and EEGLAB datasets holding double-precision samples are loaded.
     ch_names : list of str | None
         EEG channels (standard names) that must be present, e.g. a classifier's; by
         default any cap of 8-256 standard-named channels with the ErrP's fronto-central
