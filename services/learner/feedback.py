@@ -38,7 +38,7 @@ Akinola et al., "Accelerated Robot Learning via Human Brain Signals", ICRA 2020,
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -139,6 +139,29 @@ class FeedbackConfig:
         return good, bad
 
 
+@dataclass(frozen=True)
+class Minibatch:
+    """One update's labels: their rows in the buffer (the new label's row is the one it is
+    stored at), observations, actions, hard labels and soft labels (None on the hard
+    channel)."""
+
+    rows: np.ndarray
+    obs: torch.Tensor
+    actions: torch.Tensor
+    labels: torch.Tensor
+    p_correct: torch.Tensor | None = None
+
+    def targets(
+        self, likelihood: str, noise_model: tuple[float, float]
+    ) -> tuple[torch.Tensor, float | torch.Tensor, float | torch.Tensor]:
+        """(labels, good, bad) the loss reads: a soft label is "correct" at per-label
+        accuracy r (the BCE's target is r itself), a hard one has the noise model's."""
+        if self.p_correct is None:
+            return self.labels, *noise_model
+        p = self.p_correct
+        return (p if likelihood == "bce" else torch.ones_like(p)), p, p
+
+
 class FeedbackModel(nn.Module):
     """Fhat(s, .): fixed normalisation -> Linear(n_obs, hidden) -> tanh -> Linear(hidden, 3).
 
@@ -212,24 +235,12 @@ class FeedbackLearner:
         )
         """The method's rule for the labelled action (:mod:`services.learner.collection`)."""
 
-    def _step(
-        self,
-        indices: np.ndarray | None,
-        obs: torch.Tensor,
-        actions: torch.Tensor,
-        labels: torch.Tensor,
-        p_correct: torch.Tensor | None = None,
-    ) -> float:
-        good: float | torch.Tensor
-        bad: float | torch.Tensor
-        good, bad = self.config.noise_model
+    def step(self, minibatch: Minibatch) -> float:
+        """One update of Fhat (and the ensemble) on ``minibatch``; the loss."""
+        rows, obs, actions = minibatch.rows, minibatch.obs, minibatch.actions
+        labels, good, bad = minibatch.targets(self.method.likelihood, self.config.noise_model)
         likelihood = self.method.likelihood
-        if p_correct is not None:
-            # a soft label: "correct" at per-label accuracy r (the BCE's target is r itself)
-            labels = p_correct if likelihood == "bce" else torch.ones_like(p_correct)
-            good = bad = p_correct
         if self.kernel is not None:
-            rows = np.array([self.buffer.size]) if indices is None else indices
             log_q = torch.log_softmax(self.model(obs), dim=-1)
             loss = -(self.kernel.posterior(rows) * log_q).sum(dim=-1).mean()
         else:
@@ -239,7 +250,6 @@ class FeedbackLearner:
         self.optimizer.step()
         self.n_updates += 1
         if self.ensemble is not None:
-            rows = np.array([self.buffer.size]) if indices is None else indices
             weights = torch.from_numpy(self.bootstrap[rows].T).float()  # (K, N)
             nll = label_nll(self.ensemble(obs), actions, labels, likelihood, good, bad)
             member_loss = (weights * nll).mean(dim=1).sum()
@@ -272,6 +282,25 @@ class FeedbackLearner:
         ``log_likelihood_ratio`` (``log P(epoch | error) / P(epoch | correct)``) is the soft
         label: required on the ``soft`` channel, recorded but unused on the ``hard`` one.
         """
+        record, minibatches = self.route(obs, action, label, optimal, log_likelihood_ratio)
+        for minibatch in minibatches:
+            self.step(minibatch)
+        return record
+
+    def route(
+        self,
+        obs: np.ndarray,
+        action: int,
+        label: bool,
+        optimal: bool | None = None,
+        log_likelihood_ratio: float | None = None,
+    ) -> tuple[FeedbackRecord, Iterator[Minibatch]]:
+        """:meth:`add` without its updates: the label's record and the minibatches of its
+        1 + K_HF steps (none for a validation label), for the caller to step on, in order
+        (the new label, then each replay minibatch; a lockstep batch of learners steps
+        them together, :mod:`services.learner.feedback_lockstep`). The generator stores the
+        label and draws each replay batch as it is advanced, so the draws are the same
+        however the steps are taken."""
         if self.soft and log_likelihood_ratio is None:
             raise ValueError(
                 "the soft label channel needs each label's log-likelihood ratio (a calibrated "
@@ -293,7 +322,14 @@ class FeedbackLearner:
         )
         if is_validation:
             self.validation.append(record)
-            return record
+            return record, iter(())
+        return record, self._training_minibatches(obs, action, label, log_likelihood_ratio)
+
+    def _training_minibatches(
+        self, obs: np.ndarray, action: int, label: bool, log_likelihood_ratio: float | None
+    ) -> Iterator[Minibatch]:
+        """The new training label's minibatch, then (with the label stored) K_HF replay
+        minibatches drawn from the buffer."""
         if self.ensemble is not None:
             self.bootstrap[self.buffer.size] = 2.0 * self.ensemble_rng.integers(
                 0, 2, self.config.ensemble_size
@@ -305,8 +341,8 @@ class FeedbackLearner:
         if self.kernel is not None:
             x = self.model.normalizer(torch.from_numpy(obs)).numpy()
             self.kernel.add(x, action, label, p_correct)
-        self._step(
-            None,
+        yield Minibatch(
+            np.array([self.buffer.size]),
             torch.from_numpy(obs[None]),
             torch.tensor([int(action)]),
             torch.tensor([float(label)]),
@@ -318,8 +354,7 @@ class FeedbackLearner:
                 self.rng, self.config.batch_size, self.config.newest_fraction
             )
             soft = self.buffer.soft_tensor(indices) if self.soft else None
-            self._step(indices, *self.buffer.tensors(indices), soft)
-        return record
+            yield Minibatch(indices, *self.buffer.tensors(indices), soft)
 
     def state_dict(self) -> dict[str, Any]:
         """Everything :meth:`add` depends on: weights, optimiser, buffer, validation, RNG.
@@ -498,6 +533,90 @@ def _optimal_now(env: gym.Env, action: int) -> bool | None:
     return None if oracle_actions is None else action in oracle_actions()
 
 
+class FeedbackCollection:
+    """One stage-2 session in progress: its env, source, learner and sampling generator, the
+    records so far. :func:`collect_feedback` runs one to the end; a lockstep batch
+    (:mod:`services.learner.feedback_lockstep`) advances many, label by label.
+
+    Parameters are :func:`collect_feedback`'s (``max_steps`` already resolved).
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        source: FeedbackSource,
+        n_labels: int,
+        config: FeedbackConfig,
+        seed: int,
+        max_steps: int,
+        on_label: Callable[[FeedbackRecord], None] | None = None,
+    ) -> None:
+        if n_labels < 1:
+            raise ValueError(f"n_labels must be >= 1, got {n_labels}")
+        self.start = time.perf_counter()
+        self.env, self.source, self.n_labels = env, source, n_labels
+        self.config, self.max_steps, self.on_label = config, max_steps, on_label
+        self.learner = FeedbackLearner(
+            ObsNormalizer.from_space(env.observation_space), config, seed
+        )
+        self.rng = sampling_rng(seed)
+        self.obs, _ = env.reset(seed=seed)
+        self.records: list[FeedbackRecord] = []
+        self.n_steps, self.n_episodes = 0, 1
+
+    @property
+    def done(self) -> bool:
+        """True once every label has arrived."""
+        return len(self.records) >= self.n_labels
+
+    def next_label(self) -> Iterator[Minibatch]:
+        """Act and step until the next label arrives; its minibatches (none for a
+        validation label), to be stepped on before the next call (see
+        :meth:`FeedbackLearner.route`)."""
+        while True:
+            if self.n_steps >= self.max_steps:
+                raise RuntimeError(
+                    f"only {len(self.records)}/{self.n_labels} labels arrived in "
+                    f"{self.max_steps} steps"
+                )
+            obs = self.obs
+            action = self.learner.collection_action(obs, self.rng)
+            optimal = _optimal_now(self.env, action)
+            next_obs, _, terminated, truncated, _ = self.env.step(action)
+            self.n_steps += 1
+            label = self.source.feedback(obs, action, optimal)
+            self.obs = next_obs
+            if terminated or truncated:
+                self.obs, _ = self.env.reset()
+                self.n_episodes += 1
+            if label is not None:
+                correct, log_likelihood_ratio = unpack_label(label)
+                record, minibatches = self.learner.route(
+                    obs, action, correct, optimal, log_likelihood_ratio
+                )
+                self.records.append(record)
+                if self.on_label is not None:
+                    self.on_label(record)
+                return minibatches
+
+    def result(self) -> HFResult:
+        """The session's outcome (Fhat as trained so far, every record, the accuracies)."""
+        known = [r for r in self.records if r.optimal is not None]
+        label_accuracy = float(np.mean([r.label == r.optimal for r in known])) if known else None
+        acc_noisy, acc_true = self.learner.validation_accuracy()
+        return HFResult(
+            model=self.learner.model,
+            config=self.config,
+            records=self.records,
+            n_steps=self.n_steps,
+            n_episodes=self.n_episodes,
+            validation_accuracy_noisy=acc_noisy,
+            validation_accuracy_true=acc_true,
+            label_accuracy=label_accuracy,
+            wall_seconds=time.perf_counter() - self.start,
+        )
+
+
 def collect_feedback(
     env: gym.Env,
     source: FeedbackSource,
@@ -532,47 +651,16 @@ def collect_feedback(
     HFResult
         The trained Fhat, every record and the validation accuracies.
     """
-    if n_labels < 1:
-        raise ValueError(f"n_labels must be >= 1, got {n_labels}")
-    config = config or FeedbackConfig()
-    max_steps = 10 * n_labels if max_steps is None else max_steps
-    start = time.perf_counter()
-    learner = FeedbackLearner(ObsNormalizer.from_space(env.observation_space), config, seed)
-    rng = sampling_rng(seed)
-    obs, _ = env.reset(seed=seed)
-    records: list[FeedbackRecord] = []
-    n_steps, n_episodes = 0, 1
-    while len(records) < n_labels:
-        if n_steps >= max_steps:
-            raise RuntimeError(
-                f"only {len(records)}/{n_labels} labels arrived in {max_steps} steps"
-            )
-        action = learner.collection_action(obs, rng)
-        optimal = _optimal_now(env, action)
-        next_obs, _, terminated, truncated, _ = env.step(action)
-        n_steps += 1
-        label = source.feedback(obs, action, optimal)
-        if label is not None:
-            correct, log_likelihood_ratio = unpack_label(label)
-            record = learner.add(obs, action, correct, optimal, log_likelihood_ratio)
-            records.append(record)
-            if on_label is not None:
-                on_label(record)
-        obs = next_obs
-        if terminated or truncated:
-            obs, _ = env.reset()
-            n_episodes += 1
-    known = [r for r in records if r.optimal is not None]
-    label_accuracy = float(np.mean([r.label == r.optimal for r in known])) if known else None
-    acc_noisy, acc_true = learner.validation_accuracy()
-    return HFResult(
-        model=learner.model,
-        config=config,
-        records=records,
-        n_steps=n_steps,
-        n_episodes=n_episodes,
-        validation_accuracy_noisy=acc_noisy,
-        validation_accuracy_true=acc_true,
-        label_accuracy=label_accuracy,
-        wall_seconds=time.perf_counter() - start,
+    collection = FeedbackCollection(
+        env,
+        source,
+        n_labels,
+        config or FeedbackConfig(),
+        seed,
+        10 * n_labels if max_steps is None else max_steps,
+        on_label,
     )
+    while not collection.done:
+        for minibatch in collection.next_label():
+            collection.learner.step(minibatch)
+    return collection.result()
