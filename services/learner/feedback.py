@@ -235,16 +235,22 @@ class FeedbackLearner:
         )
         """The method's rule for the labelled action (:mod:`services.learner.collection`)."""
 
+    def loss(self, minibatch: Minibatch) -> torch.Tensor:
+        """Fhat's loss on ``minibatch`` (the method's likelihood or the kernel posterior's
+        cross-entropy)."""
+        labels, good, bad = minibatch.targets(self.method.likelihood, self.config.noise_model)
+        if self.kernel is not None:
+            log_q = torch.log_softmax(self.model(minibatch.obs), dim=-1)
+            return -(self.kernel.posterior(minibatch.rows) * log_q).sum(dim=-1).mean()
+        logits = self.model(minibatch.obs)
+        return mean_label_loss(logits, minibatch.actions, labels, self.method.likelihood, good, bad)
+
     def step(self, minibatch: Minibatch) -> float:
         """One update of Fhat (and the ensemble) on ``minibatch``; the loss."""
         rows, obs, actions = minibatch.rows, minibatch.obs, minibatch.actions
         labels, good, bad = minibatch.targets(self.method.likelihood, self.config.noise_model)
         likelihood = self.method.likelihood
-        if self.kernel is not None:
-            log_q = torch.log_softmax(self.model(obs), dim=-1)
-            loss = -(self.kernel.posterior(rows) * log_q).sum(dim=-1).mean()
-        else:
-            loss = mean_label_loss(self.model(obs), actions, labels, likelihood, good, bad)
+        loss = self.loss(minibatch)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

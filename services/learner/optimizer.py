@@ -105,3 +105,26 @@ class FlatAdam:
                 self.n_steps = int(adam.state[p]["step"])
                 exp_avg.copy_(adam.state[p]["exp_avg"])
                 exp_avg_sq.copy_(adam.state[p]["exp_avg_sq"])
+
+
+def adam_update_(
+    params: torch.Tensor,
+    grads: torch.Tensor,
+    exp_avg: torch.Tensor,
+    exp_avg_sq: torch.Tensor,
+    n_steps: int,
+    lr: float,
+    betas: tuple[float, float],
+    eps: float,
+) -> None:
+    """One Adam step in place on the given tensors: ``torch.optim.Adam``'s single-tensor
+    arithmetic (no weight decay), :meth:`FlatAdam.step`'s, for callers that keep their own
+    moments (the lockstep batches of PPO and of Fhat)."""
+    beta1, beta2 = betas
+    exp_avg.lerp_(grads, 1 - beta1)
+    exp_avg_sq.mul_(beta2).addcmul_(grads, grads, value=1 - beta2)
+    bias_correction1 = 1 - beta1**n_steps
+    bias_correction2 = 1 - beta2**n_steps
+    denom = torch.sqrt(exp_avg_sq)
+    denom.div_(bias_correction2**0.5).add_(eps)
+    params.addcdiv_(exp_avg, denom, value=-lr / bias_correction1)

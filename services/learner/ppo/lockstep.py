@@ -50,7 +50,7 @@ import torch
 from torch import nn
 
 from services.learner.feedback import HFPolicy
-from services.learner.optimizer import FlatAdam
+from services.learner.optimizer import FlatAdam, adam_update_
 from services.learner.ppo.advantages import advantages_and_returns
 from services.learner.ppo.agent import ActorCritic
 from services.learner.ppo.config import PPOConfig
@@ -227,32 +227,11 @@ class BatchedAdam:
             index = torch.as_tensor(members, dtype=torch.long)
             for p, g, m, v in zip(params, grads, exp_avg, exp_avg_sq, strict=True):
                 if every:  # in place on the whole tensors
-                    _adam(p, g, m, v, n_steps, lr, self.betas, self.eps)
+                    adam_update_(p, g, m, v, n_steps, lr, self.betas, self.eps)
                     continue
                 p_rows, m_rows, v_rows = p[index], m[index], v[index]
-                _adam(p_rows, g[index], m_rows, v_rows, n_steps, lr, self.betas, self.eps)
+                adam_update_(p_rows, g[index], m_rows, v_rows, n_steps, lr, self.betas, self.eps)
                 p[index], m[index], v[index] = p_rows, m_rows, v_rows
-
-
-def _adam(
-    params: torch.Tensor,
-    grads: torch.Tensor,
-    exp_avg: torch.Tensor,
-    exp_avg_sq: torch.Tensor,
-    n_steps: int,
-    lr: float,
-    betas: tuple[float, float],
-    eps: float,
-) -> None:
-    """``FlatAdam.step``'s arithmetic, in place on the given tensors."""
-    beta1, beta2 = betas
-    exp_avg.lerp_(grads, 1 - beta1)
-    exp_avg_sq.mul_(beta2).addcmul_(grads, grads, value=1 - beta2)
-    bias_correction1 = 1 - beta1**n_steps
-    bias_correction2 = 1 - beta2**n_steps
-    denom = torch.sqrt(exp_avg_sq)
-    denom.div_(bias_correction2**0.5).add_(eps)
-    params.addcdiv_(exp_avg, denom, value=-lr / bias_correction1)
 
 
 def _stack(arguments: Sequence[Sequence[torch.Tensor | None]], fill: float) -> list[Any]:
