@@ -318,11 +318,21 @@ def hf_sweep(
     decoder_accuracy: DecoderAccuracyOption = None,
     label_channel: LabelChannelOption = "hard",
     decoders: DecodersOption = "eegnet,lda,xdawn_rg",
+    single_run: Annotated[
+        bool,
+        typer.Option(
+            "--single-run",
+            help="Learn each pi_HF alone instead of in lockstep batches (the same rows, "
+            "several times slower).",
+        ),
+    ] = False,
 ) -> None:
     """Stage 2 alone: pi_HF's SPL (greedy) and success (sampling) vs C, labels and method.
 
-    Writes hf_policies.json (one row per run, resumable), summary.md (the table) and
-    spl_vs_labels.png.
+    Runs learn in lockstep batches, one or more per worker (docs/learner.md, "Lockstep
+    sweeps"): each row is bit-identical to learning it alone (``--single-run``) but for
+    its wall time. Writes hf_policies.json (one row per run, resumable), summary.md (the
+    table) and spl_vs_labels.png.
     """
     from services.learner.hf_methods import get_method
     from services.learner.pool import hf_policy_sweep, load_sweep
@@ -367,6 +377,7 @@ def hf_sweep(
             feedback=feedback,
             label_channel=label_channel,
             feedback_factory=factory,
+            lockstep=not single_run,
         )
     except ValueError as exc:  # e.g. the folder's hf_policies.json is not one
         raise typer.BadParameter(str(exc), param_hint="--out") from None

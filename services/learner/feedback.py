@@ -605,6 +605,14 @@ class FeedbackCollection:
                     self.on_label(record)
                 return minibatches
 
+    def run(self) -> HFResult:
+        """Collect the remaining labels alone, each label's updates as it arrives; the
+        outcome."""
+        while not self.done:
+            for minibatch in self.next_label():
+                self.learner.step(minibatch)
+        return self.result()
+
     def result(self) -> HFResult:
         """The session's outcome (Fhat as trained so far, every record, the accuracies)."""
         known = [r for r in self.records if r.optimal is not None]
@@ -666,7 +674,4 @@ def collect_feedback(
         10 * n_labels if max_steps is None else max_steps,
         on_label,
     )
-    while not collection.done:
-        for minibatch in collection.next_label():
-            collection.learner.step(minibatch)
-    return collection.result()
+    return collection.run()

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict
+from typing import Any
 
 import torch
 from torch import nn
@@ -100,6 +101,31 @@ def sigmoid_as_alone(x: torch.Tensor) -> torch.Tensor:
     return out
 
 
+class BatchedLinear(torch.autograd.Function):
+    """``linear`` of each run, (R, B, fan_in) -> (R, B, fan_out), with weights (R, fan_out,
+    fan_in) and biases (R, 1, fan_out): ``baddbmm`` forward, and the backward of
+    ``linear`` alone per run. torch's own ``bmm`` backward takes the weight's gradient as
+    ``x^T @ grad``, where ``linear``'s (``addmm``'s, for a weight in ``nn.Linear``'s
+    layout) takes ``grad^T @ x``: the same sums, but another GEMM, whose rounding differs
+    for some shapes (Fhat on a 5-dimensional observation)."""
+
+    @staticmethod
+    def forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        return torch.baddbmm(bias, x, weight.transpose(1, 2))
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[torch.Tensor, ...], output: torch.Tensor) -> None:
+        x, weight, _ = inputs
+        ctx.save_for_backward(x, weight)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:  # type: ignore[override]
+        x, weight = ctx.saved_tensors
+        grad_x = torch.bmm(grad, weight) if ctx.needs_input_grad[0] else None
+        grad_weight = torch.bmm(grad.transpose(1, 2), x)
+        return grad_x, grad_weight, grad.sum(dim=1, keepdim=True)
+
+
 class BatchedFhat(nn.Module):
     """The Fhats of N runs as one module (run ``r`` is row ``r``); each run's own
     :class:`~services.learner.feedback.FeedbackModel` keeps working on views of its row.
@@ -140,8 +166,8 @@ class BatchedFhat(nn.Module):
         if rows is not None:
             offset, scale, w1, b1, w2, b2 = (t[rows] for t in (offset, scale, w1, b1, w2, b2))
         x = (obs - offset) / scale
-        hidden = torch.tanh(torch.baddbmm(b1, x, w1.transpose(1, 2)))
-        return torch.baddbmm(b2, hidden, w2.transpose(1, 2))
+        hidden = torch.tanh(BatchedLinear.apply(x, w1, b1))
+        return BatchedLinear.apply(hidden, w2, b2)
 
     def keep(self, rows: Sequence[int]) -> None:
         """Keep the runs of ``rows`` only (in that order); the models of the others get

@@ -34,6 +34,7 @@ from services.learner.runs import (
     RunFailure,
     RunRecord,
     hf_policy_run,
+    hf_policy_runs,
     run_lockstep,
     run_one,
 )
@@ -386,8 +387,14 @@ def hf_policy_sweep(
     feedback: str = "oracle",
     label_channel: str = "hard",
     feedback_factory: FeedbackSourceFactory | None = None,
+    lockstep: bool = True,
 ) -> tuple[list[dict[str, Any]], list[RunFailure]]:
     """:func:`~services.learner.runs.hf_policy_run` over tasks x C x labels x methods x seeds.
+
+    With ``lockstep`` (the default) the runs are dealt into batches, one or more per worker,
+    whose sessions of one batched stage-2 method learn together
+    (:func:`~services.learner.runs.hf_policy_runs`; the same rows bit for bit, but for
+    ``wall_seconds``); without, each runs alone.
 
     With ``virtual_subject`` feedback the ``accuracies`` are the target accuracies of the
     subject's decoder (``feedback_factory`` makes the labels), read through
@@ -442,10 +449,51 @@ def hf_policy_sweep(
             on_failure(failure)
 
     pending = [s for s in specs if s.key not in done]
-    run = functools.partial(hf_policy_run, feedback_factory=feedback_factory)
-    run_isolated(run, pending, workers=workers, on_result=finished, on_failure=failed)
+    if not lockstep:
+        run = functools.partial(hf_policy_run, feedback_factory=feedback_factory)
+        run_isolated(run, pending, workers=workers, on_result=finished, on_failure=failed)
+        save()
+        return rows, [*kept_failures, *failures]
+
+    def batch_done(outcomes: list[dict[str, Any] | RunFailure]) -> None:
+        for outcome in outcomes:
+            if isinstance(outcome, RunFailure):
+                failed(outcome)
+            else:
+                finished(outcome)
+
+    def batch_failed(failure: RunFailure) -> None:  # the worker died: every run of it
+        for spec in failure.spec["runs"]:
+            failed(replace(failure, spec=spec, label=HFPolicySpec(**spec).label))
+
+    n_batches = min(len(pending), max(workers, -(-len(pending) // LOCKSTEP_MAX_RUNS)))
+    batches = [HFPolicyBatch(tuple(pending[b::n_batches])) for b in range(n_batches)]
+    run_batch = functools.partial(_run_hf_batch, feedback_factory=feedback_factory)
+    run_isolated(run_batch, batches, workers=workers, on_result=batch_done, on_failure=batch_failed)
     save()
     return rows, [*kept_failures, *failures]
+
+
+@dataclass(frozen=True)
+class HFPolicyBatch:
+    """Stage-2-alone runs learning together in one worker (:func:`hf_policy_runs`)."""
+
+    specs: tuple[HFPolicySpec, ...]
+
+    @property
+    def label(self) -> str:
+        """E.g. ``lockstep batch of 30 runs (vssg C=0.7 seed=3 labels=1000 paper, ...)``."""
+        return f"lockstep batch of {len(self.specs)} runs ({self.specs[0].label}, ...)"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form: the runs' specs."""
+        return {"runs": [s.to_dict() for s in self.specs]}
+
+
+def _run_hf_batch(
+    batch: HFPolicyBatch, feedback_factory: FeedbackSourceFactory | None = None
+) -> list[dict[str, Any] | RunFailure]:
+    return hf_policy_runs(batch.specs, feedback_factory)
 
 
 def sweep_row_key(row: dict[str, Any]) -> tuple[Any, ...]:

@@ -15,7 +15,7 @@ import platform
 import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
-from contextlib import closing
+from contextlib import ExitStack, closing
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -26,12 +26,13 @@ import torch
 
 from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
 from services.learner.feedback import (
+    FeedbackCollection,
     FeedbackConfig,
     HFPolicy,
     HFResult,
-    collect_feedback,
 )
 from services.learner.feedback_buffer import FeedbackRecord
+from services.learner.feedback_lockstep import collect_feedback_lockstep, lockstep_feedback_key
 from services.learner.feedback_sources import (
     DecodedFeedbackSource,
     FeedbackSourceFactory,
@@ -211,21 +212,42 @@ def learn_hf_policy(
     study guides the runs of one seed with the same pi_HF. ``on_label`` is called after
     each label (a job worker checks for cancel there; raising stops the collection).
     """
+    return feedback_collection(
+        env, accuracy, seed, n_labels, method=method, on_label=on_label, source=source,
+        label_channel=label_channel,
+    ).run()  # fmt: skip
+
+
+def feedback_collection(
+    env: gym.Env,
+    accuracy: float,
+    seed: int,
+    n_labels: int,
+    *,
+    method: str = PAPER_METHOD,
+    on_label: Callable[[FeedbackRecord], None] | None = None,
+    source: DecodedFeedbackSource | None = None,
+    label_channel: str = "hard",
+) -> FeedbackCollection:
+    """The stage-2 session of :func:`learn_hf_policy` (same arguments), not yet begun: run
+    alone to its end, or in a lockstep batch
+    (:func:`~services.learner.feedback_lockstep.collect_feedback_lockstep`)."""
     seeds = RunSeeds(seed)
     good, bad = accuracy, accuracy
     if source is None:
         source = OracleFeedbackSource(accuracy, seed=seeds.int_seed(Stream.LABEL_NOISE))
     else:
         good, bad = source.noise_model
-    return collect_feedback(
+    return FeedbackCollection(
         env,
         source,
         n_labels,
-        config=FeedbackConfig(
+        FeedbackConfig(
             method=method, good_accuracy=good, bad_accuracy=bad, label_channel=label_channel
         ),
-        seed=seeds.int_seed(Stream.LABEL_COLLECTION),
-        on_label=on_label,
+        RunSeeds(seed).int_seed(Stream.LABEL_COLLECTION),
+        10 * n_labels,
+        on_label,
     )
 
 
@@ -287,10 +309,11 @@ def run_lockstep(
     feedback_factory: FeedbackSourceFactory | None = None,
 ) -> list[RunRecord | RunFailure]:
     """Execute runs whose PPO settings allow one lockstep batch
-    (:func:`~services.learner.ppo.lockstep.lockstep_key`): stage 2 of each hf_sparse run
-    alone, then stage 3 of all together (:func:`train_lockstep`). Each run's record is the
-    one :func:`run_one` gives (bit-identical but for ``wall_seconds``: its stage 2 plus the
-    batch's stage 3); a run that raises is a :class:`RunFailure` and the others go on.
+    (:func:`~services.learner.ppo.lockstep.lockstep_key`): stage 2 of the hf_sparse runs in
+    lockstep too (:func:`run_guidances`), then stage 3 of all together
+    (:func:`train_lockstep`). Each run's record is the one :func:`run_one` gives
+    (bit-identical but for ``wall_seconds``: its stage 2 batch's plus the stage 3 batch's);
+    a run that raises is a :class:`RunFailure` and the others go on.
     ``callbacks``, ``checkpoint_paths`` and given ``hf_policies`` are per run (as
     :func:`run_one`'s)."""
     n = len(specs)
@@ -299,12 +322,12 @@ def run_lockstep(
     given = list(hf_policies) if hf_policies is not None else [None] * n
     outcomes: list[RunRecord | RunFailure | None] = [None] * n
     guided: list[tuple[int, RunGuidance]] = []
-    for i, spec in enumerate(specs):
-        try:
-            guidance = run_guidance(spec, hf_policy=given[i], feedback_factory=feedback_factory)
+    guidances = run_guidances(specs, hf_policies=given, feedback_factory=feedback_factory)
+    for i, (spec, guidance) in enumerate(zip(specs, guidances, strict=True)):
+        if isinstance(guidance, Exception):  # this run fails, the others go on
+            outcomes[i] = RunFailure.from_exception(spec, guidance)
+        else:
             guided.append((i, guidance))
-        except Exception as exc:  # this run fails, the others go on
-            outcomes[i] = RunFailure.from_exception(spec, exc)
     start = time.perf_counter()
     results = train_lockstep(
         [specs[i].ppo_config() for i, _ in guided],
@@ -369,6 +392,69 @@ def run_guidance(
         )
         spl = evaluate_spl(label_env, hf.policy.act, config.eval_seeds)
     return RunGuidance(hf.policy, spl, hf.summary(), time.perf_counter() - start, source)
+
+
+def run_guidances(
+    specs: Sequence[RunSpec],
+    *,
+    hf_policies: Sequence[HFPolicy | None] | None = None,
+    feedback_factory: FeedbackSourceFactory | None = None,
+) -> list[RunGuidance | Exception]:
+    """:func:`run_guidance` of every spec (a given pi_HF per spec or None), with the
+    stage-2 sessions of the hf_sparse runs in lockstep batches of one batched method
+    (:func:`~services.learner.feedback_lockstep.collect_feedback_lockstep`; the others
+    alone): each run's guidance is bit-identical to :func:`run_guidance`'s (``seconds``
+    aside: the batch's), or the exception its run raised (the others go on)."""
+    given = list(hf_policies) if hf_policies is not None else [None] * len(specs)
+    outcomes: list[RunGuidance | Exception | None] = [None] * len(specs)
+    collections: dict[int, tuple[FeedbackCollection, DecodedFeedbackSource | None]] = {}
+    with ExitStack() as envs:
+        for i, spec in enumerate(specs):
+            try:
+                if given[i] is not None or spec.method != "hf_sparse":
+                    outcomes[i] = run_guidance(spec, hf_policy=given[i])
+                    continue
+                config = spec.ppo_config()
+                source = decoded_source(
+                    spec.feedback, spec.seed, spec.decoder_accuracy, feedback_factory
+                )
+                env = envs.enter_context(closing(gym.make(config.env_id, **config.env_kwargs)))
+                collection = feedback_collection(
+                    env,
+                    spec.accuracy,  # type: ignore[arg-type]  # None only with a source
+                    spec.seed,
+                    spec.n_labels,
+                    method=spec.hf_method or PAPER_METHOD,
+                    source=source,
+                    label_channel=spec.label_channel,
+                )
+            except Exception as exc:  # this run fails, the others go on
+                outcomes[i] = exc
+                continue
+            collections[i] = collection, source
+        start = time.perf_counter()
+        learned = _learn({i: collection for i, (collection, _) in collections.items()})
+        for i, hf in learned.items():
+            if isinstance(hf, Exception):
+                outcomes[i] = hf
+                continue
+            try:
+                config = specs[i].ppo_config()
+                spl = evaluate_spl(collections[i][0].env, hf.policy.act, config.eval_seeds)
+            except Exception as exc:
+                outcomes[i] = exc
+                continue
+            seconds = time.perf_counter() - start
+            outcomes[i] = RunGuidance(hf.policy, spl, hf.summary(), seconds, collections[i][1])
+    return [o if o is not None else RuntimeError("run produced no guidance") for o in outcomes]
+
+
+def _collect_alone(collection: FeedbackCollection) -> HFResult | Exception:
+    """A stage-2 session run to its end alone (its exception if it raised)."""
+    try:
+        return collection.run()
+    except Exception as exc:
+        return exc
 
 
 def run_record(
@@ -519,25 +605,109 @@ def hf_policy_run(
     ``hf_policies.json``. A spec with ``virtual_subject`` feedback takes its labels from
     ``feedback_factory`` (as :func:`run_one`).
     """
+    [row] = _hf_policy_outcomes([spec], feedback_factory, lockstep=False)
+    if isinstance(row, Exception):
+        raise row
+    return row
+
+
+def hf_policy_runs(
+    specs: Sequence[HFPolicySpec],
+    feedback_factory: FeedbackSourceFactory | None = None,
+    *,
+    lockstep: bool = True,
+) -> list[dict[str, Any] | RunFailure]:
+    """:func:`hf_policy_run` of every spec: with ``lockstep``, the sessions of one batched
+    stage-2 method learn together
+    (:func:`~services.learner.feedback_lockstep.collect_feedback_lockstep`; the same rows
+    bit for bit, ``wall_seconds`` aside: the batch's). A run that raises is a
+    :class:`RunFailure`, the others go on."""
+    outcomes = _hf_policy_outcomes(specs, feedback_factory, lockstep=lockstep)
+    return [
+        RunFailure.from_exception(spec, outcome) if isinstance(outcome, Exception) else outcome
+        for spec, outcome in zip(specs, outcomes, strict=True)
+    ]
+
+
+def _hf_policy_outcomes(
+    specs: Sequence[HFPolicySpec],
+    feedback_factory: FeedbackSourceFactory | None,
+    *,
+    lockstep: bool,
+) -> list[dict[str, Any] | Exception]:
+    """Each spec's ``hf_policies.json`` row, or the exception its run raised."""
     start = time.perf_counter()
-    source = decoded_source(spec.feedback, spec.seed, spec.decoder_accuracy, feedback_factory)
-    with closing(gym.make(TASK_ENV_IDS[spec.task], reward_mode="sparse")) as env:
-        hf = learn_hf_policy(
-            env,
-            spec.accuracy,  # type: ignore[arg-type]  # None only with a source
-            spec.seed,
-            spec.n_labels,
-            method=spec.method,
-            source=source,
-            label_channel=spec.label_channel,
+    outcomes: list[dict[str, Any] | Exception | None] = [None] * len(specs)
+    collections: dict[int, tuple[FeedbackCollection, DecodedFeedbackSource | None]] = {}
+    with ExitStack() as envs:
+        for i, spec in enumerate(specs):
+            try:
+                source = decoded_source(
+                    spec.feedback, spec.seed, spec.decoder_accuracy, feedback_factory
+                )
+                env = envs.enter_context(
+                    closing(gym.make(TASK_ENV_IDS[spec.task], reward_mode="sparse"))
+                )
+                collection = feedback_collection(
+                    env,
+                    spec.accuracy,  # type: ignore[arg-type]  # None only with a source
+                    spec.seed,
+                    spec.n_labels,
+                    method=spec.method,
+                    source=source,
+                    label_channel=spec.label_channel,
+                )
+                collections[i] = collection, source
+            except Exception as exc:  # this run fails, the others go on
+                outcomes[i] = exc
+        learned = _learn(
+            {i: collection for i, (collection, _) in collections.items()}, lockstep=lockstep
         )
-        policy = hf.policy
-        greedy_spl = evaluate_spl(env, policy.act, eval_seeds(spec.task, N_VSSG_EVAL_STARTS))
-        rng = RunSeeds(spec.seed).generator(Stream.HF_PROBE)
-        sampled = [
-            run_episode(env, lambda o: policy.act(o, rng), reset_seed)[0]
-            for reset_seed in evaluation_reset_seeds(N_HF_PROBE_EPISODES)
-        ]
+        for i, hf in learned.items():
+            spec, (collection, source) = specs[i], collections[i]
+            try:
+                if isinstance(hf, Exception):
+                    raise hf
+                outcomes[i] = _hf_policy_row(spec, hf, collection.env, source, start)
+            except Exception as exc:
+                outcomes[i] = exc
+    return [o if o is not None else RuntimeError("run produced no row") for o in outcomes]
+
+
+def _learn(
+    collections: Mapping[int, FeedbackCollection], *, lockstep: bool = True
+) -> dict[int, HFResult | Exception]:
+    """Run stage-2 sessions to their ends: those of one batched method together in
+    lockstep (with ``lockstep``), the others alone; each one's outcome by its key."""
+    groups: dict[str | None, list[int]] = {}
+    for i, collection in collections.items():
+        key = lockstep_feedback_key(collection.config) if lockstep else None
+        groups.setdefault(key, []).append(i)
+    outcomes: dict[int, HFResult | Exception] = {}
+    for key, members in groups.items():
+        batch = [collections[i] for i in members]
+        results = (
+            [_collect_alone(c) for c in batch] if key is None else collect_feedback_lockstep(batch)
+        )
+        outcomes |= dict(zip(members, results, strict=True))
+    return outcomes
+
+
+def _hf_policy_row(
+    spec: HFPolicySpec,
+    hf: HFResult,
+    env: gym.Env,
+    source: DecodedFeedbackSource | None,
+    start: float,
+) -> dict[str, Any]:
+    """The ``hf_policies.json`` row of ``spec``'s learned pi_HF, measured on ``env``."""
+    policy = hf.policy
+    greedy_spl = evaluate_spl(env, policy.act, eval_seeds(spec.task, N_VSSG_EVAL_STARTS))
+    rng = RunSeeds(spec.seed).generator(Stream.HF_PROBE)
+    sampled = [
+        run_episode(env, lambda o: policy.act(o, rng), reset_seed)[0]
+        for reset_seed in evaluation_reset_seeds(N_HF_PROBE_EPISODES)
+    ]
     return {
         "task": spec.task,
         "accuracy": spec.accuracy,

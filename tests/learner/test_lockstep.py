@@ -189,9 +189,10 @@ TINY = {"total_steps": 128, "eval_every": 128, "n_epochs": 1}
 
 
 def test_run_lockstep_gives_run_ones_records_on_the_real_env() -> None:
-    specs = [
+    specs = [  # stage 2 of the two hf_sparse runs in lockstep too
         RunSpec("sssg", "rl_sparse", 0, ppo_overrides=TINY),
         RunSpec("vssg", "hf_sparse", 3, 0.7, "truncated_is", n_labels=40, ppo_overrides=TINY),
+        RunSpec("sssg", "hf_sparse", 4, 0.6, "truncated_is", n_labels=40, ppo_overrides=TINY),
     ]
     timings = {"wall_seconds": 0, "hf": None}  # wall times differ (stage 2's in hf too)
     for alone, batched in zip(map(run_one, specs), run_lockstep(specs), strict=True):
