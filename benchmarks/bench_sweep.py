@@ -3,9 +3,10 @@
 The sweep is the shape of the paper's Fig. 3 (``bgrl reproduce`` defaults): per seed, SSSG
 and VSSG x (RL-sparse, RL-rich, HF+sparse at C = 0.55, 0.6, 0.7), 10 runs a seed, at a
 reduced budget of env steps per run. Stage 2 (each HF+sparse run's pi_HF from 1000
-simulated labels) is the same computation in both of our paths (each run learns its pi_HF
-alone), so it is run and timed once and its CPU time is added to both; then stage 3 is
-run
+simulated labels) is timed two ways: each run's alone (:func:`~services.learner.runs.
+run_guidance`, the single path's) and all in lockstep (:func:`~services.learner.runs.
+run_guidances`, the lockstep path's; its pi_HF must equal the single ones, checked here),
+and each CPU time is added to its path's; then stage 3 is run
 
 1. **single**: each run alone, one after the other (:func:`services.learner.runs.run_one`,
    the path of ``bgrl reproduce --single-run``);
@@ -39,7 +40,14 @@ from typing import Any
 import torch
 
 from services.learner.ppo import PPOConfig
-from services.learner.runs import RunRecord, run_guidance, run_lockstep, run_one
+from services.learner.runs import (
+    RunGuidance,
+    RunRecord,
+    run_guidance,
+    run_guidances,
+    run_lockstep,
+    run_one,
+)
 from services.learner.specs import RunSpec, build_specs
 
 Progress = Callable[[str], None]
@@ -142,6 +150,19 @@ def _rates(way: dict[str, Any], n_runs: int, env_steps: int, stage2_cpu: float) 
     }
 
 
+def _same_guidance(a: Sequence[RunGuidance], b: Sequence[Any]) -> bool:
+    """Equal pi_HF (Fhat's weights), SPL and stage-2 summary (wall time aside)."""
+
+    def comparable(guidance: RunGuidance) -> tuple[Any, ...]:
+        summary = {**(guidance.summary or {}), "wall_seconds": None}
+        weights = [w.tolist() for w in guidance.policy.model.state_dict().values()]
+        return guidance.spl, summary, weights
+
+    return all(isinstance(g, RunGuidance) for g in b) and [comparable(g) for g in a] == [
+        comparable(g) for g in b
+    ]
+
+
 def _same_records(a: Sequence[RunRecord], b: Sequence[Any]) -> bool:
     def comparable(record: Any) -> dict[str, Any]:
         data = record.to_dict()
@@ -176,7 +197,13 @@ def run(
     stage2: dict[str, float] = {}
     say(f"stage 2 alone: {len(hf_specs)} pi_HF")
     with _timed(stage2):
-        learned = iter([run_guidance(spec).policy for spec in hf_specs])
+        alone = [run_guidance(spec) for spec in hf_specs]
+    stage2_lockstep: dict[str, Any] = {}
+    say(f"stage 2 in lockstep: {len(hf_specs)} pi_HF")
+    with _timed(stage2_lockstep):
+        together = run_guidances(hf_specs)
+    stage2_lockstep["guidance_equal_single"] = _same_guidance(alone, together)
+    learned = iter([guidance.policy for guidance in alone])
     policies = [next(learned) if s.method == "hf_sparse" else None for s in specs]
     ways: dict[str, dict[str, Any]] = {}
     memory = PeakMemory()
@@ -197,7 +224,7 @@ def run(
         batched = run_lockstep(specs, hf_policies=policies)
     ways["lockstep"]["peak_rss_bytes"] = memory.peak_bytes
     ways["lockstep"]["rss_before_bytes"] = memory.start_bytes
-    _rates(ways["lockstep"], len(specs), env_steps, stage2["cpu_seconds"])
+    _rates(ways["lockstep"], len(specs), env_steps, stage2_lockstep["cpu_seconds"])
     ways["lockstep"]["records_equal_single"] = _same_records(single, batched)
 
     rl_specs = [s for s in specs if s.method != "hf_sparse"][:sb3_runs]
@@ -223,7 +250,9 @@ def run(
         ]
         / sb3["env_steps_per_cpu_second"],
         "lockstep_records_equal_single": lockstep["records_equal_single"],
-        **_fig3_extrapolation(lockstep, single_way, stage2, specs),
+        "lockstep_vs_single_stage2_cpu": stage2["cpu_seconds"] / stage2_lockstep["cpu_seconds"],
+        "lockstep_stage2_equal_single": stage2_lockstep["guidance_equal_single"],
+        **_fig3_extrapolation(lockstep, single_way, stage2, stage2_lockstep, specs),
     }
     return {
         "name": "sweep",
@@ -231,6 +260,7 @@ def run(
         "figures": figures,
         "ways": ways,
         "stage2_alone": stage2 | {"hf_runs": len(hf_specs)},
+        "stage2_lockstep": stage2_lockstep | {"hf_runs": len(hf_specs)},
         "settings": {
             "seeds": seeds,
             "runs": len(specs),
@@ -251,17 +281,22 @@ def _fig3_extrapolation(
     lockstep: dict[str, Any],
     single: dict[str, Any],
     stage2: dict[str, float],
+    stage2_lockstep: dict[str, float],
     specs: Sequence[RunSpec],
 ) -> dict[str, float]:
     """Fig. 3 (100 runs x 40k steps, 60 of them HF+sparse) on 2 cores, from this sweep's
-    per-step stage-3 cost and per-run stage-2 cost, and the peak memory of a 100-run batch
-    (linear in runs from this batch's growth over the process's size before it)."""
+    per-step stage-3 cost and per-run stage-2 cost of each path, and the peak memory of a
+    100-run batch (linear in runs from this batch's growth over the process's size before
+    it)."""
     n_hf = sum(s.method == "hf_sparse" for s in specs)
-    stage2_per_hf = stage2["cpu_seconds"] / max(n_hf, 1)
     fig3_hf = FIG3_RUNS * n_hf / len(specs)
     fig3_steps = FIG3_RUNS * FIG3_STEPS
     out = {}
-    for name, way in (("lockstep", lockstep), ("single", single)):
+    for name, way, learning in (
+        ("lockstep", lockstep, stage2_lockstep),
+        ("single", single, stage2),
+    ):
+        stage2_per_hf = learning["cpu_seconds"] / max(n_hf, 1)
         stage3_per_step = way["cpu_seconds"] / way["env_steps"]
         cpu = stage3_per_step * fig3_steps + stage2_per_hf * fig3_hf
         out[f"fig3_{name}_cpu_minutes_extrapolated"] = cpu / 60

@@ -222,16 +222,18 @@ def test_reproduce_and_hf_sweep_keep_out_of_each_others_folder(
 
 
 def test_hf_sweep_keeps_earlier_failures_of_runs_it_does_not_retry(tmp_path, monkeypatch) -> None:
-    def fail_all(function, specs, *, workers, on_result, on_failure) -> None:
-        for spec in specs:
-            on_failure(RunFailure.from_exception(spec, RuntimeError("boom")))
+    def fail_all(function, batches, *, workers, on_result, on_failure) -> None:
+        for batch in batches:  # e.g. the batch's worker died: each of its runs failed
+            on_failure(RunFailure.from_exception(batch, RuntimeError("boom")))
 
-    def succeed(function, specs, *, workers, on_result, on_failure) -> None:
-        for spec in specs:
-            row = {"task": spec.task, "accuracy": spec.accuracy, "seed": spec.seed,
-                   "n_labels": spec.n_labels, "method": spec.method, "greedy_spl": 1.0,
-                   "sampled_success_rate": 1.0}  # fmt: skip
-            on_result(row)
+    def succeed(function, batches, *, workers, on_result, on_failure) -> None:
+        for batch in batches:
+            on_result([
+                {"task": spec.task, "accuracy": spec.accuracy, "seed": spec.seed,
+                 "n_labels": spec.n_labels, "method": spec.method, "greedy_spl": 1.0,
+                 "sampled_success_rate": 1.0}
+                for spec in batch.specs
+            ])  # fmt: skip
 
     base = ["hf-sweep", "--out", str(tmp_path), "--seeds", "1", "--labels", "5"]
     monkeypatch.setattr(pool, "run_isolated", fail_all)
@@ -320,9 +322,10 @@ def test_an_interrupted_lockstep_reproduction_keeps_the_batches_done(tmp_path, m
 
 def test_ctrl_c_stops_a_real_hf_sweep_at_once_and_a_rerun_resumes(tmp_path) -> None:
     out = tmp_path / "sweep"
-    command = [
+    command = [  # runs alone: a lockstep batch hands its rows over when it ends
         sys.executable, "-m", "services.cli.main", "hf-sweep", "--out", str(out),
         "--tasks", "sssg", "--accuracies", "0.7", "--labels", "100", "--workers", "1",
+        "--single-run",
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     process = subprocess.Popen(
