@@ -658,7 +658,7 @@ def collect_feedback(
     max_steps : int, optional
         Give up after this many env steps (default ``10 * n_labels``) if labels go missing.
     on_label : callable, optional
-        Called with each new record (progress bars, persistence).
+        Called with each new record, before its updates (progress bars, persistence).
 
     Returns
     -------
