@@ -24,8 +24,9 @@ report counts:
 - restarts per kind (``bgrl up``'s status file), the p99 of the reads, the reads that got
   no answer (an api process killed mid-request), and RSS: every process's, sampled every
   ``RSS_EVERY_S``, with each kind's growth per hour (the median and the largest slope of a
-  line fitted to each of its processes' samples over that process's life; a killed process
-  starts a new line), plotted per kind (the sum of its processes).
+  line fitted to each of its processes' samples over that process's life after its first
+  ``RSS_WARMUP_S``; a killed process starts a new line), plotted per kind (the sum of its
+  processes).
 """
 
 from __future__ import annotations
@@ -75,8 +76,11 @@ UPLOAD_ACTIONS = 4
 """Actions in the uploaded recording: a virtual subject's calibration of about 8 s."""
 RSS_EVERY_S = 5.0
 """Seconds between two RSS samples of every process."""
+RSS_WARMUP_S = 60.0
+"""Seconds of a process's first samples left out of its growth (imports, first requests)."""
 MIN_RSS_SAMPLES = 6
-"""Samples of one process needed for its growth (a process killed sooner has none)."""
+"""Samples of one process after its warm-up needed for its growth (a process killed sooner
+has none)."""
 LIVE_OPTIONS = {"accelerated": True, "virtual_quality": 0.7, "calibration_max_passes": 2}
 """A live session of the mix: an accelerated calibration with a virtual subject whose
 ``eeg_calibration`` follow-up trains briefly (``n_actions`` is the run's ``live_actions``;
@@ -138,7 +142,9 @@ def rss_report(
     report = {}
     for kind in sorted(set(kinds.values())):
         pids = [pid for pid, k in kinds.items() if k == kind]
-        slopes = [g for pid in pids if (g := growth_per_hour(samples[pid])) is not None]
+        slopes = [
+            g for pid in pids if (g := growth_per_hour(_after_warmup(samples[pid]))) is not None
+        ]
         sums = kind_sums(samples, kinds, kind)
         report[kind] = {
             "last": round(sums[-1][1], 1) if sums else None,
@@ -149,6 +155,14 @@ def rss_report(
             "growth_per_hour_max": _rounded(max(slopes) if slopes else None),
         }
     return report
+
+
+def _after_warmup(samples: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The samples taken ``RSS_WARMUP_S`` or more after the process's first one."""
+    if not samples:
+        return samples
+    first = samples[0][0]
+    return [(t, mib) for t, mib in samples if t - first >= RSS_WARMUP_S]
 
 
 def kind_sums(
