@@ -376,6 +376,13 @@ def bench_soak(
     upload_every: Annotated[
         float, typer.Option(min=1, help="Seconds between two recording uploads.")
     ] = 15,
+    live_every: Annotated[
+        float,
+        typer.Option(min=5, help="Seconds between two live sessions (virtual subject)."),
+    ] = 30,
+    live_actions: Annotated[
+        int, typer.Option(min=2, help="Actions of each live session (accelerated calibration).")
+    ] = 30,
     drain: Annotated[
         float, typer.Option(min=0, help="Seconds the jobs get to end after the load.")
     ] = 300,
@@ -385,8 +392,9 @@ def bench_soak(
     seed: Annotated[int, typer.Option(min=0, help="Seed of which process is killed.")] = 0,
 ) -> None:
     """Soak with faults: bgrl up under a steady load while random processes are SIGKILLed;
-    writes OUT/soak.json (jobs and uploads submitted/succeeded/failed/lost, orphans,
-    restarts per kind, p99 of reads, RSS growth per hour) and OUT/soak_rss.png."""
+    writes OUT/soak.json (jobs, uploads and live sessions submitted/succeeded/failed/lost,
+    orphans, restarts per kind, p99 of reads, RSS growth per hour), OUT/soak_rss.json
+    (every process's RSS samples) and OUT/soak_rss.png."""
     from benchmarks.bench_soak import run_soak
     from services.core.files import write_results_json
 
@@ -397,22 +405,28 @@ def bench_soak(
         kill_every_s=kill_every,
         job_every_s=job_every,
         upload_every_s=upload_every,
+        live_every_s=live_every,
+        live_actions=live_actions,
         drain_s=drain,
         seed=seed,
         job_steps=job_steps,
         progress=lambda message: typer.echo(message, err=True),
     )
     write_results_json(out / "soak.json", report)
-    jobs, uploads = report["jobs"], report["uploads"]
+    jobs, uploads, live = report["jobs"], report["uploads"], report["live_sessions"]
+    growth = {kind: rss["growth_per_hour"] for kind, rss in report["rss_mib"].items()}
     typer.echo(
         f"jobs: {jobs['submitted']} submitted, {jobs['succeeded']} succeeded, "
         f"{jobs['failed_with_reason']} failed with a reason, {jobs['lost']} lost; "
         f"uploads: {uploads['submitted']} submitted, {uploads['stored']} stored, "
         f"{uploads['refused_with_reason']} refused, {uploads['lost']} lost; "
+        f"live sessions: {live['started']} started, {live['ended_with_data']} ended with "
+        f"their data, {live['ended_with_reason']} with the reason, {live['lost']} lost; "
         f"orphans: {report['orphans']}; restarts: {report['restarts']}; "
-        f"reads p99 {report['reads']['p99_ms']} ms; {out / 'soak.json'}"
+        f"reads p99 {report['reads']['p99_ms']} ms; RSS growth MiB/h (median per process): "
+        f"{growth}; {out / 'soak.json'}"
     )
-    if jobs["lost"] or uploads["lost"] or report["orphans"]:
+    if jobs["lost"] or uploads["lost"] or live["lost"] or report["orphans"]:
         raise typer.Exit(1)
 
 

@@ -6,12 +6,18 @@ such a child of ``bgrl up`` (the api's ``BGRL_API_WORKERS`` processes share its 
 uvicorn's own workers would), so each is supervised, restarted and ended with it: none is
 a grandchild that could outlive a killed parent. ``--proxy-headers`` and
 ``--forwarded-allow-ips`` are uvicorn's options of those names.
+
+With ``--heartbeat FILE`` the process touches ``FILE`` every second from its event loop
+(uvicorn's ``callback_notify``): the supervisor tells a hung process (its loop blocked, or
+the process stopped) from a healthy one, even where several processes share one port and
+a health check through the port may reach a sibling.
 """
 
 from __future__ import annotations
 
 import argparse
 import socket
+from pathlib import Path
 
 import uvicorn
 
@@ -35,13 +41,27 @@ def main(argv: list[str] | None = None) -> None:
         default=None,
         help="addresses whose X-Forwarded-* headers are trusted (uvicorn's option)",
     )
+    parser.add_argument(
+        "--heartbeat",
+        type=Path,
+        default=None,
+        help="file to touch every second from the event loop (the supervisor's liveness check)",
+    )
     args = parser.parse_args(argv)
     sock = socket.socket(fileno=args.fd)
+    heartbeat: Path | None = args.heartbeat
+
+    async def beat() -> None:
+        assert heartbeat is not None
+        heartbeat.touch()
+
     config = uvicorn.Config(
         args.app,
         proxy_headers=args.proxy_headers,
         forwarded_allow_ips=args.forwarded_allow_ips,
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
+        callback_notify=beat if heartbeat is not None else None,
+        timeout_notify=0,  # uvicorn looks once a second: it beats each time
     )
     uvicorn.Server(config).run(sockets=[sock])
 

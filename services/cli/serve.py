@@ -299,7 +299,7 @@ def _service_processes(
     status_file: Path,
 ) -> list[Any]:
     """The processes of one service, each serving the listening socket ``fd``: one, or the
-    api's ``BGRL_API_WORKERS``.
+    api's ``BGRL_API_WORKERS``. Each beats into ``<name>.beat`` beside the status file.
 
     The api processes do not migrate: ``bgrl up`` did it once before starting them (or was
     told not to), so several processes never run the migrations at the same moment.
@@ -308,9 +308,19 @@ def _service_processes(
 
     cmd = [sys.executable, "-m", "services.cli.child", spec.asgi_app, "--fd", str(fd)]
     health = f"{service_url(settings)}/health"
+
+    def heartbeat(name: str) -> tuple[list[str], Path]:
+        beat = status_file.parent / f"{name}.beat"
+        return ["--heartbeat", str(beat)], beat
+
     if spec.name != "api":  # the internal services are behind no proxy
-        cmd = [*cmd, "--no-proxy-headers"]
-        return [ProcessSpec(spec.name, spec.name, cmd, env, (fd,), health)]
+        options, beat = heartbeat(spec.name)
+        return [
+            ProcessSpec(
+                spec.name, spec.name, [*cmd, "--no-proxy-headers", *options], env, (fd,),
+                health, heartbeat_file=beat,
+            )
+        ]  # fmt: skip
     cmd = [*cmd, *settings.uvicorn_proxy_options()]  # type: ignore[attr-defined]  # ApiSettings
     api_env = {
         **env,
@@ -319,7 +329,19 @@ def _service_processes(
     }
     n = getattr(settings, "api_workers", 1)
     names = ["api"] if n == 1 else [f"api-{i + 1}" for i in range(n)]
-    return [ProcessSpec(name, "api", cmd, api_env, (fd,), health, essential=True) for name in names]
+    # processes sharing the port: a health check through it may reach a sibling, so each
+    # one's own heartbeat says whether it is ready and alive
+    shared_health = health if n == 1 else None
+    processes = []
+    for name in names:
+        options, beat = heartbeat(name)
+        processes.append(
+            ProcessSpec(
+                name, "api", [*cmd, *options], api_env, (fd,), shared_health,
+                heartbeat_file=beat, essential=True,
+            )
+        )  # fmt: skip
+    return processes
 
 
 def _worker_process(number: int, cmd: list[str], env: dict[str, str], status_file: Path) -> Any:

@@ -2,7 +2,11 @@
 
 Each :class:`Supervised` process is restarted when it exits, after a backoff that doubles
 with every recent exit (1 s, 2 s, 4 s... at most 30 s). One whose ``health_url`` has not
-answered for ``health_timeout_s`` is stopped and restarted the same way. ``restart_limit``
+answered for ``health_timeout_s`` is stopped and restarted the same way, and so is one whose
+``heartbeat_file`` (touched every second by its event loop, see
+:mod:`services.cli.child`) is older than ``heartbeat_timeout_s``: a hung process is found
+even among several sharing one port, where a health check may reach a sibling. A hung
+process gets SIGKILL at once (its loop would not handle SIGTERM). ``restart_limit``
 exits within ``restart_window_s`` is a crash loop: the process is stopped for good with a
 one-line reason, and the rest stay up, unless it is ``essential`` (nothing works without
 it): then everything stops. Every change is logged and written to ``status_file`` (JSON),
@@ -65,6 +69,13 @@ class SupervisorSettings(BaseSettings):
         description="An HTTP service whose health check has not answered for "
         "this long is restarted.",
     )
+    heartbeat_timeout_s: float = Field(
+        15.0,
+        gt=0,
+        description="An HTTP service process whose event loop has not beaten for this long "
+        "(hung, or stopped) is killed and restarted; it is restarted within this time plus "
+        "its start.",
+    )
     start_timeout_s: float = Field(
         120.0,
         gt=0,
@@ -88,6 +99,10 @@ class ProcessSpec:
     health_url: str | None = None
     ready_file: Path | None = None
     """For a process without health URL: the file it creates once ready (a worker)."""
+    heartbeat_file: Path | None = None
+    """The file its event loop touches every second (an HTTP service process): it is ready
+    once the file exists (without a health URL), and hung once it is older than
+    ``heartbeat_timeout_s``."""
     essential: bool = False
     """Nothing works without it: its crash loop stops everything."""
 
@@ -186,14 +201,16 @@ class Supervisor:
 
     def _spawn(self, process: Supervised) -> None:
         spec = process.spec
-        if spec.ready_file is not None:
-            spec.ready_file.unlink(missing_ok=True)
+        for marker in (spec.ready_file, spec.heartbeat_file):
+            if marker is not None:
+                marker.unlink(missing_ok=True)
         process.proc = spawn_child(spec.cmd, spec.env, spec.pass_fds)
         with self._lock:
             process.started_at = time.monotonic()
             process.healthy_at = None
         process.restart_at = None
-        process.state = "starting" if spec.health_url or spec.ready_file else "running"
+        waits = spec.health_url or spec.ready_file or spec.heartbeat_file
+        process.state = "starting" if waits else "running"
         process.since = _now()
 
     def stop(self) -> None:
@@ -268,6 +285,8 @@ class Supervisor:
             assert process.proc is not None
             return self._exited(process, exit_text(process.proc.returncode))
         spec = process.spec
+        if (hung := self._missed_heartbeat(process)) is not None:
+            return self._unhealthy(process, hung, kill=True)
         if spec.health_url is None:
             return self._look_for_ready_file(process, now)
         with self._lock:
@@ -289,8 +308,21 @@ class Supervisor:
             )
         return False
 
+    def _missed_heartbeat(self, process: Supervised) -> str | None:
+        """Why the process is hung (its heartbeat file too old), or None."""
+        beat = process.spec.heartbeat_file
+        if beat is None:
+            return None
+        try:
+            age = time.time() - beat.stat().st_mtime
+        except FileNotFoundError:  # not serving yet: the start timeout applies
+            return None
+        if age <= self.settings.heartbeat_timeout_s:
+            return None
+        return f"no heartbeat for {age:.0f} s (its event loop does not run)"
+
     def _look_for_ready_file(self, process: Supervised, now: float) -> bool:
-        ready_file = process.spec.ready_file
+        ready_file = process.spec.ready_file or process.spec.heartbeat_file
         if ready_file is None or process.state not in ("starting", "restarting"):
             return False
         if ready_file.exists():
@@ -302,12 +334,18 @@ class Supervisor:
             )
         return False
 
-    def _unhealthy(self, process: Supervised, why: str) -> bool:
-        self.echo(f"{process.spec.name}: {why}; stopping it")
+    def _unhealthy(self, process: Supervised, why: str, *, kill: bool = False) -> bool:
+        """Stop a process that does not answer (SIGTERM, SIGKILL after ``STOP_TIMEOUT_S``;
+        ``kill``: SIGKILL at once) and count it as an exit."""
+        self.echo(f"{process.spec.name}: {why}; {'killing' if kill else 'stopping'} it")
         assert process.proc is not None
-        process.proc.send_signal(signal.SIGTERM)
-        process.proc.send_signal(signal.SIGCONT)  # a stopped process handles it too
-        self._wait_or_kill(process, time.monotonic() + STOP_TIMEOUT_S)
+        if kill:
+            process.proc.kill()
+            process.proc.wait()
+        else:
+            process.proc.send_signal(signal.SIGTERM)
+            process.proc.send_signal(signal.SIGCONT)  # a stopped process handles it too
+            self._wait_or_kill(process, time.monotonic() + STOP_TIMEOUT_S)
         return self._exited(process, why)
 
     def _exited(self, process: Supervised, what: str) -> bool:

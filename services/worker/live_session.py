@@ -33,6 +33,7 @@ import time
 from datetime import UTC, datetime
 from typing import Any
 
+import httpx
 import numpy as np
 from mne_lsl.lsl import local_clock
 from pydantic import ValidationError
@@ -443,9 +444,22 @@ class LiveRunner:
             assert lab is not None
             lab.status = "completed"
             db.commit()
+        self.close_sim_session()
         for client in self.services.values():
             client.close()
         return JobOutcome(result=result, values={"steps_done": self.done})
+
+    def close_sim_session(self) -> None:
+        """Release the ended run's sim session (its env) now, not after the sim's idle
+        timeout: a lab running more than ``max_sessions`` sessions within that hour would
+        be refused (found by the soak, 409 at the ninth session). Best effort: a sim that
+        is down or forgot the session has released it anyway."""
+        if self.sim_session_id is None:
+            return
+        try:
+            self.services["sim"].call_once("DELETE", f"/sessions/{self.sim_session_id}")
+        except (httpx.HTTPError, ServiceCallError) as exc:
+            logger.info("sim session %s not closed: %s", self.sim_session_id, exc)
 
 
 def live_session(context: JobContext) -> JobOutcome:

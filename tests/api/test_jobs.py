@@ -11,7 +11,7 @@ from starlette.websockets import WebSocketDisconnect
 from services.core.db.models import Artifact, Job
 from services.core.queue import JOB_QUEUE
 from services.platform.jobs import GUIDED_PPO, JOB_KINDS, SUBMITTED_KINDS
-from tests.api.conftest import Api
+from tests.api.conftest import Api, calibration_session
 
 GUIDED = {"task": "SSSG", "method": "hf_sparse", "accuracy": 0.7, "seed": 3, "total_steps": 2048}
 
@@ -262,6 +262,31 @@ def test_cancel_and_retry(api: Api) -> None:
     unknown = api.client.post("/api/v1/jobs/nope/cancel", headers=staff)
     assert unknown.status_code == 404
     assert unknown.json() == {"detail": "no job with id nope", "field": "job_id"}
+
+
+def test_cancel_of_a_queued_live_session_ends_its_run_and_says_who(api: Api) -> None:
+    staff = api.as_("staff")
+    session_id = calibration_session(api)
+    started = api.client.post(
+        f"/api/v1/sessions/{session_id}/start", json={"accelerated": True}, headers=staff
+    )
+    assert started.status_code == 201, started.text
+    job_id = started.json()["job_id"]
+    cancelled = api.client.post(f"/api/v1/jobs/{job_id}/cancel", headers=staff).json()
+    assert cancelled["status"] == "cancelled"
+    live = api.client.get(f"/api/v1/sessions/{session_id}/live", headers=staff).json()
+    assert live["run"]["status"] == "failed"
+    assert live["run"]["error"] == (
+        "session ended after 0 steps: cancelled by staff@lab.test; its markers, decisions "
+        "and labels are kept, start the session again to resume"
+    )
+    session = api.client.get(f"/api/v1/sessions/{session_id}", headers=staff).json()
+    assert session["status"] == "failed"
+    again = api.client.post(
+        f"/api/v1/sessions/{session_id}/start", json={"accelerated": True}, headers=staff
+    )
+    assert again.status_code == 201, again.text  # it resumes from its rows
+    assert again.json()["id"] == live["run"]["id"]
 
 
 def test_curve_plot_and_model(api: Api) -> None:

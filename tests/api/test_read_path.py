@@ -116,6 +116,11 @@ def test_up_starts_the_api_with_its_worker_processes(
     cmd = processes[0].cmd
     assert cmd[1:4] == ["-m", "services.cli.child", "services.api.app:app"]
     assert cmd[cmd.index("--fd") + 1] == "7"
+    # each beats into its own file; a health check through the shared port proves nothing
+    beats = [p.heartbeat_file for p in processes]
+    assert beats == [tmp_path / f"api-{i}.beat" for i in (1, 2, 3)]
+    assert all(p.cmd[p.cmd.index("--heartbeat") + 1] == str(p.heartbeat_file) for p in processes)
+    assert all(p.health_url is None for p in processes)
     assert processes[0].env == {  # `bgrl up` migrated already
         "BGRL_MIGRATE_ON_START": "false",
         "BGRL_SUPERVISOR_STATUS_FILE": str(status),
@@ -123,6 +128,7 @@ def test_up_starts_the_api_with_its_worker_processes(
     monkeypatch.setenv("BGRL_API_WORKERS", "1")
     one = _service_processes(api_spec, api_spec.load_settings(), 7, {}, status)
     assert [p.name for p in one] == ["api"]
+    assert one[0].health_url is not None and one[0].heartbeat_file == tmp_path / "api.beat"
     monkeypatch.setenv("BGRL_API_WORKERS", "0")
     with pytest.raises(SettingsError, match=r"invalid setting: BGRL_API_WORKERS \(got '0'\)"):
         api_spec.load_settings()

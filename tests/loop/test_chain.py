@@ -23,7 +23,7 @@ from services.worker.live_session import live_session
 from services.worker.runtime import run_job
 from services.worker.training import guided_ppo
 from tests.api.conftest import make_settings, start_api
-from tests.loop.conftest import LoopPlatform
+from tests.loop.conftest import TOKEN, LoopPlatform
 from tests.worker.conftest import TINY_PPO
 
 pytestmark = pytest.mark.slow
@@ -59,6 +59,13 @@ def calibrate(loop: LoopPlatform) -> int:
         follow_up_id = follow_up.id
     assert count(loop, LiveMarker, run_id=run_id) == 60
     assert count(loop, LiveDecision, run_id=run_id) == 0
+    with loop.runtime.sessions() as db:  # the ended run released its sim session
+        sim_session_id = db.scalar(select(LiveRun.sim_session_id).where(LiveRun.id == run_id))
+    gone = httpx.get(
+        f"{loop.url('sim')}/sessions/{sim_session_id}",
+        headers={"X-Service-Token": TOKEN}, timeout=10,
+    )  # fmt: skip
+    assert gone.status_code in (404, 410), gone.text
     assert run_job(loop.runtime, follow_up_id, eeg_calibration) == "succeeded"
     with loop.runtime.sessions() as db:
         classifier = db.scalar(select(Classifier).where(Classifier.job_id == follow_up_id))

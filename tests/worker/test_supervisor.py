@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import httpx
 import pytest
 
 from services.cli.ports import PortError, bind_all
@@ -141,6 +142,49 @@ def test_a_service_that_stops_answering_is_restarted(tmp_path: Path) -> None:
         assert lines[0] == f"eeg: no answer from {health} for 1.5 s; stopping it"
         assert lines[1].startswith(f"eeg exited with no answer from {health} for 1.5 s;")
         assert process.proc.pid != hung  # type: ignore[union-attr]
+
+
+def test_a_hung_process_among_two_sharing_a_port_is_killed_and_restarted(
+    tmp_path: Path,
+) -> None:
+    """Two HTTP processes serve one socket (as the api's do): a health check through the
+    port reaches either, so each beats into its own file. SIGSTOP of one: the other answers
+    every request meanwhile, and the stopped one is killed once its heartbeat is older than
+    ``heartbeat_timeout_s`` and restarted (documented: within that time plus its start)."""
+    timeout_s = 3.0
+    with socket.create_server(("127.0.0.1", 0)) as shared:
+        url = f"http://127.0.0.1:{shared.getsockname()[1]}/"
+        fd = shared.fileno()
+        child = [sys.executable, "-m", "services.cli.child", "tests.worker.pid_app:app"]
+        specs = [
+            spec(
+                name, [*child, "--fd", str(fd), "--heartbeat", str(tmp_path / f"{name}.beat")],
+                kind="api", pass_fds=(fd,), heartbeat_file=tmp_path / f"{name}.beat",
+            )
+            for name in ("api-1", "api-2")
+        ]  # fmt: skip
+        with supervising(specs, tmp_path, heartbeat_timeout_s=timeout_s) as (sup, lines, _):
+            hung, sibling = sup.processes
+            wait_for(lambda: all(p.state == "running" for p in sup.processes), "both serving")
+            hung_pid = hung.proc.pid  # type: ignore[union-attr]
+            os.kill(hung_pid, signal.SIGSTOP)
+            stopped_at = time.monotonic()
+            answered_by = set()
+            while not (hung.restarts == 1 and hung.state == "running"):
+                assert time.monotonic() - stopped_at < 60, "the hung process was not restarted"
+                answered_by.add(httpx.get(url, timeout=5).json()["pid"])  # a new connection
+                time.sleep(0.1)
+            took = time.monotonic() - stopped_at
+            assert hung_pid not in answered_by  # it answered nothing while stopped
+            assert not process_alive(hung_pid)
+            assert lines[0].startswith("api-1: no heartbeat for ")
+            assert lines[0].endswith(" s (its event loop does not run); killing it")
+            age = float(lines[0].split("no heartbeat for ")[1].split(" s")[0])
+            assert timeout_s <= age <= timeout_s + 1.5  # noticed within a second or so
+            assert sibling.restarts == 0 and sibling.proc.pid in answered_by  # type: ignore[union-attr]
+            assert httpx.get(url, timeout=5).status_code == 200
+            assert status(tmp_path)["api-1"]["last_exit"].startswith("no heartbeat for ")
+    print(f"hung process restarted {took:.1f} s after its SIGSTOP (timeout {timeout_s} s)")
 
 
 def test_ports_are_checked_before_anything_starts(tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from pathlib import Path
 from unittest import mock
 
 import httpx
+import psutil
 import pytest
 
 from services.api.settings import ApiSettings
@@ -24,7 +25,7 @@ from services.sim.settings import SimSettings
 from services.worker.live_services import LiveSettings
 from tests.helpers import env_without_bgrl, free_port
 
-pytestmark = pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs Linux /proc")
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs Linux")
 
 
 def port_free(port: int) -> bool:
@@ -39,44 +40,29 @@ def port_free(port: int) -> bool:
         return True
 
 
-def children(pid: int) -> dict[int, str]:
-    """Live child processes of ``pid``: pid -> command line."""
+def children(pid: int, *, recursive: bool = False) -> dict[int, str]:
+    """Live (not zombie) processes below ``pid``, its children only unless ``recursive``:
+    pid -> command line."""
     found = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
+    for child in psutil.Process(pid).children(recursive=recursive):
         try:
-            stat = (entry / "stat").read_text()
-            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
+            if child.status() != psutil.STATUS_ZOMBIE:
+                found[child.pid] = " ".join(child.cmdline())
+        except psutil.NoSuchProcess:
             continue
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        state = stat.rsplit(")", 1)[1].split()[0]
-        if ppid == pid and state != "Z":
-            found[int(entry.name)] = cmdline
     return found
 
 
 def alive(pid: int) -> bool:
     try:
-        state = (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
         return False
-    return state != "Z"
-
-
-def descendants(pid: int) -> dict[int, str]:
-    """Every live process below ``pid``: pid -> command line."""
-    found = children(pid)
-    for child in list(found):
-        found.update(descendants(child))
-    return found
 
 
 def environ(pid: int) -> dict[str, str]:
     """The environment a process was started with."""
-    raw = (Path("/proc") / str(pid) / "environ").read_bytes()
-    return dict(item.decode().split("=", 1) for item in raw.split(b"\0") if b"=" in item)
+    return psutil.Process(pid).environ()
 
 
 def wait_until(condition: object, what: str, timeout_s: float = 60.0) -> None:
@@ -213,7 +199,7 @@ def test_up_wires_serves_restarts_and_a_sigkill_of_it_leaves_nothing(tmp_path: P
         ready = httpx.get(readyz, timeout=10)
         assert ready.status_code == 200 and ready.json()["status"] == "ready"
         assert ready.json()["processes"]["worker-1"]["last_exit"] == "code -9 (SIGKILL)"
-        tree = descendants(proc.pid)
+        tree = children(proc.pid, recursive=True)
         kinds = " ".join(tree.values())
         for app in ("services.api.app", "services.sim.app", "services.eeg.service.app", "learner"):
             assert app in kinds

@@ -59,6 +59,7 @@ from services.api.schemas.jobs import (
 from services.api.settings import ApiSettings
 from services.core.artifacts import TENSORBOARD_KIND, job_folder
 from services.core.db.base import utcnow
+from services.core.db.jobs import end_live_runs_of_ended_job
 from services.core.db.models import (
     JOB_FINAL_STATUSES,
     AuditEntry,
@@ -329,7 +330,8 @@ def log_entries(job_id: str, db: DbDep) -> JobLogPublic:
 @router.post("/{job_id}/cancel", dependencies=SIGNED_IN)
 def cancel(job_id: str, user: StaffUser, db: DbDep) -> JobPublic:
     """Cancel a job (staff): a queued one at once, a running one within seconds (its worker
-    checks on every heartbeat). A reproduce job's runs are cancelled with it."""
+    checks on every heartbeat). A reproduce job's runs are cancelled with it. A live
+    session's run ends with its rows kept and ``cancelled by <email>`` as its reason."""
     job = get_by_id_or_prefix(db, Job, job_id, "job_id")
     if job.status in JOB_FINAL_STATUSES:
         raise ConflictError(f"job {job.id} is already {job.status}", field="job_id")
@@ -348,6 +350,9 @@ def cancel(job_id: str, user: StaffUser, db: DbDep) -> JobPublic:
     audit.record(db, user, "job.cancel", "job", job.id)
     db.commit()
     db.refresh(job)
+    if job.status == "cancelled":  # it was queued: no worker ends its live run
+        end_live_runs_of_ended_job(db, job.id, job.status, None)
+        db.refresh(job)
     return JobPublic.model_validate(job)
 
 

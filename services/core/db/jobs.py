@@ -24,7 +24,7 @@ from sqlalchemy.orm import Session
 
 from services.core.db.base import utcnow
 from services.core.db.live import end_live_runs_of_job
-from services.core.db.models import JOB_FINAL_STATUSES, Job
+from services.core.db.models import JOB_FINAL_STATUSES, AuditEntry, Job
 
 
 class ClaimOutcome(enum.Enum):
@@ -133,9 +133,33 @@ def _settle_unleased(
         .execution_options(synchronize_session=False)
     ).rowcount
     session.commit()
-    if done == 1 and status == "failed":
-        end_live_runs_of_job(session, job_id, error or "the job failed")
+    if done == 1:
+        end_live_runs_of_ended_job(session, job_id, status, error)
     return done == 1
+
+
+def cancelled_by(session: Session, job_id: str) -> str:
+    """``cancelled by <email>``: who asked last to cancel ``job_id`` (the audit log's
+    ``job.cancel``), or ``cancelled`` when nobody is on record."""
+    email = session.scalar(
+        select(AuditEntry.actor_email)
+        .where(AuditEntry.action == "job.cancel", AuditEntry.target_id == job_id)
+        .order_by(AuditEntry.id.desc())
+        .limit(1)
+    )
+    return f"cancelled by {email}" if email else "cancelled"
+
+
+def end_live_runs_of_ended_job(
+    session: Session, job_id: str, status: str, error: str | None
+) -> None:
+    """A job just ended ``failed`` or ``cancelled``: end its live runs, if it is a live
+    session's, keeping their rows and saying why (the error, or who cancelled it).
+    Nothing for a job that succeeded (its handler ended the run) or of another kind."""
+    if status == "failed":
+        end_live_runs_of_job(session, job_id, error or "the job failed")
+    elif status == "cancelled":
+        end_live_runs_of_job(session, job_id, cancelled_by(session, job_id))
 
 
 def heartbeat(session: Session, job_id: str, owner: str, lease_s: float) -> Heartbeat:
@@ -193,8 +217,8 @@ def finish_job(
         finished_at=utcnow(),
         **values,
     )
-    if done and status == "failed":
-        end_live_runs_of_job(session, job_id, error or "the job failed")
+    if done:
+        end_live_runs_of_ended_job(session, job_id, status, error)
     return done
 
 
@@ -295,9 +319,9 @@ def reap(session: Session, *, stale_queued_s: float | None = None) -> list[tuple
         session.commit()
         if done == 1 and values["status"] == "queued":
             to_send.append((job_id, kind))
-        elif done == 1 and values["status"] == "failed":
+        elif done == 1:
             # no worker code runs to end a live session whose worker died: end it here
-            end_live_runs_of_job(session, job_id, values["error"])
+            end_live_runs_of_ended_job(session, job_id, values["status"], values.get("error"))
 
     waiting = session.execute(
         select(Job.id, Job.kind, Job.cancel_requested).where(
