@@ -116,7 +116,7 @@ async def _profile(
     try:
         for _ in range(20):
             await asgi_get(app, path, headers)
-        profiler = cProfile.Profile()
+        profiler = cProfile.Profile(time.process_time)
         started = time.process_time()
         profiler.enable()
         for _ in range(requests):

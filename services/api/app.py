@@ -18,7 +18,6 @@ from fastapi.responses import JSONResponse
 
 from services.api.accounts import ensure_first_admin
 from services.api.errors import TooManyRequestsError, UnauthorizedError
-from services.api.hot import add_hot_reads
 from services.api.metrics import PlatformCollector, admin_or_internal
 from services.api.ratelimit import LoginLimiter
 from services.api.routes import (
@@ -121,8 +120,6 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
         metrics_guard=admin_or_internal(settings.service_token),
     )
     app.state.metrics.register(PlatformCollector(app))
-    # the job list, the hot read of scripts and the dashboard, skips FastAPI's routing
-    add_hot_reads(app, {"/api/v1/jobs": jobs.hot_list_jobs})
     app.state.settings = settings
     app.state.limiter = LoginLimiter(settings.login_max_failures, settings.login_window_s)
 

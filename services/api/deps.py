@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Annotated, TypeVar
 
@@ -11,8 +11,7 @@ from celery import Celery
 from fastapi import Depends, Path, Query, WebSocket
 from fastapi.concurrency import run_in_threadpool
 from fastapi.security import OAuth2PasswordBearer
-from sqlalchemy import Engine, bindparam, select, update
-from sqlalchemy.engine import Connection
+from sqlalchemy import bindparam, select, update
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.requests import HTTPConnection
 
@@ -88,23 +87,21 @@ API_TOKEN_USE_RESOLUTION_S = 60
 
 API_TOKEN_SIGN_IN = (
     select(
-        ApiToken.id,
-        ApiToken.user_id,
+        User,
+        ApiToken.id.label("token_id"),
         ApiToken.revoked_at,
         ApiToken.expires_at,
         ApiToken.last_used_at,
-        User.active,
     )
-    .outerjoin(User, User.id == ApiToken.user_id)
+    .join(User, User.id == ApiToken.user_id)
     .where(ApiToken.token_hash == bindparam("token_hash"))
 )
-"""An API token (by its hash: a unique index) and its user's ``active``, in one query."""
+"""An API token (by its SHA-256: a unique index) and its user, in one query."""
 API_TOKEN_USED = update(ApiToken).where(ApiToken.id == bindparam("token_id"))
-USER_ACTIVE = select(User.active, User.password_changed_at).where(User.id == bindparam("user_id"))
 
 
-def _api_token_user(db: Session | Connection, token: str) -> tuple[int, bool]:
-    """(user id, account active) of a valid API token: one indexed query, checked now, so
+def _api_token_user(db: Session, token: str) -> User:
+    """The user of a valid API token (active or not): one indexed query, checked now, so
     a revocation takes effect at once; its use is recorded (committed) at most once a
     minute. 401 for an unknown, revoked or expired token."""
     row = db.execute(API_TOKEN_SIGN_IN, {"token_hash": hash_api_token(token)}).first()
@@ -115,77 +112,33 @@ def _api_token_user(db: Session | Connection, token: str) -> tuple[int, bool]:
         raise UnauthorizedError("API token expired", field="token")
     last_used = row.last_used_at
     if last_used is None or (now - last_used).total_seconds() > API_TOKEN_USE_RESOLUTION_S:
-        db.execute(API_TOKEN_USED.values(last_used_at=now), {"token_id": row.id})
+        db.execute(API_TOKEN_USED.values(last_used_at=now), {"token_id": row.token_id})
         db.commit()
-    return row.user_id, bool(row.active)
-
-
-def _refuse_inactive(active: bool | None) -> None:
-    if not active:
-        raise UnauthorizedError("account unknown or deactivated", field="token")
+    return row.User
 
 
 def authenticate(db: Session, token: str, jwt_key: str) -> User:
     """The active user an access token or API token belongs to; 401 otherwise."""
     claims = None
+    user: User | None
     if token.startswith(API_TOKEN_PREFIX):
-        user_id, _ = _api_token_user(db, token)
+        user = _api_token_user(db, token)
     else:
         claims = decode_access_token(token, jwt_key)
-        user_id = claims.user_id
-    user = db.get(User, user_id)
-    _refuse_inactive(user is not None and user.active)
-    assert user is not None
+        user = db.get(User, claims.user_id)
+    if user is None or not user.active:
+        raise UnauthorizedError("account unknown or deactivated", field="token")
     if claims is not None:
         check_issued_after_password_change(claims, user.password_changed_at)
     return user
 
 
-def sign_in(db: Connection, token: str, jwt_key: str) -> int:
-    """The id of the active user an access token or API token belongs to (what
-    :func:`authenticate` checks, without loading the user); 401 otherwise."""
-    if token.startswith(API_TOKEN_PREFIX):
-        user_id, active = _api_token_user(db, token)
-    else:
-        claims = decode_access_token(token, jwt_key)
-        user_id = claims.user_id
-        row = db.execute(USER_ACTIVE, {"user_id": user_id}).first()
-        active = row is not None and row.active
-        if active:
-            check_issued_after_password_change(claims, row.password_changed_at)
-    _refuse_inactive(active)
-    return user_id
-
-
 async def bearer_token(token: Annotated[str | None, Depends(bearer_scheme)]) -> str:
-    """The bearer token sent, not yet checked (see :func:`read_signed_in`); 401 if none."""
+    """The bearer token sent, not yet checked (:func:`get_current_user` checks it); 401 if
+    none."""
     if not token:
         raise UnauthorizedError(NOT_SIGNED_IN, field="token")
     return token
-
-
-def _signed_in_read(engine: Engine, token: str, jwt_key: str, read: Callable[[Connection], T]) -> T:
-    db = engine.connect()
-    if engine.dialect.name != "sqlite":  # no BEGIN and ROLLBACK round trips (SQLite has
-        db = db.execution_options(isolation_level="AUTOCOMMIT")  # none; this costs a PRAGMA)
-    with db:
-        sign_in(db, token, jwt_key)
-        return read(db)
-
-
-async def read_signed_in(
-    connection: HTTPConnection, token: str, read: Callable[[Connection], T]
-) -> T:
-    """``read(db)`` for any signed-in user, the sign-in (:func:`sign_in`) and the read on
-    one database connection in one trip to the thread pool: the cheap path of a hot read
-    route, whose token comes from :func:`bearer_token`. 401 as :func:`get_current_user`.
-    The connection is taken once a slot is free (see :func:`get_db`) and given back; on
-    PostgreSQL it is in autocommit (each query its own snapshot: reads only)."""
-    app = connection.app
-    async with app.state.db_slots:
-        return await run_in_threadpool(
-            _signed_in_read, app.state.engine, token, app.state.jwt_key, read
-        )
 
 
 WEBSOCKET_PROTOCOL = "bgrl"

@@ -1,7 +1,7 @@
-"""The job list writes its JSON straight from the rows (``crud.JsonPage``): it must be the
-document ``Page[JobPublic]`` gives for the same rows, on SQLite and PostgreSQL, whatever the
-filters, the page, nulls, unicode, large numbers and timestamps; and its own sign-in (one
-query with the page) must refuse what every other route refuses, at once."""
+"""The job list selects only ``JobPublic``'s columns: its JSON must be the document
+``Page[JobPublic]`` gives for the same jobs loaded whole, on SQLite and PostgreSQL, whatever
+the filters, the page, nulls, unicode, large numbers and timestamps; and its sign-in must
+refuse what every other route refuses, at once."""
 
 from __future__ import annotations
 

@@ -47,8 +47,8 @@ def _required_role(path: str, method: str) -> str | None:
                 return "admin"
             if require_staff in calls:
                 return "staff"
-            if get_current_user in calls or bearer_token in calls:  # any role (the hot reads
-                return "viewer"  # sign in with their query: deps.read_signed_in)
+            if get_current_user in calls or bearer_token in calls:  # any role
+                return "viewer"
             return None
     raise AssertionError(f"{method} {path} is in the schema but not among the routes")
 

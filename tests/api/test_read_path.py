@@ -1,4 +1,4 @@
-"""The api's hot read path and its processes: the job list returns the job resource, every
+"""The api's read path and its processes: the job list returns the job resource, every
 request gives its database connection back, dead pooled PostgreSQL connections are replaced,
 several api processes share one generated JWT key, and ``bgrl up`` starts the api with
 ``BGRL_API_WORKERS`` processes that do not migrate."""
@@ -168,7 +168,7 @@ def test_a_dead_pooled_connection_idle_long_enough_is_replaced(
             if fails_once:
                 with pytest.raises(OperationalError):
                     _backend_pid(engine)
-            # autocommit, as the api's signed-in reads use it (deps.read_signed_in)
+            # the next connection is a new one, which works
             with engine.connect().execution_options(isolation_level="AUTOCOMMIT") as conn:
                 assert conn.scalar(text("SELECT pg_backend_pid()")) != pid
             assert engine.pool.checkedout() == 0  # type: ignore[attr-defined]

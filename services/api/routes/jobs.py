@@ -8,13 +8,11 @@ import hashlib
 import io
 import logging
 import math
-import typing
 import zipfile
-from collections.abc import Callable, Iterable
 from typing import Annotated, Any, Literal
 
 from celery import Celery
-from fastapi import APIRouter, Depends, Query, Request, Response, status
+from fastapi import APIRouter, Depends, Query, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
@@ -22,22 +20,15 @@ from sqlalchemy import bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from services.api import audit
-from services.api.crud import JsonPage, PageQuery, get_by_id_or_prefix
+from services.api.crud import PageQuery, get_by_id_or_prefix
 from services.api.deps import (
-    DEFAULT_PAGE_LIMIT,
-    MAX_PAGE_LIMIT,
-    MAX_PAGE_OFFSET,
-    BearerToken,
     CeleryDep,
     DbDep,
     PageDep,
-    PageParams,
     SettingsDep,
     StaffUser,
     StoreDep,
-    bearer_scheme,
     get_current_user,
-    read_signed_in,
 )
 from services.api.downloads import (
     CHECKSUM_HEADER,
@@ -45,7 +36,6 @@ from services.api.downloads import (
     FormatQuery,
     model_response,
 )
-from services.api.errors import UnauthorizedError
 from services.api.plots import curve_png
 from services.api.schemas.common import MAX_ROW_ID, NO_NUL_PATTERN, Page
 from services.api.schemas.jobs import (
@@ -78,8 +68,7 @@ from services.platform.jobs import EEG_CALIBRATION, GUIDED_PPO, KindName, job_ki
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"])
 SIGNED_IN = [Depends(get_current_user)]
-"""The sign-in of every jobs route but the list, which signs its user in itself with its
-query (:func:`list_jobs`)."""
+"""The sign-in of every jobs route (any role; staff routes ask for more)."""
 
 
 def _validated_config(db: Session, kind: str, config: dict[str, Any]) -> dict[str, Any]:
@@ -164,9 +153,6 @@ def submit(
     return JobPublic.model_validate(job)
 
 
-JOB_PAGE = JsonPage(JobPublic, Job.__table__)
-"""The job list's JSON, written from the rows (not the curve, up to hundreds of points, nor
-tracebacks: only :class:`JobPublic`'s columns)."""
 MAX_PARENT_ID_CHARS = 32
 """The longest ``parent_id`` the list takes (a job id is 32 hex digits)."""
 JOB_LIST_FILTERS = {
@@ -179,17 +165,19 @@ JOB_LIST_FILTERS = {
 
 @functools.cache
 def _job_list_query(filters: tuple[str, ...]) -> PageQuery:
-    """The job list, newest first, filtered on the columns named (values as parameters)."""
-    query = JOB_PAGE.select().order_by(Job.created_at.desc(), Job.id)
+    """The job list, newest first, filtered on the columns named (values as parameters):
+    :class:`JobPublic`'s columns only (not the curve, up to hundreds of points, nor
+    tracebacks)."""
+    columns = [Job.__table__.c[name] for name in JobPublic.model_fields]
+    query = select(*columns).order_by(Job.created_at.desc(), Job.id)
     for name in filters:
         query = query.where(JOB_LIST_FILTERS[name] == bindparam(name))
     return PageQuery(query)
 
 
-@router.get("", response_model=Page[JobPublic])
-async def list_jobs(
-    request: Request,
-    token: BearerToken,
+@router.get("", dependencies=SIGNED_IN)
+def list_jobs(
+    db: DbDep,
     page: PageDep,
     status_: Annotated[JobStatus | None, Query(alias="status")] = None,
     kind: Annotated[KindName | None, Query()] = None,
@@ -197,78 +185,12 @@ async def list_jobs(
     parent_id: Annotated[
         str | None, Query(max_length=MAX_PARENT_ID_CHARS, pattern=NO_NUL_PATTERN)
     ] = None,
-) -> Response:
-    """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs).
-
-    The hot read of scripts and the dashboard, so it is lean: the sign-in (any role) and
-    the page's query share one connection and one trip to the thread pool, and the JSON is
-    written from the rows (:class:`~services.api.crud.JsonPage`), the same document as
-    ``Page[JobPublic]`` gives.
-    """
+) -> Page[JobPublic]:
+    """Jobs, newest first, by status, kind, submitter or parent (a reproduce job's runs)."""
     given = {"status": status_, "kind": kind, "submitter_id": submitter_id, "parent_id": parent_id}
     params = {name: value for name, value in given.items() if value is not None}
-    return await _job_list(request, token, page, params)
-
-
-async def _job_list(
-    request: Request, token: str, page: PageParams, params: dict[str, Any]
-) -> Response:
-    query = _job_list_query(tuple(params))
-    body = await read_signed_in(request, token, lambda db: JOB_PAGE.read(db, query, page, params))
-    return Response(body, media_type="application/json")
-
-
-def _decimal(low: int, high: int) -> Callable[[str], int | None]:
-    """A parser of the plain decimals from ``low`` to ``high`` (no sign, space or leading
-    zero: what pydantic reads as the same int); None for any other text."""
-
-    def parse(text: str) -> int | None:
-        if not (text.isascii() and text.isdigit()) or (text[0] == "0" and text != "0"):
-            return None
-        value = int(text)
-        return value if low <= value <= high else None
-
-    return parse
-
-
-def _one_of(values: Iterable[str]) -> Callable[[str], str | None]:
-    allowed = frozenset(values)
-    return lambda text: text if text in allowed else None
-
-
-HOT_LIST_PARAMETERS: dict[str, Callable[[str], Any]] = {
-    "limit": _decimal(1, MAX_PAGE_LIMIT),
-    "offset": _decimal(0, MAX_PAGE_OFFSET),
-    "status": _one_of(typing.get_args(JobStatus)),
-    "kind": _one_of(typing.get_args(KindName)),
-    "submitter_id": _decimal(1, MAX_ROW_ID),
-    "parent_id": lambda text: (
-        text if 0 < len(text) <= MAX_PARENT_ID_CHARS and "\x00" not in text else None
-    ),
-}
-"""The list's query parameters as :func:`hot_list_jobs` reads them: each parser gives the
-value :func:`list_jobs` would get, or None where it leaves the request to the route."""
-
-
-async def hot_list_jobs(request: Request) -> Response | None:
-    """:func:`list_jobs` before FastAPI's routing (:mod:`services.api.hot`), for a request
-    with a bearer token and only known, plainly valid query parameters, each given once;
-    None for any other request, and for a token the sign-in refuses (the route then
-    answers it: its 401 or 422)."""
-    token = await bearer_scheme(request)
-    if not token:
-        return None
-    params: dict[str, Any] = {}
-    for name, text in request.query_params.multi_items():
-        parse = HOT_LIST_PARAMETERS.get(name)
-        if parse is None or name in params or (value := parse(text)) is None:
-            return None
-        params[name] = value
-    page = PageParams(limit=params.pop("limit", DEFAULT_PAGE_LIMIT), offset=params.pop("offset", 0))
-    try:
-        return await _job_list(request, token, page, params)
-    except UnauthorizedError:
-        return None
+    items = _job_list_query(tuple(params)).paginate(db.connection(), page, params)
+    return Page[JobPublic].model_validate(items)
 
 
 @router.get("/{job_id}", dependencies=SIGNED_IN)
