@@ -7,9 +7,10 @@ import numbers
 import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from services.core.json_values import describe_type, fits_type
+from pydantic import Field, TypeAdapter, ValidationError
+
 from services.core.ppo_bounds import SETTING_BOUNDS
 from services.learner.seeding import evaluation_reset_seeds
 
@@ -142,30 +143,85 @@ class PPOConfig:
 
 
 _SETTING_TYPES: dict[str, Any] = typing.get_type_hints(PPOConfig)
+BOUND_ERRORS = frozenset({"greater_than", "greater_than_equal", "less_than_equal", "finite_number"})
+"""pydantic's error types of a number outside a setting's bounds."""
+
+
+def _setting_adapter(name: str, hint: Any) -> TypeAdapter[Any]:
+    """pydantic's validator of setting ``name``: its type (``hint``) and, for a numeric
+    setting, its :data:`SETTING_BOUNDS` (on each entry of a tuple), finite."""
+    if name not in SETTING_BOUNDS:
+        return TypeAdapter(hint)
+    low, high, low_open = SETTING_BOUNDS[name]
+    limits: dict[str, Any] = {"gt" if low_open else "ge": low}
+    if math.isfinite(high):
+        limits["le"] = high
+    integer = Annotated[int, Field(**limits)]
+    number = Annotated[float, Field(**limits, allow_inf_nan=False)]
+    bounded = {int: integer, float: number, float | None: number | None, tuple[int, ...]: (
+        tuple[integer, ...]
+    )}  # fmt: skip
+    return TypeAdapter(bounded[hint])
+
+
+_SETTING_ADAPTERS = {name: _setting_adapter(name, hint) for name, hint in _SETTING_TYPES.items()}
+
+
+def _describe_schema(schema: dict[str, Any]) -> str:
+    """A JSON Schema's type in words: ``{"type": "integer"}`` -> "an integer",
+    ``float | None``'s -> "a number or null", a ``Literal``'s -> "one of [...]"."""
+    words = {
+        "integer": ("an integer", "integers"),
+        "number": ("a number", "numbers"),
+        "boolean": ("true or false", "true or false values"),
+        "string": ("a string", "strings"),
+        "null": ("null", "nulls"),
+        "object": ("an object", "objects"),
+    }
+    if "enum" in schema:
+        return f"one of {schema['enum']}"
+    if "anyOf" in schema:
+        return " or ".join(_describe_schema(option) for option in schema["anyOf"])
+    if schema.get("type") == "array":
+        items = schema.get("items", {})
+        return f"a list of {words[items['type']][1] if items.get('type') in words else 'values'}"
+    return words.get(schema.get("type", ""), ("a value", ""))[0]
 
 
 def check_settings(settings: Mapping[str, Any]) -> None:
     """Refuse a PPO setting of the wrong type or outside :data:`SETTING_BOUNDS` with a
-    ValueError naming it (``gamma must be in [0, 1], not 1.5``). Names that are not settings
-    are left to the constructor; rules between settings are :class:`PPOConfig`'s."""
+    ValueError naming it (``gamma must be in [0, 1], not 1.5``), checked by pydantic in
+    strict mode (a bool is not a number, a number in text is not a number; an integer is
+    a float; numpy's numbers count as the numbers they are, a list as a tuple). Names that
+    are not settings are left to the constructor; rules between settings are
+    :class:`PPOConfig`'s."""
     for name, value in settings.items():
-        hint = _SETTING_TYPES.get(name)
-        if hint is None:
+        adapter = _SETTING_ADAPTERS.get(name)
+        if adapter is None:
             continue
-        if not fits_type(value, hint):
-            raise ValueError(f"{name} must be {describe_type(hint)}, not {value!r}")
-        if name not in SETTING_BOUNDS or value is None:
-            continue
-        low, high, low_open = SETTING_BOUNDS[name]
-        entries = isinstance(value, list | tuple)
-        for number in value if entries else (value,):
-            too_low = number <= low if low_open else number < low
-            finite = isinstance(number, numbers.Integral) or math.isfinite(number)
-            if not finite or too_low or number > high:
-                interval = "({:g}, {}" if low_open else "[{:g}, {}"
-                upper = f"{high:g}]" if math.isfinite(high) else "inf)"
-                what = f"every entry of {name}" if entries else name
-                raise ValueError(f"{what} must be in {interval.format(low, upper)}, not {number!r}")
+        try:
+            adapter.validate_python(_plain(value), strict=True)
+        except ValidationError as exc:
+            raise ValueError(_setting_message(name, value, exc.errors()[0])) from None
+
+
+def _setting_message(name: str, value: Any, error: Any) -> str:
+    """The message of setting ``name``'s first pydantic ``error``: its bounds for a number
+    outside them (an integer too large for a float too), else the type it must have."""
+    number = error.get("input", value)
+    too_large = (
+        error["type"] == "float_type"
+        and isinstance(number, numbers.Integral)
+        and not isinstance(number, bool)
+    )
+    if error["type"] not in BOUND_ERRORS and not too_large:
+        described = _describe_schema(TypeAdapter(_SETTING_TYPES[name]).json_schema())
+        return f"{name} must be {described}, not {value!r}"
+    low, high, low_open = SETTING_BOUNDS[name]
+    interval = "({:g}, {}" if low_open else "[{:g}, {}"
+    upper = f"{high:g}]" if math.isfinite(high) else "inf)"
+    what = f"every entry of {name}" if error["loc"] else name
+    return f"{what} must be in {interval.format(low, upper)}, not {number!r}"
 
 
 def _plain(value: Any) -> Any:
