@@ -4,7 +4,9 @@
 PostgreSQL when reachable); ``bgrl bench api`` reports them too. The app is called straight
 through ASGI (no HTTP parsing, no socket, no test client), one request at a time, on the
 event loop uvicorn would use; the figure is the process's CPU time (``time.process_time``,
-every thread) divided by the requests, the median of a few repeats. On a shared machine
+every thread) divided by the requests, the median of a few repeats. The job list's peer is
+the bare app answering the same bytes (:mod:`benchmarks.api_bare`), measured alike in the
+same run. On a shared machine
 this is the robust figure: wall-clock latency under load also measures everyone else's work.
 """
 
@@ -22,7 +24,9 @@ from urllib.parse import urlencode
 from fastapi import FastAPI
 from pydantic import SecretStr
 
+from benchmarks.api_bare import create_bare_app
 from benchmarks.api_data import ADMIN_EMAIL, PG_SKIP_REASON, postgres_schema, store_jobs
+from benchmarks.api_load import BARE, JOBS_ROUTE, LIST
 from services.api.app import create_app
 from services.api.settings import ApiSettings
 from services.core.db.migrate import upgrade_database
@@ -73,29 +77,28 @@ async def asgi_get(
 
 
 async def _measure(
-    app: FastAPI, routes: dict[str, dict[str, str]], requests: int, repeats: int
-) -> dict[str, float]:
-    figures = {}
-    for path, headers in routes.items():
-        for _ in range(20):  # warm caches (compiled queries, pydantic, the pool)
-            status, body = await asgi_get(app, path, headers)
-            if status != 200:
-                raise RuntimeError(f"GET {path}: {status} {body[:300]!r}")
-        per_request = []
-        for _ in range(repeats):
-            started = time.process_time()
-            for _ in range(requests):
-                await asgi_get(app, path, headers)
-            per_request.append(1000 * (time.process_time() - started) / requests)
-        figures[path] = statistics.median(per_request)
-    return figures
+    app: FastAPI, path: str, headers: dict[str, str], requests: int, repeats: int
+) -> float:
+    """CPU ms per ``GET path`` of ``app``: the median of ``repeats`` runs of ``requests``."""
+    for _ in range(20):  # warm caches (compiled queries, pydantic, the pool)
+        status, body = await asgi_get(app, path, headers)
+        if status != 200:
+            raise RuntimeError(f"GET {path}: {status} {body[:300]!r}")
+    per_request = []
+    for _ in range(repeats):
+        started = time.process_time()
+        for _ in range(requests):
+            await asgi_get(app, path, headers)
+        per_request.append(1000 * (time.process_time() - started) / requests)
+    return statistics.median(per_request)
 
 
 async def _profile(
     app: FastAPI, path: str, headers: dict[str, str], requests: int, out: Path
-) -> dict[str, float]:
-    """cProfile ``requests`` requests of ``path`` into ``out`` (pstats), with calls to the
-    thread pool run inline so that the profiler sees them; the CPU ms per request."""
+) -> float:
+    """cProfile ``requests`` requests of ``path`` into ``out`` (pstats; CPU time, so that
+    other processes' work on a loaded machine does not count), with calls to the thread
+    pool run inline so that the profiler sees them; the CPU ms per request."""
     import cProfile
     from unittest import mock
 
@@ -127,7 +130,7 @@ async def _profile(
         for patch in patches:
             patch.stop()
     profiler.dump_stats(out)
-    return {path: 1000 * elapsed / requests}
+    return 1000 * elapsed / requests
 
 
 def cpu_ms_per_request(
@@ -135,15 +138,17 @@ def cpu_ms_per_request(
     data_dir: Path,
     admin_email: str,
     admin_password: str,
-    paths: tuple[str, ...],
+    path: str = JOBS_ROUTE,
     *,
     requests: int = 200,
     repeats: int = 5,
     profile_to: Path | None = None,
 ) -> dict[str, float]:
-    """CPU ms per request of each path (signed in as the admin, with an API token) on an
-    already filled database; the median over ``repeats`` runs of ``requests`` requests.
-    With ``profile_to``, the first path is profiled instead (see :func:`_profile`)."""
+    """CPU ms per ``GET path`` of the api (signed in as the admin, with an API token) on an
+    already filled database (``list``) and of the bare app answering the same bytes
+    (``bare``), each the median over ``repeats`` runs of ``requests`` requests, and their
+    ratio (``list_to_bare``). With ``profile_to``, the api's route is profiled instead (see
+    :func:`_profile`): ``{"list": ms}``."""
     upgrade_database(database_url)
     settings = ApiSettings(
         data_dir=data_dir,
@@ -181,19 +186,21 @@ def cpu_ms_per_request(
                 raise RuntimeError(f"API token not created: {status} {body[:300]!r}")
             auth = {"authorization": f"Bearer {json.loads(body)['token']}"}
             if profile_to is not None:
-                return await _profile(app, paths[0], auth, requests, profile_to)
-            return await _measure(app, {p: auth for p in paths}, requests, repeats)
+                return {LIST: await _profile(app, path, auth, requests, profile_to)}
+            listed = await _measure(app, path, auth, requests, repeats)
+            status, body = await asgi_get(app, path, auth)
+            bare = await _measure(create_bare_app(body), path, auth, requests, repeats)
+            return {LIST: listed, BARE: bare, "list_to_bare": listed / bare}
 
     return asyncio.run(run())
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m benchmarks.api_cpu``: CPU ms per request of the two routes of ``bgrl bench
-    api`` on a fresh SQLite database and, when reachable, PostgreSQL (JSON on stdout)."""
+    """``python -m benchmarks.api_cpu``: CPU ms per request of the job list and of its bare
+    peer, as ``bgrl bench api`` measures them, on a fresh SQLite database and, when
+    reachable, PostgreSQL (JSON on stdout)."""
     import argparse
     import tempfile
-
-    from benchmarks.api_load import BARE_ROUTE, JOBS_ROUTE
 
     parser = argparse.ArgumentParser(prog="python -m benchmarks.api_cpu")
     parser.add_argument("--jobs-stored", type=int, default=1000)
@@ -222,7 +229,7 @@ def main(argv: list[str] | None = None) -> None:
             store_jobs(url, args.jobs_stored)
             data_dir = Path(tmp) / name
             figures[name] = cpu_ms_per_request(
-                url, data_dir, ADMIN_EMAIL, password, (JOBS_ROUTE, BARE_ROUTE),
+                url, data_dir, ADMIN_EMAIL, password, JOBS_ROUTE,
                 requests=args.requests,
                 profile_to=None if args.profile is None else args.profile / f"{name}.pstats",
             )  # fmt: skip

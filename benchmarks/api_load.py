@@ -1,16 +1,17 @@
 """The read-load generator of ``bgrl bench api``: a separate, light process (asyncio only).
 
-``python -m benchmarks.api_load --url URL --rate 200 --duration 30 --blocks 6`` reads a
-bearer token from stdin, then sends ``GET /api/v1/jobs?limit=50`` and ``GET /healthz`` in
+``python -m benchmarks.api_load --url URL --bare-url BARE --rate 200 --duration 30 --blocks
+6`` reads a bearer token from stdin, then sends ``GET /api/v1/jobs?limit=50`` to the api
+(``list``) and to the bare app of the same answer (``bare``, :mod:`benchmarks.api_bare`) in
 alternating blocks, ``rate`` requests/s each, open loop: every request leaves at its
 scheduled time whatever the earlier ones are doing, and its latency runs from that
 scheduled time to the end of the response, so a server (or this client) falling behind
 shows up in the figures. Prints a JSON summary per route.
 
-With ``--watch-pids`` (the api's processes) it also samples, at the start and end of every
-block, the CPU time those processes used (``/proc``), its own, and the whole machine's, so
-each route gets its CPU per request under the load: what the api spent, what the
-generator spent, and how busy the cores were (the database server and everyone else).
+With ``--watch-pids`` (the api's and the bare app's processes) it also samples, at the
+start and end of every block, the CPU time those processes used (psutil), its own, and the
+whole machine's, so each server gets its CPU per request under the load: what it spent, what
+the generator spent, and how busy the cores were (the database server and everyone else).
 """
 
 from __future__ import annotations
@@ -19,16 +20,19 @@ import argparse
 import asyncio
 import json
 import math
-import os
 import statistics
 import sys
 import time
-from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+import psutil
+
 JOBS_ROUTE = "/api/v1/jobs?limit=50"
-BARE_ROUTE = "/healthz"
+LIST = "list"
+"""The figures of ``JOBS_ROUTE`` on the api."""
+BARE = "bare"
+"""The figures of ``JOBS_ROUTE`` on the bare app answering the same bytes."""
 
 
 def percentile(sorted_values: list[float], q: float) -> float:
@@ -58,28 +62,24 @@ REQUEST_TIMEOUT_S = 30.0
 found no free connection by then is not sent at all), so an overloaded run still ends."""
 
 
-CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
-
-
 def process_cpu_s(pids: list[int]) -> float:
-    """CPU seconds (user + system) the processes ``pids`` have used so far (Linux
-    ``/proc``; a process that has exited counts 0)."""
-    ticks = 0
+    """CPU seconds (user + system) the processes ``pids`` have used so far (a process that
+    has exited counts 0)."""
+    total = 0.0
     for pid in pids:
         try:
-            stat = Path(f"/proc/{pid}/stat").read_text()
-        except OSError:
+            times = psutil.Process(pid).cpu_times()
+        except psutil.Error:
             continue
-        fields = stat[stat.rindex(")") + 2 :].split()
-        ticks += int(fields[11]) + int(fields[12])  # utime, stime
-    return ticks / CLOCK_TICKS_PER_S
+        total += times.user + times.system
+    return total
 
 
 def machine_busy_s() -> float:
-    """CPU seconds every core of the machine has been busy so far (``/proc/stat``: all but
-    idle and iowait)."""
-    values = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-    return (sum(values) - values[3] - values[4]) / CLOCK_TICKS_PER_S
+    """CPU seconds every core of the machine has been busy so far (all but idle and
+    iowait)."""
+    times = psutil.cpu_times()
+    return sum(times) - times.idle - getattr(times, "iowait", 0.0)
 
 
 class CpuSampler:
@@ -168,7 +168,7 @@ class Connection:
 
 
 async def _drive(
-    url: str,
+    urls: dict[str, str],
     token: str,
     rate: float,
     duration_s: float,
@@ -176,32 +176,34 @@ async def _drive(
     connections: int,
     watch_pids: list[int] | None = None,
 ) -> dict[str, Any]:
-    """Alternate blocks of ``JOBS_ROUTE`` and ``BARE_ROUTE`` at ``rate`` requests/s each,
-    ``duration_s`` per route in total; open loop, latency from the scheduled send time.
-    Requests wait for a free connection of the pool (that wait is part of the latency).
-    With ``watch_pids``, each route's CPU per request too (:class:`CpuSampler`)."""
-    parsed = urlsplit(url)
-    host, port = parsed.hostname or "127.0.0.1", parsed.port or 80
-    requests = {
-        route: (
-            f"GET {route} HTTP/1.1\r\nHost: {host}:{port}\r\n"
+    """Alternate blocks of ``JOBS_ROUTE`` on each server of ``urls`` (``list``, ``bare``:
+    its URL) at ``rate`` requests/s each, ``duration_s`` per server in total; open loop,
+    latency from the scheduled send time. Requests wait for a free connection of that
+    server's pool (that wait is part of the latency). With ``watch_pids``, each server's
+    CPU per request too (:class:`CpuSampler`)."""
+    requests: dict[str, bytes] = {}
+    pools: dict[str, asyncio.Queue[Connection]] = {}
+    for route, url in urls.items():
+        parsed = urlsplit(url)
+        host, port = parsed.hostname or "127.0.0.1", parsed.port or 80
+        requests[route] = (
+            f"GET {JOBS_ROUTE} HTTP/1.1\r\nHost: {host}:{port}\r\n"
             f"Authorization: Bearer {token}\r\nAccept: application/json\r\n\r\n"
         ).encode()
-        for route in (JOBS_ROUTE, BARE_ROUTE)
-    }
+        pools[route] = asyncio.Queue()
+        for _ in range(connections):
+            conn = Connection(host, port)
+            await conn.open()
+            pools[route].put_nowait(conn)
     block_s = duration_s / blocks
     per_block = round(rate * block_s)
-    latencies: dict[str, list[float]] = {JOBS_ROUTE: [], BARE_ROUTE: []}
-    errors: dict[str, dict[str, int]] = {JOBS_ROUTE: {}, BARE_ROUTE: {}}
+    latencies: dict[str, list[float]] = {route: [] for route in urls}
+    errors: dict[str, dict[str, int]] = {route: {} for route in urls}
     late_ms: list[float] = []
-    pool: asyncio.Queue[Connection] = asyncio.Queue()
-    for _ in range(connections):
-        conn = Connection(host, port)
-        await conn.open()
-        pool.put_nowait(conn)
 
     async def one(route: str, scheduled: float) -> None:
         late_ms.append(1000 * (time.perf_counter() - scheduled))
+        pool = pools[route]
         try:
             conn = await asyncio.wait_for(
                 pool.get(), scheduled + REQUEST_TIMEOUT_S - time.perf_counter()
@@ -224,7 +226,7 @@ async def _drive(
         if kind != "200":
             errors[route][kind] = errors[route].get(kind, 0) + 1
 
-    for route in (JOBS_ROUTE, BARE_ROUTE):  # warm the connections and the server
+    for route in urls:  # warm the connections and the servers
         await asyncio.gather(*(one(route, time.perf_counter()) for _ in range(connections)))
     for values in (*latencies.values(), late_ms):
         values.clear()
@@ -233,8 +235,9 @@ async def _drive(
     tasks: list[asyncio.Task[None]] = []
     cpu = CpuSampler(watch_pids or [])
     started = time.perf_counter()
-    for block in range(2 * blocks):
-        route = JOBS_ROUTE if block % 2 == 0 else BARE_ROUTE
+    order = list(urls)
+    for block in range(len(order) * blocks):
+        route = order[block % len(order)]
         block_start = started + block * block_s
         block_tasks = []
         cpu.start()
@@ -252,8 +255,9 @@ async def _drive(
         tasks.extend(block_tasks)
     await asyncio.gather(*tasks)
     elapsed = time.perf_counter() - started
-    while not pool.empty():
-        pool.get_nowait().close()
+    for pool in pools.values():
+        while not pool.empty():
+            pool.get_nowait().close()
     routes = {}
     for route, values in latencies.items():
         routes[route] = {
@@ -272,21 +276,33 @@ async def _drive(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m benchmarks.api_load --url URL ...`` (token on stdin): JSON on stdout."""
+    """``python -m benchmarks.api_load --url URL --bare-url URL ...`` (token on stdin): JSON
+    on stdout."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.api_load")
-    parser.add_argument("--url", required=True)
+    parser.add_argument("--url", required=True, help="the api")
+    parser.add_argument("--bare-url", required=True, help="the bare app (benchmarks.api_bare)")
     parser.add_argument("--rate", type=float, default=200.0, help="requests/s")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds per route")
     parser.add_argument("--blocks", type=int, default=6, help="alternating blocks per route")
     parser.add_argument("--connections", type=int, default=32, help="keep-alive connections")
     parser.add_argument(
-        "--watch-pids", default="", help="comma-separated api process ids: CPU per request"
+        "--watch-pids",
+        default="",
+        help="comma-separated process ids of both servers: CPU per request",
     )
     args = parser.parse_args(argv)
     token = sys.stdin.readline().strip()
     pids = [int(pid) for pid in args.watch_pids.split(",") if pid]
     result = asyncio.run(
-        _drive(args.url, token, args.rate, args.duration, args.blocks, args.connections, pids)
+        _drive(
+            {LIST: args.url, BARE: args.bare_url},
+            token,
+            args.rate,
+            args.duration,
+            args.blocks,
+            args.connections,
+            pids,
+        )
     )
     json.dump(result, sys.stdout)
 

@@ -297,12 +297,12 @@ def bench_api(
             typer.echo(f"{name}: skipped ({reads['skipped']})")
             continue
         for level in (reads["load"], reads["light_load"]):
-            jobs_route, bare = (level["routes"][r] for r in (bench.JOBS_ROUTE, bench.BARE_ROUTE))
-            ratio = level["jobs_p99_to_bare_p99"]
+            jobs_route, bare = (level["routes"][r] for r in (bench.LIST, bench.BARE))
+            ratio = level["list_p99_to_bare_p99"]
             typer.echo(
                 f"{name} at {level['rate_per_s']:g} req/s: GET {bench.JOBS_ROUTE} p50 "
                 f"{jobs_route['p50_ms']:.1f} ms p99 {jobs_route['p99_ms']:.1f} ms "
-                f"({jobs_route['errors']} errors) vs {bench.BARE_ROUTE} p50 "
+                f"({jobs_route['errors']} errors) vs the bare route's p50 "
                 f"{bare['p50_ms']:.1f} ms p99 {bare['p99_ms']:.1f} ms ({bare['errors']} "
                 f"errors); p99 ratio {'-' if ratio is None else f'{ratio:.2f}'}; aim met: "
                 f"{level['meets_aim']}; api RSS {level['api_rss_mb']['idle']:.0f} -> "
@@ -311,7 +311,8 @@ def bench_api(
         cpu = reads["cpu_ms_per_request_in_process"]
         typer.echo(
             f"{name}: CPU per request in process: "
-            + ", ".join(f"GET {route} {ms:.2f} ms" for route, ms in cpu.items())
+            + f"list {cpu['list']:.2f} ms, bare {cpu['bare']:.2f} ms "
+            + f"(ratio {cpu['list_to_bare']:.1f})"
         )
     tp = result["throughput"]
     if tp is None:
