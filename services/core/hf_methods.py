@@ -15,6 +15,8 @@ HFMethodName = Literal[
     "categorical_info",
     "categorical_onpolicy",
     "categorical_kernel",
+    "bayes_query",
+    "bayes_query_flat",
 ]
 """Stage-2 methods that learn pi_HF; the learner's ``HF_METHODS``."""
 HF_METHOD_NAMES: tuple[str, ...] = HFMethodName.__args__  # type: ignore[attr-defined]

@@ -62,6 +62,7 @@ from services.learner.hf_methods import (
 )
 from services.learner.kernel_prior import KernelEvidence
 from services.learner.networks import ObsNormalizer, layer_init
+from services.learner.query import PathPosterior, PathQuery
 
 
 @dataclass
@@ -101,6 +102,18 @@ class FeedbackConfig:
     label_channel: str = "hard"
     """``hard``: the thresholded label under the noise model; ``soft``: the decoder's
     calibrated likelihood ratio (each label must carry one)."""
+    query_certainty: float = 0.95
+    """``bayes`` collection: a state whose MAP action has this posterior is crossed without
+    a label (:mod:`services.learner.query`)."""
+    query_cell_m: float = 0.3
+    """``bayes`` collection: the state cell size in m (one forward move)."""
+    query_fit_period: int = 25
+    """``bayes``: Fhat is fitted to the posterior after every this many training labels (the
+    posterior, not Fhat, chooses the queries, so Fhat need not follow every label)."""
+    query_fit_steps: int = 50
+    """``bayes``: full-batch Adam steps of each periodic fit."""
+    query_final_fit_steps: int = 1500
+    """``bayes``: full-batch Adam steps of the fit at the end of collection."""
 
     def __post_init__(self) -> None:
         get_method(self.method)  # ValueError naming the known methods
@@ -118,6 +131,10 @@ class FeedbackConfig:
                 f"good_accuracy + bad_accuracy must exceed 1 for method {self.method!r} "
                 f"(labels must carry information), got {good} + {bad}"
             )
+        if not 0.5 < self.query_certainty < 1.0 or self.query_cell_m <= 0:
+            raise ValueError("query_certainty must be in (0.5, 1) and query_cell_m > 0")
+        if self.query_fit_period < 1 or min(self.query_fit_steps, self.query_final_fit_steps) < 0:
+            raise ValueError("query_fit_period must be >= 1, the fit steps >= 0")
         if self.kernel_bandwidth <= 0:
             raise ValueError(f"kernel_bandwidth must be > 0, got {self.kernel_bandwidth}")
         if self.ensemble_size < 2 or self.thompson_period < 1 or self.revisit_window < 1:
@@ -212,6 +229,15 @@ class FeedbackLearner:
             self.kernel = KernelEvidence(
                 normalizer.n_obs, self.config.kernel_bandwidth, self.config.noise_model
             )
+        self.query: PathQuery | None = None
+        """The ``bayes`` collection's posterior and query rule (:mod:`services.learner.query`)."""
+        if self.method.collection == "bayes":
+            self.query = PathQuery(
+                PathPosterior(self.method.prior),
+                self.config.query_certainty,
+                self.config.query_cell_m,
+                self.config.noise_model,
+            )
         if self.method.uses_ensemble:
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(seed + 1)
@@ -267,8 +293,22 @@ class FeedbackLearner:
     def collection_action(self, obs: np.ndarray, rng: np.random.Generator) -> int:
         """The action to execute (and so to label) while labels are collected: the method's
         :class:`~services.learner.collection.CollectionRule` (``paper``-style methods sample
-        pi_HF, softmax(beta * P(optimal)))."""
+        pi_HF, softmax(beta * P(optimal))); the ``bayes`` rule's
+        :class:`~services.learner.query.PathQuery`)."""
+        if self.query is not None:
+            return self.query.action(obs, rng)
         return self.collection.action(obs, rng)
+
+    @property
+    def wants_label(self) -> bool:
+        """Whether the last collection action is to be labelled (False: a ``bayes`` transit
+        move across a state the posterior is certain of)."""
+        return self.query is None or self.query.wants_label
+
+    @property
+    def leaves_path(self) -> bool:
+        """Whether the last label's action left the believed path (``bayes``: restart)."""
+        return self.query is not None and self.query.leaves_path
 
     @property
     def soft(self) -> bool:
@@ -283,7 +323,9 @@ class FeedbackLearner:
         optimal: bool | None = None,
         log_likelihood_ratio: float | None = None,
     ) -> FeedbackRecord:
-        """Route a label to validation or training; a training label triggers 1 + K_HF steps.
+        """Route a label to validation or training; a training label triggers 1 + K_HF steps
+        (``bayes``: no hold-out; the posterior is updated and Fhat refitted every
+        ``query_fit_period`` labels).
 
         ``log_likelihood_ratio`` (``log P(epoch | error) / P(epoch | correct)``) is the soft
         label: required on the ``soft`` channel, recorded but unused on the ``hard`` one.
@@ -315,7 +357,10 @@ class FeedbackLearner:
         if log_likelihood_ratio is not None and not np.isfinite(log_likelihood_ratio):
             raise ValueError(f"log_likelihood_ratio must be finite, got {log_likelihood_ratio}")
         obs = np.asarray(obs, dtype=np.float32)
-        is_validation = bool(self.rng.random() < self.config.validation_fraction)
+        # the bayes posterior is exact: every label informs it (no hold-out)
+        is_validation = self.query is None and bool(
+            self.rng.random() < self.config.validation_fraction
+        )
         record = FeedbackRecord(
             obs=obs.tolist(),
             action=int(action),
@@ -329,7 +374,52 @@ class FeedbackLearner:
         if is_validation:
             self.validation.append(record)
             return record, iter(())
+        if self.query is not None:
+            # the posterior (which the next action and the restart depend on) now; Fhat's
+            # periodic fit when the caller advances the (empty) minibatch stream
+            llr = log_likelihood_ratio if self.soft else None
+            self.query.row_cells.append(self.query.add(obs, action, label, llr))
+            soft = NO_SOFT_LABEL if llr is None else soft_label(llr)
+            self.buffer.add(obs, action, label, soft)
+            return record, self._posterior_fit()
         return record, self._training_minibatches(obs, action, label, log_likelihood_ratio)
+
+    def _posterior_fit(self) -> Iterator[Minibatch]:
+        """``bayes``: no minibatch; Fhat is refitted to the posterior every
+        ``query_fit_period`` training labels when the stream is advanced."""
+        if self.buffer.size % self.config.query_fit_period == 0:
+            self.fit_posterior(self.config.query_fit_steps)
+        yield from ()
+
+    def fit_posterior(self, steps: int, optimizer: torch.optim.Optimizer | None = None) -> None:
+        """``bayes``: ``steps`` full-batch Adam steps of Fhat's cross-entropy to the posterior
+        of every training label's state, each state weighted equally (however many labels
+        it took), so pi_HF = argmax Fhat follows the posterior's MAP where labels were taken
+        and generalises elsewhere; nothing for other methods."""
+        if self.query is None or self.buffer.size == 0:
+            return
+        optimizer = optimizer or self.optimizer
+        rows = np.arange(self.buffer.size)
+        obs = torch.from_numpy(self.buffer.obs[rows])
+        target = self.query.targets(rows)
+        cells = np.asarray(self.query.row_cells)
+        weight = torch.from_numpy(1.0 / np.bincount(cells)[cells]).float()
+        weight /= weight.sum()
+        for _ in range(steps):
+            log_q = torch.log_softmax(self.model(obs), dim=-1)
+            loss = -(weight * (target * log_q).sum(dim=-1)).sum()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            self.n_updates += 1
+
+    def finish(self) -> None:
+        """End of collection: ``bayes`` fits Fhat to the final posterior
+        (``query_final_fit_steps``, a fresh Adam at :data:`QUERY_FINAL_FIT_LR`); nothing for
+        other methods."""
+        if self.query is not None:
+            fit = torch.optim.Adam(self.model.parameters(), lr=QUERY_FINAL_FIT_LR)
+            self.fit_posterior(self.config.query_final_fit_steps, fit)
 
     def _training_minibatches(
         self, obs: np.ndarray, action: int, label: bool, log_likelihood_ratio: float | None
@@ -386,6 +476,7 @@ class FeedbackLearner:
             "n_updates": self.n_updates,
             **self._ensemble_state(),
             **({} if self.kernel is None else {"kernel": self.kernel.state_dict()}),
+            **({} if self.query is None else {"query": self.query.state_dict()}),
         }
 
     def _ensemble_state(self) -> dict[str, Any]:
@@ -429,6 +520,8 @@ class FeedbackLearner:
         self.n_updates = int(state["n_updates"])
         if self.kernel is not None:
             self.kernel.load_state_dict(state["kernel"])
+        if self.query is not None:
+            self.query.load_state_dict(state["query"])
         if self.ensemble is None:
             self.collection.load_state_dict(state)
         else:
@@ -514,6 +607,9 @@ class HFResult:
         }
 
 
+QUERY_FINAL_FIT_LR = 1e-2
+"""Adam learning rate of the ``bayes`` methods' final fit of Fhat to the posterior (a
+fresh optimiser: a few thousand full-batch steps on at most a few hundred states)."""
 SOFT_LABEL_FLOOR = 1e-6
 """A soft label's P(correct | epoch) is kept within [floor, 1 - floor] (a log-likelihood
 ratio beyond +-13.8), so that no single epoch is certain evidence."""
@@ -556,12 +652,15 @@ class FeedbackCollection:
         seed: int,
         max_steps: int,
         on_label: Callable[[FeedbackRecord], None] | None = None,
+        on_learner: Callable[[FeedbackLearner], None] | None = None,
     ) -> None:
         if n_labels < 1:
             raise ValueError(f"n_labels must be >= 1, got {n_labels}")
         self.start = time.perf_counter()
         self.env, self.source, self.n_labels = env, source, n_labels
         self.config, self.max_steps, self.on_label = config, max_steps, on_label
+        self.on_learner = on_learner
+        self.finished = False
         self.learner = FeedbackLearner(
             ObsNormalizer.from_space(env.observation_space), config, seed
         )
@@ -590,11 +689,11 @@ class FeedbackCollection:
             optimal = _optimal_now(self.env, action)
             next_obs, _, terminated, truncated, _ = self.env.step(action)
             self.n_steps += 1
-            label = self.source.feedback(obs, action, optimal)
+            # a bayes transit move is not labelled (nobody is asked)
+            wanted = self.learner.wants_label
+            label = self.source.feedback(obs, action, optimal) if wanted else None
             self.obs = next_obs
-            if terminated or truncated:
-                self.obs, _ = self.env.reset()
-                self.n_episodes += 1
+            minibatches = None
             if label is not None:
                 correct, log_likelihood_ratio = unpack_label(label)
                 record, minibatches = self.learner.route(
@@ -603,6 +702,12 @@ class FeedbackCollection:
                 self.records.append(record)
                 if self.on_label is not None:
                     self.on_label(record)
+            if terminated or truncated or (label is not None and self.learner.leaves_path):
+                self.obs, _ = self.env.reset()
+                self.n_episodes += 1
+                if self.learner.query is not None:
+                    self.learner.query.new_episode()
+            if minibatches is not None:
                 return minibatches
 
     def run(self) -> HFResult:
@@ -611,10 +716,16 @@ class FeedbackCollection:
         while not self.done:
             for minibatch in self.next_label():
                 self.learner.step(minibatch)
+            if self.on_learner is not None:
+                self.on_learner(self.learner)
         return self.result()
 
     def result(self) -> HFResult:
-        """The session's outcome (Fhat as trained so far, every record, the accuracies)."""
+        """The session's outcome (Fhat as trained so far, every record, the accuracies);
+        the first call finishes the learner (:meth:`FeedbackLearner.finish`)."""
+        if not self.finished:
+            self.learner.finish()
+            self.finished = True
         known = [r for r in self.records if r.optimal is not None]
         label_accuracy = float(np.mean([r.label == r.optimal for r in known])) if known else None
         acc_noisy, acc_true = self.learner.validation_accuracy()
@@ -640,6 +751,7 @@ def collect_feedback(
     seed: int = 0,
     max_steps: int | None = None,
     on_label: Callable[[FeedbackRecord], None] | None = None,
+    on_learner: Callable[[FeedbackLearner], None] | None = None,
 ) -> HFResult:
     """Run Algorithm 1's stage 2: act with pi_HF (sampling), label, update Fhat.
 
@@ -656,22 +768,24 @@ def collect_feedback(
     seed : int
         Seeds Fhat's initialisation, the sampling, the validation split and the first reset.
     max_steps : int, optional
-        Give up after this many env steps (default ``10 * n_labels``) if labels go missing.
+        Give up after this many env steps (default ``10 * n_labels``, ``200 * n_labels``
+        for the ``bayes`` collection's transit moves) if labels go missing.
     on_label : callable, optional
         Called with each new record, before its updates (progress bars, persistence).
+    on_learner : callable, optional
+        Called with the learner after each label's updates (a study measures a copy of
+        pi_HF at several budgets in one collection: a budget's labels are the first of a
+        larger one).
 
     Returns
     -------
     HFResult
         The trained Fhat, every record and the validation accuracies.
     """
+    config = config or FeedbackConfig()
+    if max_steps is None:  # the bayes rule's transit moves are steps without a label
+        max_steps = (200 if get_method(config.method).collection == "bayes" else 10) * n_labels
     collection = FeedbackCollection(
-        env,
-        source,
-        n_labels,
-        config or FeedbackConfig(),
-        seed,
-        10 * n_labels if max_steps is None else max_steps,
-        on_label,
+        env, source, n_labels, config, seed, max_steps, on_label, on_learner
     )
     return collection.run()

@@ -37,6 +37,13 @@ paper's own future work (more from fewer labels, active learning); see docs/stag
   ``softmax(sum_j w(s, s_j) log P(f_j | a_j, k))`` at the labelled states instead of to each
   label alone (:mod:`services.learner.kernel_prior`). Collection as ``categorical``.
 
+* ``bayes_query`` / ``bayes_query_flat``: labels spent where they inform (issue #24). An
+  exact per-state posterior of the optimal action (summed log-likelihood ratios; a shared
+  "mostly forward" prior learned across states without counting a label twice, or a
+  uniform one); certain states are crossed without a label, uncertain ones asked with top-two
+  Thompson sampling, and a query that leaves the believed path restarts the episode. Fhat
+  fits the posterior (:mod:`services.learner.query`).
+
 Every method keeps Fhat a 13 -> 16 -> 3 MLP and pi_HF = argmax_a Fhat(s, a); only the loss,
 the score transform and the collection rule change.
 """
@@ -64,11 +71,15 @@ class HFMethod:
     likelihood: str
     """``bce`` (the paper), ``forward`` (noise-aware sigmoid) or ``categorical``."""
     collection: str
-    """``softmax`` (the paper's softmax(beta * P(optimal))), ``thompson``, ``info`` or
-    ``greedy`` (pi_HF's argmax, softmax on a revisited observation)."""
+    """``softmax`` (the paper's softmax(beta * P(optimal))), ``thompson``, ``info``,
+    ``greedy`` (pi_HF's argmax, softmax on a revisited observation) or ``bayes`` (transit
+    where the per-state posterior is certain, top-two Thompson where not:
+    :mod:`services.learner.query`)."""
     prior: str = "none"
     """``none``: Fhat fits each label at its own state; ``kernel``: Fhat fits the
-    kernel-weighted posterior of nearby labels (:mod:`services.learner.kernel_prior`)."""
+    kernel-weighted posterior of nearby labels (:mod:`services.learner.kernel_prior`);
+    ``hierarchical`` / ``flat``: Fhat fits the per-state posterior of the ``bayes``
+    collection, with a learned shared prior over the optimal action or a uniform one."""
 
     @property
     def uses_noise_model(self) -> bool:
@@ -92,6 +103,8 @@ HF_METHODS: dict[str, HFMethod] = {
         HFMethod("categorical_info", "categorical", "info"),
         HFMethod("categorical_onpolicy", "categorical", "greedy"),
         HFMethod("categorical_kernel", "categorical", "softmax", prior="kernel"),
+        HFMethod("bayes_query", "categorical", "bayes", prior="hierarchical"),
+        HFMethod("bayes_query_flat", "categorical", "bayes", prior="flat"),
     )
 }
 PAPER_METHOD = "paper"
