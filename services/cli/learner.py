@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -393,6 +394,116 @@ def hf_sweep(
     _exit_on_failures(failures, out / "hf_policies.json")
 
 
+NSTAR_BUDGETS = "250,500,1000,2000,4000"
+
+
+def hf_nstar(
+    out: Annotated[Path, typer.Option(help="Output folder; writes nstar_rows.json, nstar.*.")],
+    seeds: Annotated[
+        str, typer.Option(help="Seeds as first-last (tuning range; 1000-1019 are reserved).")
+    ] = "100-109",
+    workers: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
+    tasks: Annotated[str, typer.Option(help="Comma-separated: sssg,vssg.")] = "sssg,vssg",
+    accuracies: Annotated[
+        str, typer.Option(help="Comma-separated oracle accuracies C.")
+    ] = "0.55,0.6,0.65,0.7,0.8",
+    labels: Annotated[
+        str, typer.Option(help="Comma-separated budgets (one collection to the largest).")
+    ] = NSTAR_BUDGETS,
+    method: Annotated[str, typer.Option(help="Comma-separated stage-2 methods.")] = "bayes_query",
+    reference_draws: Annotated[
+        int, typer.Option(min=10, help="Draws of the idealised reference per C and rule.")
+    ] = 400,
+    figure: Annotated[
+        Path | None, typer.Option(help="Also copy the figure here (e.g. docs/figures/nstar.png).")
+    ] = None,
+    report_only: Annotated[
+        bool, typer.Option(help="No new runs: the table, N* and figure of the rows in OUT.")
+    ] = False,
+    include: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="hf_policies.json of a `bgrl hf-sweep` (oracle rows) to add to the table."
+        ),
+    ] = None,
+) -> None:
+    """N*(C): labels for >= 80 % useful pi_HF (greedy SPL >= 0.5), noisy oracle, hard labels,
+    with Wilson 95 % intervals, the idealised Bayesian reference and the information bound.
+
+    Writes nstar_rows.json (one row per run and budget, resumable), nstar.json, nstar.csv
+    and nstar.png.
+    """
+    from services.learner.hf_methods import get_method
+    from services.learner.nstar import NStarJob, bounds, reference_curves, run_jobs, write_outputs
+
+    try:
+        first, _, last = seeds.partition("-")
+        seed_list = list(range(int(first), int(last or first) + 1))
+        budgets = tuple(sorted(int(n) for n in _entries(labels, "--labels")))
+        if not seed_list or min(budgets) < 1:
+            raise ValueError
+    except ValueError:
+        raise typer.BadParameter("--seeds is first-last, --labels integers >= 1") from None
+    methods = _entries(method, "--method")
+    try:
+        for name in methods:
+            get_method(name)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--method") from None
+    task_list = _entries(tasks, "--tasks")
+    cs = _accuracies(accuracies)
+    output_folder(out)
+    jobs = [
+        NStarJob(task, c, seed, name, budgets)
+        for c in cs
+        for task in task_list
+        for name in methods
+        for seed in seed_list
+    ]
+    if report_only:
+        rows_path = out / "nstar_rows.json"
+        rows = json.loads(rows_path.read_text()) if rows_path.exists() else []
+    else:
+        with typer.progressbar(length=len(jobs), label="collections") as bar:
+            try:
+                rows = run_jobs(
+                    jobs, out / "nstar_rows.json", workers, lambda job, new: bar.update(1)
+                )
+            except KeyboardInterrupt:
+                _interrupted(out / "nstar_rows.json")
+    grid = sorted({*budgets, *range(100, max(budgets) + 1, 100)})
+    from services.learner.pool import load_sweep
+
+    seen = {(r["task"], r["accuracy"], r["seed"], r["n_labels"], r["method"]) for r in rows}
+    for path in include or []:
+        try:
+            stored = load_sweep(path)[0]
+        except (OSError, ValueError) as exc:
+            raise typer.BadParameter(f"{path}: {exc}", param_hint="--include") from None
+        for row in stored:
+            key = (row["task"], row["accuracy"], row["seed"], row["n_labels"], row["method"])
+            if row.get("feedback", "oracle") == "oracle" and key not in seen:
+                seen.add(key)
+                rows.append({**row, "source": str(path)})
+    # the reference runs on SSSG's oracle path (VSSG's starts jitter around the same start)
+    params = {"path": "sssg", "accuracies": cs, "grid": grid, "draws": reference_draws}
+    cache = out / "reference.json"  # reused while the reference's parameters are the same
+    cached = json.loads(cache.read_text()) if cache.exists() else {}
+    if cached.get("params") == params:
+        reference = cached["reference"]
+    else:
+        reference = reference_curves("sssg", cs, grid, reference_draws)
+        cache.write_text(json.dumps({"params": params, "reference": reference}, indent=1))
+    limits = [b for task in task_list for b in bounds(task, cs)]
+    result = write_outputs(out, rows, reference, limits, figure)
+    for star in result["n_star"]:
+        typer.echo(
+            f"{star['method']} {star['task']} C={star['accuracy']:g}: N* = "
+            + (str(star["n_star"]) if star["n_star"] else f"> {star['above']}")
+        )
+    typer.echo(f"wrote {out / 'nstar.json'}, nstar.csv and nstar.png")
+
+
 def compare(
     folders: Annotated[list[Path], typer.Argument(help="`bgrl reproduce` output folders.")],
     out: Annotated[Path, typer.Option(help="Output folder (compare.md/json, plots).")],
@@ -415,4 +526,5 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add ``reproduce``, ``hf-sweep`` and ``compare``."""
     app.command("reproduce")(reproduce)
     app.command("hf-sweep")(hf_sweep)
+    app.command("hf-nstar")(hf_nstar)
     app.command("compare")(compare)

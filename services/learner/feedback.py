@@ -742,6 +742,12 @@ class FeedbackCollection:
         )
 
 
+def default_max_steps(config: FeedbackConfig, n_labels: int) -> int:
+    """Env steps after which a collection gives up: ``10 * n_labels``, ``200 * n_labels``
+    for the ``bayes`` collection (its transit moves are steps without a label)."""
+    return (200 if get_method(config.method).collection == "bayes" else 10) * n_labels
+
+
 def collect_feedback(
     env: gym.Env,
     source: FeedbackSource,
@@ -783,8 +789,7 @@ def collect_feedback(
         The trained Fhat, every record and the validation accuracies.
     """
     config = config or FeedbackConfig()
-    if max_steps is None:  # the bayes rule's transit moves are steps without a label
-        max_steps = (200 if get_method(config.method).collection == "bayes" else 10) * n_labels
+    max_steps = default_max_steps(config, n_labels) if max_steps is None else max_steps
     collection = FeedbackCollection(
         env, source, n_labels, config, seed, max_steps, on_label, on_learner
     )

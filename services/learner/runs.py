@@ -28,8 +28,10 @@ from services.learner.evaluation import eval_seeds, evaluate_spl, run_episode
 from services.learner.feedback import (
     FeedbackCollection,
     FeedbackConfig,
+    FeedbackLearner,
     HFPolicy,
     HFResult,
+    default_max_steps,
 )
 from services.learner.feedback_buffer import FeedbackRecord
 from services.learner.feedback_lockstep import collect_feedback_lockstep, lockstep_feedback_key
@@ -199,6 +201,7 @@ def learn_hf_policy(
     on_label: Callable[[FeedbackRecord], None] | None = None,
     source: DecodedFeedbackSource | None = None,
     label_channel: str = "hard",
+    on_learner: Callable[[FeedbackLearner], None] | None = None,
 ) -> HFResult:
     """Stage 2 from simulated feedback at accuracy C, on the run's label streams.
 
@@ -210,11 +213,12 @@ def learn_hf_policy(
 
     The labels depend on ``seed`` only (not on method, treatment or PPO settings), so every
     study guides the runs of one seed with the same pi_HF. ``on_label`` is called after
-    each label (a job worker checks for cancel there; raising stops the collection).
+    each label (a job worker checks for cancel there; raising stops the collection),
+    ``on_learner`` with the learner after each label's updates (:mod:`services.learner.nstar`).
     """
     return feedback_collection(
         env, accuracy, seed, n_labels, method=method, on_label=on_label, source=source,
-        label_channel=label_channel,
+        label_channel=label_channel, on_learner=on_learner,
     ).run()  # fmt: skip
 
 
@@ -228,6 +232,7 @@ def feedback_collection(
     on_label: Callable[[FeedbackRecord], None] | None = None,
     source: DecodedFeedbackSource | None = None,
     label_channel: str = "hard",
+    on_learner: Callable[[FeedbackLearner], None] | None = None,
 ) -> FeedbackCollection:
     """The stage-2 session of :func:`learn_hf_policy` (same arguments), not yet begun: run
     alone to its end, or in a lockstep batch
@@ -238,16 +243,18 @@ def feedback_collection(
         source = OracleFeedbackSource(accuracy, seed=seeds.int_seed(Stream.LABEL_NOISE))
     else:
         good, bad = source.noise_model
+    config = FeedbackConfig(
+        method=method, good_accuracy=good, bad_accuracy=bad, label_channel=label_channel
+    )
     return FeedbackCollection(
         env,
         source,
         n_labels,
-        FeedbackConfig(
-            method=method, good_accuracy=good, bad_accuracy=bad, label_channel=label_channel
-        ),
+        config,
         RunSeeds(seed).int_seed(Stream.LABEL_COLLECTION),
-        10 * n_labels,
+        default_max_steps(config, n_labels),
         on_label,
+        on_learner,
     )
 
 
