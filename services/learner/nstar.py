@@ -238,6 +238,7 @@ def plot_nstar(
     series: dict[tuple[str, str, float], list[dict[str, Any]]] = {}
     for row in table:
         series.setdefault((row["method"], row["task"], row["accuracy"]), []).append(row)
+    markers = {m: "os^vD"[k % 5] for k, m in enumerate(sorted({row["method"] for row in table}))}
     for (method, task, c), points in sorted(series.items()):
         xs = [p["n_labels"] for p in points]
         ys = [p["share"] for p in points]
@@ -249,7 +250,7 @@ def plot_nstar(
             xs,
             ys,
             yerr=err,
-            marker="o" if task == "sssg" else "s",
+            marker=markers[method],
             capsize=3,
             color=colours[c],
             linestyle="-" if task == "sssg" else "--",
@@ -275,6 +276,7 @@ def plot_nstar(
     )
     ax.legend(fontsize=6, ncol=2)
     ax = axes[1]
+    limits = list({r["accuracy"]: r for r in limits}.values())  # 30.1 bits: same per task
     cs = [r["accuracy"] for r in limits]
     ax.plot(cs, [r["hard_30_1"] for r in limits], "k-", label="bound 30.1 bits / (1 - H(C))")
     ax.plot(cs, [r["soft_30_1"] for r in limits], "k--", label="bound, soft channel (1.52x bits)")
