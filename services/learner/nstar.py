@@ -320,6 +320,27 @@ def plot_nstar(
     plt.close(fig)
 
 
+def markdown_table(table: Sequence[dict[str, Any]], stars: Sequence[dict[str, Any]]) -> str:
+    """One line per (method, task, C): useful runs / runs at each budget with the Wilson 95 %
+    interval, and N*."""
+    found = {(s["method"], s["task"], s["accuracy"]): s for s in stars}
+    cells: dict[tuple[str, str, float], list[str]] = {}
+    for row in table:
+        cells.setdefault((row["method"], row["task"], row["accuracy"]), []).append(
+            f"{row['n_labels']}: {row['useful']}/{row['runs']} "
+            f"({row['wilson_low']:.0%}-{row['wilson_high']:.0%})"
+        )
+    lines = [
+        "| method | task | C | useful pi_HF at each budget (Wilson 95 %) | N* |",
+        "|---|---|---|---|---|",
+    ]
+    for key, entries in cells.items():
+        star = found[key]
+        n = str(star["n_star"]) if star["n_star"] else f"> {star['above']}"
+        lines.append(f"| {key[0]} | {key[1].upper()} | {key[2]:g} | {'; '.join(entries)} | {n} |")
+    return "\n".join(lines) + "\n"
+
+
 def write_outputs(
     out: Path,
     rows: Sequence[dict[str, Any]],
@@ -327,8 +348,8 @@ def write_outputs(
     limits: Sequence[dict[str, Any]],
     figure: Path | None = None,
 ) -> dict[str, Any]:
-    """``nstar.json`` (rows, table, N*, reference, bounds), ``nstar.csv`` (the table) and
-    ``nstar.png`` (also copied to ``figure``)."""
+    """``nstar.json`` (table, N*, reference, bounds), ``nstar.csv`` and ``nstar.md`` (the
+    table) and ``nstar.png`` (also copied to ``figure``)."""
     import csv
     import shutil
 
@@ -336,6 +357,7 @@ def write_outputs(
     stars = n_star(table)
     result = {"table": table, "n_star": stars, "reference": list(reference), "bounds": list(limits)}
     (out / "nstar.json").write_text(json.dumps(result, indent=1))
+    (out / "nstar.md").write_text(markdown_table(table, stars))
     if table:
         with (out / "nstar.csv").open("w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(table[0]))

@@ -64,3 +64,7 @@ def test_report_only_writes_table_figure_and_n_star_from_stored_rows(tmp_path: P
     written = json.loads((out / "nstar.json").read_text())
     assert written["n_star"][0]["n_star"] == 500 and written["bounds"][0]["hard_30_1"] > 1000
     assert (out / "nstar.png").stat().st_size > 0 and (out / "nstar.csv").exists()
+    assert (
+        "| bayes_query | SSSG | 0.6 | 250: 1/2 (9%-91%); 500: 2/2 (34%-100%) | 500 |"
+        in (out / "nstar.md").read_text()
+    )
