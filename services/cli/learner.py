@@ -412,7 +412,10 @@ def hf_nstar(
     ] = NSTAR_BUDGETS,
     method: Annotated[str, typer.Option(help="Comma-separated stage-2 methods.")] = "bayes_query",
     reference_draws: Annotated[
-        int, typer.Option(min=10, help="Draws of the idealised reference per C and rule.")
+        int,
+        typer.Option(
+            min=0, help="Draws of the idealised reference per C and rule (0: no reference)."
+        ),
     ] = 400,
     figure: Annotated[
         Path | None, typer.Option(help="Also copy the figure here (e.g. docs/figures/nstar.png).")
@@ -489,7 +492,9 @@ def hf_nstar(
     params = {"path": "sssg", "accuracies": cs, "grid": grid, "draws": reference_draws}
     cache = out / "reference.json"  # reused while the reference's parameters are the same
     cached = json.loads(cache.read_text()) if cache.exists() else {}
-    if cached.get("params") == params:
+    if reference_draws == 0:
+        reference = []
+    elif cached.get("params") == params:
         reference = cached["reference"]
     else:
         reference = reference_curves("sssg", cs, grid, reference_draws)
