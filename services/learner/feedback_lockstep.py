@@ -73,6 +73,8 @@ def lockstep_feedback_key(config: FeedbackConfig) -> str | None:
     method = get_method(config.method)
     if method.uses_ensemble or method.likelihood not in BATCHED_LIKELIHOODS:
         return None
+    if method.collection == "bayes":  # Fhat is fitted to its posterior, not stepped per label
+        return None
     shared = asdict(config)
     if method.likelihood == "bce" or method.prior == "kernel":  # the loss has no noise model
         shared = {k: v for k, v in shared.items() if k not in PER_RUN_FEEDBACK_SETTINGS}
