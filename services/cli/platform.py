@@ -270,11 +270,13 @@ def list_jobs(
     if as_json:
         typer.echo(page.model_dump_json(indent=2))
         return
-    typer.echo(f"{'id':<32}  {'kind':<15}  {'status':<9}  {'progress':>8}  created (UTC)")
+    typer.echo(
+        f"{'id':<32}  {'kind':<15}  {'status':<9}  {'progress':>8}  {'created (UTC)':<19}  what"
+    )
     for job in page.items:
         typer.echo(
             f"{job.id:<32}  {job.kind:<15}  {job.status:<9}  {job.progress:>8.0%}  "
-            f"{_age(job.created_at)}"
+            f"{_age(job.created_at):<19}  {job.summary}"
         )
     typer.echo(f"{len(page.items)} of {page.total} job(s)", err=True)
 
@@ -296,7 +298,7 @@ def show(job_id: JobIdArgument, as_json: JsonOption = False, url: UrlOption = No
         )
         return
     lines = [
-        f"job       {job.id} ({job.kind})",
+        f"job       {job.id} ({job.kind}: {job.summary})",
         f"status    {job.status}, {job.progress:.0%}, {job.steps_done} steps, attempt "
         f"{job.attempts} of {job.max_attempts}"
         + ("" if job.resumed_from_step is None else f", resumed from step {job.resumed_from_step}"),

@@ -119,6 +119,8 @@ class Job(ApiObject):
     updated_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    summary: str = ""
+    """What the job does, in one line (empty from a server older than 2026-12-03)."""
 
     @property
     def finished(self) -> bool:

@@ -128,7 +128,7 @@ def test_job_list_is_the_pydantic_page_of_its_rows(api_any_db: Api) -> None:
         page = response.json()
         assert page == _reference(api, filters, limit, offset), (filters, limit, offset)
         for item in page["items"]:
-            assert list(item) == list(JobPublic.model_fields)
+            assert list(item) == [*JobPublic.model_fields, *JobPublic.model_computed_fields]
     whole = api.client.get("/api/v1/jobs?limit=50", headers=api.as_("viewer")).json()
     assert whole["total"] == len(rows) and len(whole["items"]) == len(rows)
     first = next(item for item in whole["items"] if item["id"] == rows[6]["id"])
@@ -139,6 +139,31 @@ def test_job_list_is_the_pydantic_page_of_its_rows(api_any_db: Api) -> None:
     assert odd["config"]["note"] == UNICODE and odd["max_attempts"] == 2**31 - 1
     assert odd["created_at"] == "2026-03-01T12:07:00.007007Z"
     assert odd["finished_at"] == "2026-03-01T13:07:01.007006Z"
+
+
+def test_each_job_says_what_it_does_even_of_a_kind_or_config_it_does_not_know(
+    api: Api,
+) -> None:
+    """``summary`` is the kind's one line; a row of another version's kind, or a config its
+    kind's summary cannot read, still lists (the kind, or its title)."""
+    base = _rows(api)[5]
+    rows = [
+        {**base, "id": "a" * 32, "kind": "guided_ppo",
+         "config": {"task": "sssg", "method": "hf_sparse", "accuracy": 0.7, "seed": 3,
+                    "total_steps": 40000}},
+        {**base, "id": "b" * 32, "kind": "guided_ppo", "config": {"total_steps": "many"}},
+        {**base, "id": "c" * 32, "kind": "from_the_future", "config": {}},
+    ]  # fmt: skip
+    with api.client.app.state.engine.begin() as connection:
+        connection.execute(insert(Job), rows)
+    response = api.client.get("/api/v1/jobs?limit=50", headers=api.as_("viewer"))
+    assert response.status_code == 200, response.text
+    summaries = {item["id"][0]: item["summary"] for item in response.json()["items"]}
+    assert summaries == {
+        "a": "SSSG hf_sparse C=0.7 seed 3, 40,000 steps",
+        "b": "Guided-PPO run",
+        "c": "from_the_future",
+    }
 
 
 def test_job_list_writes_non_finite_floats_as_pydantic_does(api: Api) -> None:

@@ -90,7 +90,9 @@ def test_submit_list_wait_cancel(live_api: LiveApi, signed_in: Path, tmp_path: P
 
     code, out, _ = bgrl("jobs", "list", "--status", "queued", "--limit", "500")
     assert code == 0
-    assert any(line.split()[:3] == [job_id, "guided_ppo", "queued"] for line in out.splitlines())
+    listed = [line for line in out.splitlines() if line.startswith(job_id)]
+    assert len(listed) == 1 and listed[0].split()[1:3] == ["guided_ppo", "queued"]
+    assert listed[0].endswith("  VSSG rl_sparse seed 7, 2,000 steps")  # the kind's summary
     code, out, _ = bgrl("jobs", "list", "--json", "--limit", "1")
     assert (code, json.loads(out)["limit"]) == (0, 1)
 
@@ -101,7 +103,7 @@ def test_submit_list_wait_cancel(live_api: LiveApi, signed_in: Path, tmp_path: P
     code, out, _ = bgrl("jobs", "show", job_id[:6])
     assert code == 0
     assert out.splitlines()[:2] == [
-        f"job       {job_id} (guided_ppo)",
+        f"job       {job_id} (guided_ppo: VSSG rl_sparse seed 7, 2,000 steps)",
         "status    cancelled, 0%, 0 steps, attempt 0 of 3",
     ]
     assert '"total_steps": 2000' in out and "files     0 (none yet)" in out

@@ -43,9 +43,11 @@ def test_sign_in_wrong_password_then_right_then_out(context: tuple, server: Serv
     page.fill("input[name=password]", STAFF[1])
     page.click("button[type=submit]")
     page.wait_for_url(re.compile(r"/jobs$"))
+    # the account box is drawn once /users/me answered; until then the admin links are in
+    # the page, hidden (their text would count): read the nav after it
+    assert page.locator("#account .who").inner_text() == f"{STAFF[0]} staff"
     assert nav_labels(page) == NAV
     assert page.locator("nav a[aria-current=page]").inner_text() == "Jobs"
-    assert page.locator("#account .who").inner_text() == f"{STAFF[0]} staff"
     page.get_by_role("button", name="Sign out").click()
     page.wait_for_url(re.compile(r"/signin$"))
     page.goto("/subjects")
@@ -292,6 +294,8 @@ def test_cancel_and_retry_from_the_list(context: tuple, server: Server) -> None:
     job = server.call("POST", "/api/v1/jobs", json={"kind": "guided_ppo", "config": config})
     page = open_as(ctx, server, "staff", "/jobs")
     row = page.locator(f"tr[data-job='{job['id']}']")
+    assert job["summary"] == "VSSG rl_sparse seed 9, 200,000 steps"
+    row.get_by_role("cell", name=job["summary"], exact=True).wait_for()  # the API's line
     row.get_by_role("button", name="Cancel").click()
     page.get_by_text(f"Cancel requested for job {job['id'][:8]}.").wait_for()
     row.locator(".badge", has_text="cancelled").wait_for(timeout=30_000)

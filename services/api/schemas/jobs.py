@@ -7,11 +7,11 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, computed_field
 
 from services.api.schemas.common import ApiRequest, PublicModel
 from services.core.db.models import JOB_STATUSES
-from services.platform.jobs import KindName, SubmittedKindName
+from services.platform.jobs import KindName, SubmittedKindName, job_kind
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
@@ -58,6 +58,21 @@ class JobPublic(PublicModel):
     updated_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+
+    @computed_field(  # type: ignore[prop-decorator]
+        description="What the job does, in one line (its kind's summary of its config), "
+        "e.g. 'SSSG hf_sparse C=0.7 seed 3, 40,000 steps'."
+    )
+    @property
+    def summary(self) -> str:
+        try:
+            kind = job_kind(self.kind)
+        except ValueError:  # a row of a kind this version does not know
+            return self.kind
+        try:
+            return kind.summary(self.config)
+        except (TypeError, ValueError):  # a config stored before its kind's fields settled
+            return kind.title
 
 
 class CurvePublic(PublicModel):

@@ -9,28 +9,9 @@ const PAGE = 50;
 const LIST_REFRESH_MS = 15_000;
 const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
 
-/** One line saying what a job runs. */
+/** One line saying what a job runs: its kind's summary, which the API sends. */
 export function jobSummary(job) {
-  const c = job.config || {};
-  if (job.kind === "guided_ppo" || job.kind === "reproduce_run") {
-    const acc = c.accuracy !== undefined && c.accuracy !== null ? ` C=${c.accuracy}` : "";
-    const steps = c.total_steps ?? c.ppo_overrides?.total_steps;
-    return `${String(c.task || "").toUpperCase()} ${c.method || ""}${acc} seed ${c.seed ?? 0}` +
-      (steps ? `, ${Number(steps).toLocaleString("en")} steps` : "");
-  }
-  if (job.kind === "reproduce") {
-    const tasks = (c.tasks || []).map((t) => t.toUpperCase()).join("+");
-    return `${tasks} ${(c.methods || []).join(", ")}; ${c.seeds ?? "?"} seed(s)`;
-  }
-  if (job.kind === "eeg_calibration") return `recording #${c.recording_id}, seed ${c.seed ?? 0}`;
-  if (job.kind === "live_session") {
-    const how = c.accelerated === false ? "paced" : "accelerated";
-    return `session ${c.session_id}: ${c.mode || "live"} run, ${how}` +
-      (c.n_actions ? `, ${c.n_actions} actions` : "");
-  }
-  if (job.kind === "bids_export") return `BIDS export of subject #${c.subject_id}`;
-  if (job.kind === "session_replay") return `replay of session ${c.session_id}`;
-  return "";
+  return job.summary ?? "";
 }
 
 /** Kinds whose progress is environment steps (the others: "–" under Steps). */
