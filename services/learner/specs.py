@@ -23,7 +23,7 @@ PAPER_METHODS = ("rl_sparse", "rl_rich", "hf_sparse")
 """The paper's three methods (Fig. 3); rl_shaped is ours, a hand-designed-reward baseline."""
 REWARD_MODES = {
     "rl_sparse": "sparse",
-    "rl_rich": "rich",
+    "rl_rich": "dense",
     "rl_shaped": "shaped",
     "hf_sparse": "sparse",
 }
@@ -160,7 +160,7 @@ class RunSpec:
             hf_treatment=self.hf_treatment or "authors",  # type: ignore[arg-type]
             **self.ppo_overrides,
         )
-        if self.method == "rl_shaped":  # policy invariance needs the learner's discount
+        if self.method in ("rl_rich", "rl_shaped"):  # shaping needs the learner's discount
             config.env_kwargs["shaping_gamma"] = config.gamma
         return config
 

@@ -38,13 +38,16 @@ STEP_REWARD = -1.0
 RICH_DISTANCE_COEF = -1.0
 RICH_HEADING_COEF = -0.3
 SHAPING_GAMMA = 0.99
+POTENTIAL_SCALE = 1.0
+"""Reward units per action of the oracle's path in the shaping potential (1: the step cost)."""
 """Default discount of the shaping term: the learner's gamma (PPOConfig.gamma)."""
 NO_PATH_STEPS = 120.0
 """Cost-to-go given to a pose from which the oracle finds no way to the goal (about 0.7 %
 of a random walk's poses, pressed against a wall): the episode's time limit."""
 
 Task = Literal["sssg", "vssg"]
-RewardMode = Literal["sparse", "rich", "shaped"]
+RewardMode = Literal["sparse", "rich", "shaped", "dense"]
+REWARD_MODES: tuple[RewardMode, ...] = ("sparse", "rich", "shaped", "dense")
 
 MAX_RENDER_SIZE = 4096
 """Largest ``render_width`` / ``render_height`` (px): TinyRenderer allocates the whole frame."""
@@ -100,6 +103,13 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
     ``-c`` is the sparse reward's undiscounted optimal value up to a constant, the
     potential Ng et al. recommend; unlike the Euclidean distance it does not lead into
     obstacles. ``gamma`` is ``shaping_gamma`` and must be the learner's discount.
+    ``reward_mode="dense"`` (the reward of the ``rl_rich`` method) is the same shaping with
+    ``Phi = -potential_scale * c(s)`` kept, not reset to 0, at a collision: the crash
+    state's potential stays charged (the robot stays where it was, so the collision step
+    earns ``(gamma - 1) * Phi(s)``), ``Phi = 0`` only in the goal. The discounted sum of
+    ``F`` is ``gamma^T Phi(s_T) - Phi(s_0)`` with ``s_T`` the last pose, so a crash far
+    from the goal pays less than one near it, and no crash pays more than the goal from
+    the same state (with ``shaped`` a crash hands ``c(s)`` back: the crash trap).
 
     ## Starting State
 
@@ -138,16 +148,18 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         render_height: int = rendering.FRAME_HEIGHT,
         oracle_cache_dir: str | Path | None = None,
         shaping_gamma: float = SHAPING_GAMMA,
+        potential_scale: float = POTENTIAL_SCALE,
     ) -> None:
         if task not in ("sssg", "vssg"):
             raise ValueError(f"task must be 'sssg' or 'vssg', got {task!r}")
-        if reward_mode not in ("sparse", "rich", "shaped"):
-            raise ValueError(
-                f"reward_mode must be 'sparse', 'rich' or 'shaped', got {reward_mode!r}"
-            )
+        if reward_mode not in REWARD_MODES:
+            raise ValueError(f"reward_mode must be one of {REWARD_MODES}, got {reward_mode!r}")
         if not 0.0 < shaping_gamma <= 1.0:
             raise ValueError(f"shaping_gamma must be in (0, 1], got {shaping_gamma!r}")
         self.shaping_gamma = float(shaping_gamma)
+        if not (math.isfinite(potential_scale) and potential_scale > 0.0):
+            raise ValueError(f"potential_scale must be positive, got {potential_scale!r}")
+        self.potential_scale = float(potential_scale)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         for name, size in (("render_width", render_width), ("render_height", render_height)):
@@ -313,14 +325,14 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         obs, _, _ = self._observation()
         info = self._info(success=False, collision=False)
         info["shortest_path_steps"] = self._shortest_path_steps()
-        self._potential = -float(info["shortest_path_steps"]) * abs(STEP_REWARD)
+        self._potential = -float(info["shortest_path_steps"]) * self.potential_scale
         return obs, info
 
     def potential(self) -> float:
         """The shaping potential ``Phi`` of the current (non-terminal) pose: minus the
         oracle's shortest path to the goal, in actions (see Rewards)."""
         steps = self.oracle.cost_to_go(self._x, self._y, self._yaw)
-        return -(steps if math.isfinite(steps) else NO_PATH_STEPS) * abs(STEP_REWARD)
+        return -(steps if math.isfinite(steps) else NO_PATH_STEPS) * self.potential_scale
 
     def _shortest_path_steps(self) -> int:
         """The oracle policy's path length from the current pose (cached for SSSG)."""
@@ -382,8 +394,15 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         if self.reward_mode == "rich":
             heading_error = abs(wrap_angle(bearing - self._yaw))
             reward += RICH_DISTANCE_COEF * distance + RICH_HEADING_COEF * heading_error
-        elif self.reward_mode == "shaped":
-            next_potential = 0.0 if success or collision else self.potential()
+        elif self.reward_mode in ("shaped", "dense"):
+            if success:
+                next_potential = 0.0
+            elif collision:
+                # shaped: Phi = 0 at every terminal state (the crash gives c(s) back);
+                # dense: the crash state keeps its potential (the robot stays where it was).
+                next_potential = 0.0 if self.reward_mode == "shaped" else self._potential
+            else:
+                next_potential = self.potential()
             reward += self.shaping_gamma * next_potential - self._potential
             self._potential = next_potential
         return (

@@ -27,7 +27,7 @@ class SessionCreate(StrictRequest):
         "configured with; default map when omitted. GET /maps lists them.",
     )
     seed: Seed | None = Field(None, description="Seed of the first reset (random if None).")
-    reward_mode: Literal["sparse", "rich"] = "sparse"
+    reward_mode: Literal["sparse", "rich", "dense"] = "sparse"
 
 
 class PacedPublic(BaseModel):

@@ -40,7 +40,7 @@ from services.sim.maps import NavMap
 from services.sim.oracle import Oracle
 
 Task = Literal["sssg", "vssg"]
-RewardMode = Literal["sparse", "rich"]
+RewardMode = Literal["sparse", "rich", "dense"]
 FrameView = Literal["camera", "topdown"]
 
 logger = logging.getLogger(__name__)

@@ -59,6 +59,8 @@ def test_run_spec_validates_and_round_trips() -> None:
     assert settings_conflict([*specs, RunSpec("sssg", "rl_sparse", 5, map_path="x.json")])
     shaped = RunSpec("vssg", "rl_shaped", 1, ppo_overrides={"gamma": 0.95}).ppo_config()
     assert shaped.env_kwargs == {"reward_mode": "shaped", "shaping_gamma": 0.95}
+    dense = RunSpec("vssg", "rl_rich", 1, ppo_overrides={"gamma": 0.9}).ppo_config()
+    assert dense.env_kwargs == {"reward_mode": "dense", "shaping_gamma": 0.9}
     with pytest.raises(ValueError, match="accuracy is required"):
         RunSpec("sssg", "rl_shaped", 0, accuracy=0.7)
 

@@ -43,7 +43,7 @@ def test_spaces_and_reset_observation(env: BrainNavEnv) -> None:
     assert info["is_success"] is False and info["collision"] is False
 
 
-@pytest.mark.parametrize("reward_mode", ["rich", "shaped"])
+@pytest.mark.parametrize("reward_mode", ["rich", "shaped", "dense"])
 def test_check_env_passes(reward_mode: str) -> None:
     environment = gym.make(
         "services.sim:BrainNav-VSSG-v0", reward_mode=reward_mode, render_mode="rgb_array"
@@ -145,6 +145,118 @@ def test_shaped_reward_prefers_the_oracle_action() -> None:
         environment.close()
 
 
+@pytest.mark.parametrize(("gamma", "scale"), [(0.99, 1.0), (0.9, 2.5)])
+@pytest.mark.parametrize(
+    ("seed", "plan", "outcome"),
+    [
+        (3, _oracle_path, "goal"),
+        (4, lambda e: [Action.FORWARD] * 20, "collision"),
+        (5, lambda e: [Action.TURN_LEFT] * 3 + [Action.FORWARD] * 40, "collision"),
+        (6, lambda e: list(np.random.default_rng(6).integers(0, 3, 25)), None),
+    ],
+)
+def test_dense_reward_telescopes_to_the_last_state_potential(
+    seed: int, plan, outcome: str | None, gamma: float, scale: float
+) -> None:
+    """sum_t gamma^t F_t = gamma^T Phi(s_T) - Phi(s_0) with F the dense minus the sparse
+    reward and Phi = -scale * (oracle's path): 0 in the goal, but a crash keeps the
+    potential of the pose it happened at (unlike ``shaped``, which resets it to 0)."""
+    sparse = BrainNavEnv(task="vssg", reward_mode="sparse")
+    dense = BrainNavEnv(
+        task="vssg", reward_mode="dense", shaping_gamma=gamma, potential_scale=scale
+    )
+    try:
+        _, info = sparse.reset(seed=seed)
+        dense.reset(seed=seed)
+        phi_0 = -scale * info["shortest_path_steps"]
+        assert dense.potential() == phi_0
+        discounted, t, step_info = 0.0, 0, {}
+        for action in plan(sparse):
+            _, r_sparse, terminated, _, step_info = sparse.step(int(action))
+            _, r_dense, _, _, _ = dense.step(int(action))
+            discounted += gamma**t * (r_dense - r_sparse)
+            t += 1
+            if terminated:
+                break
+        phi_t = 0.0 if step_info["is_success"] else dense.potential()  # the crash pose's
+        assert discounted == pytest.approx(gamma**t * phi_t - phi_0, abs=1e-9)
+        ended = (
+            "goal" if step_info["is_success"] else "collision" if step_info["collision"] else None
+        )
+        assert ended == outcome
+        if outcome == "collision":
+            assert phi_t < 0.0  # the crash pose is not the goal: its potential is charged
+    finally:
+        sparse.close()
+        dense.close()
+
+
+def _discounted_return(environment: BrainNavEnv, actions, gamma: float) -> tuple[float, dict]:
+    total, info = 0.0, {}
+    for t, action in enumerate(actions):
+        _, reward, terminated, _, info = environment.step(int(action))
+        total += gamma**t * reward
+        if terminated:
+            break
+    return total, info
+
+
+@pytest.mark.parametrize("prefix", [0, 2, 4])
+def test_dense_crash_never_pays_more_than_the_goal_from_the_same_state(prefix: int) -> None:
+    """From states on the way into a wall, crashing (now, or after driving on) returns less
+    than following the oracle to the goal, however far from the goal the crash is."""
+    gamma = 0.99
+    environment = BrainNavEnv(task="vssg", reward_mode="dense", shaping_gamma=gamma)
+    try:
+
+        def at_state() -> None:
+            environment.reset(seed=4)
+            for _ in range(prefix):
+                assert not environment.step(Action.FORWARD)[2]
+
+        at_state()
+        crash, crash_info = _discounted_return(environment, [Action.FORWARD] * 40, gamma)
+        assert crash_info["collision"] is True
+        at_state()
+        goal, goal_info = _discounted_return(environment, _oracle_path(environment), gamma)
+        assert goal_info["is_success"] is True
+        assert goal > crash
+        # A turn away from the goal, then the crash, pays less still than the goal.
+        at_state()
+        detour, detour_info = _discounted_return(
+            environment, [Action.TURN_RIGHT] * 6 + [Action.FORWARD] * 40, gamma
+        )
+        assert goal > detour and detour_info["is_success"] is False
+    finally:
+        environment.close()
+
+
+def test_dense_reward_values_on_a_hand_built_case() -> None:
+    """The rewards of the first steps from the SSSG start, by hand: Phi = -scale * c."""
+    gamma, scale = 0.9, 2.0
+    environment = BrainNavEnv(
+        task="sssg", reward_mode="dense", shaping_gamma=gamma, potential_scale=scale
+    )
+    try:
+        _, info = environment.reset(seed=0)
+        c = info["shortest_path_steps"]
+        best = environment.oracle.policy_action(*environment.pose)
+        _, reward, *_ = environment.step(best)  # one step along the path: c -> c - 1
+        assert reward == pytest.approx(-1.0 + gamma * -scale * (c - 1) + scale * c)
+        environment.reset(seed=0)
+        for _ in range(20):  # facing +x from (2, 6): the wall at x = 4 stops the robot
+            before = -environment.potential()
+            _, reward, terminated, _, step_info = environment.step(Action.FORWARD)
+            if terminated:
+                break
+        assert step_info["collision"] is True
+        # The crash: -100, and the potential stays (the robot stays): F = (gamma - 1) Phi.
+        assert reward == pytest.approx(-100.0 + (1.0 - gamma) * before)
+        assert reward < -100.0 + (1.0 - gamma) * scale * 120  # never near the goal's +100
+    finally:
+        environment.close()
+
+
 def test_collision_terminates_and_keeps_pose(env: BrainNavEnv) -> None:
     env.reset(seed=0)
     # Facing +x from (2, 6): the wall at x = 4.0 stops the 0.4 m footprint disc.
@@ -229,7 +341,9 @@ def test_invalid_arguments_are_rejected(env: BrainNavEnv) -> None:
     with pytest.raises(ValueError, match="task"):
         BrainNavEnv(task="maze")
     with pytest.raises(ValueError, match="reward_mode"):
-        BrainNavEnv(reward_mode="dense")
+        BrainNavEnv(reward_mode="geodesic")
+    with pytest.raises(ValueError, match="potential_scale"):
+        BrainNavEnv(reward_mode="dense", potential_scale=0.0)
     with pytest.raises(ValueError, match="shaping_gamma"):
         BrainNavEnv(reward_mode="shaped", shaping_gamma=0.0)
     with pytest.raises(ValueError, match="render_mode"):
