@@ -223,6 +223,55 @@ def bench_sweep(
     typer.echo(json.dumps(result["figures"], indent=1))
 
 
+def bench_sb3_peer(
+    out: Annotated[Path, typer.Option(help="Output folder; writes sb3_peer.json, summary.md.")],
+    tasks: Annotated[str, typer.Option(help="Comma-separated: sssg,vssg.")] = "vssg",
+    methods: Annotated[
+        str, typer.Option(help="Comma-separated methods whose reward SB3 learns from.")
+    ] = "rl_rich",
+    seeds: Annotated[int, typer.Option(min=1, help="Seeds per task and method.")] = 5,
+    first_seed: Annotated[int, typer.Option(min=0, help="First seed.")] = 0,
+    steps: Annotated[int, typer.Option(min=2048, help="Env steps per run.")] = 150_000,
+    eval_every: Annotated[int, typer.Option(min=1, help="Env steps between evaluations.")] = 10_000,
+    stop_when_held: Annotated[
+        int, typer.Option(min=0, help="Stop a run after this many evaluations >= 0.7 (0: never).")
+    ] = 0,
+    workers: Annotated[int, typer.Option(min=1, help="Runs at a time.")] = 2,
+) -> None:
+    """Stable-Baselines3 PPO with its defaults on our env, per method's reward: SPL curves.
+
+    Resumes: runs already in OUT/sb3_peer.json are kept. Writes summary.md and
+    sb3_peer_<task>.png beside it.
+    """
+    from benchmarks.sb3_peer import run
+
+    output_folder(out)
+    task_list = [t.strip() for t in tasks.split(",") if t.strip()]
+    method_list = [m.strip() for m in methods.split(",") if m.strip()]
+    seed_list = list(range(first_seed, first_seed + seeds))
+    with tqdm(total=len(task_list) * len(method_list) * seeds, desc="sb3 peer", unit="run") as bar:
+
+        def progress(message: str) -> None:
+            bar.set_postfix_str(message)
+            bar.update(1)
+
+        try:
+            run(
+                out,
+                tasks=task_list,
+                methods=method_list,
+                seeds=seed_list,
+                total_steps=steps,
+                eval_every=eval_every,
+                stop_when_held=stop_when_held or None,
+                workers=workers,
+                progress=progress,
+            )
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from None
+    typer.echo((out / "summary.md").read_text())
+
+
 def bench_api(
     out: Annotated[Path, typer.Option(help="Folder for api.json.")],
     rate: Annotated[float, typer.Option(min=1, help="Requests/s of each route.")] = 200.0,
@@ -432,11 +481,13 @@ def bench_soak(
 
 
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
-    """Add ``bgrl bench sim|eeg|learner|sweep|api|loop|soak`` and ``bgrl eeg quality-sweep``."""
+    """Add ``bgrl bench sim|eeg|learner|sweep|sb3-peer|api|loop|soak`` and
+    ``bgrl eeg quality-sweep``."""
     bench_app.command("sim")(bench_sim)
     bench_app.command("eeg")(bench_eeg)
     bench_app.command("learner")(bench_learner)
     bench_app.command("sweep")(bench_sweep)
+    bench_app.command("sb3-peer")(bench_sb3_peer)
     bench_app.command("api")(bench_api)
     bench_app.command("loop")(bench_loop)
     bench_app.command("soak")(bench_soak)
