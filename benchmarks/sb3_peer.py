@@ -26,6 +26,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from services.core.files import write_results_json
 from services.learner.evaluation import eval_seeds, evaluate_spl
 from services.learner.specs import N_VSSG_EVAL_STARTS, REWARD_MODES, TASK_ENV_IDS
 
@@ -40,11 +41,14 @@ def sb3_run(
     total_steps: int,
     eval_every: int,
     stop_when_held: int | None = None,
+    partial_path: Path | None = None,
 ) -> dict[str, Any]:
     """One SB3 PPO run (defaults) of ``method``'s reward on ``task``: its record.
 
     With ``stop_when_held`` the run stops once that many evaluations in a row reached
-    SPL 0.7 (to spare CPU on a shared machine; the record says where it stopped).
+    SPL 0.7 (to spare CPU on a shared machine; the record says where it stopped). With
+    ``partial_path`` the record so far (``"partial": true``) is written there after every
+    evaluation, so a run cut short still shows its curve.
     """
     import torch
     from stable_baselines3 import PPO
@@ -57,6 +61,27 @@ def sb3_run(
     curve: list[list[float]] = []
     torch.set_num_threads(1)
     started = time.perf_counter()
+
+    def record(*, partial: bool) -> dict[str, Any]:
+        reached = [steps for steps, value in curve if value >= SPL_TARGET]
+        return {
+            "task": task,
+            "method": method,
+            "reward_mode": env_kwargs["reward_mode"],
+            "learner": "sb3_ppo_defaults",
+            "seed": seed,
+            "total_steps": total_steps,
+            "eval_every": eval_every,
+            "stop_when_held": stop_when_held,
+            "stopped_at": None if partial or curve[-1][0] >= total_steps else curve[-1][0],
+            "partial": partial,
+            "curve": curve,
+            "final_spl": curve[-1][1],
+            "last5_spl": sum(v for _, v in curve[-5:]) / len(curve[-5:]),
+            "steps_to_0_7": reached[0] if reached else None,
+            "wall_seconds": time.perf_counter() - started,
+        }
+
     env = make_vec_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
     with closing(gym.make(env_id, reward_mode="sparse")) as eval_env:
 
@@ -65,6 +90,8 @@ def sb3_run(
                 return int(model.predict(obs, deterministic=True)[0])
 
             curve.append([int(model.num_timesteps), evaluate_spl(eval_env, act, starts)])
+            if partial_path is not None:
+                write_results_json(partial_path, record(partial=True), indent=None)
 
         class Evaluate(BaseCallback):
             def _on_step(self) -> bool:
@@ -81,23 +108,7 @@ def sb3_run(
             model.learn(total_timesteps=total_steps, callback=Evaluate())
         finally:
             env.close()
-    reached = [steps for steps, value in curve if value >= SPL_TARGET]
-    return {
-        "task": task,
-        "method": method,
-        "reward_mode": env_kwargs["reward_mode"],
-        "learner": "sb3_ppo_defaults",
-        "seed": seed,
-        "total_steps": total_steps,
-        "eval_every": eval_every,
-        "stop_when_held": stop_when_held,
-        "stopped_at": curve[-1][0] if curve[-1][0] < total_steps else None,
-        "curve": curve,
-        "final_spl": curve[-1][1],
-        "last5_spl": sum(v for _, v in curve[-5:]) / len(curve[-5:]),
-        "steps_to_0_7": reached[0] if reached else None,
-        "wall_seconds": time.perf_counter() - started,
-    }
+    return record(partial=False)
 
 
 def _key(record: dict[str, Any]) -> tuple[str, str, int]:
@@ -205,8 +216,6 @@ def run(
     rewritten after each run, then ``summary.md`` and the plots. Returns the document."""
     import stable_baselines3
 
-    from services.core.files import write_results_json
-
     for method in methods:
         if method not in REWARD_MODES:
             raise ValueError(f"unknown method {method!r}; expected one of {list(REWARD_MODES)}")
@@ -229,10 +238,21 @@ def run(
         "python": platform.python_version(),
         "runs": runs,
     }
+    partial = out / "partial"  # each running run's curve so far
+    partial.mkdir(exist_ok=True)
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=context) as pool:
         futures = [
-            pool.submit(sb3_run, task, method, seed, total_steps, eval_every, stop_when_held)
+            pool.submit(
+                sb3_run,
+                task,
+                method,
+                seed,
+                total_steps,
+                eval_every,
+                stop_when_held,
+                partial / f"{task}_{method}_{seed}.json",
+            )
             for task, method, seed in todo
         ]
         for future in as_completed(futures):

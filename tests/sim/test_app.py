@@ -212,7 +212,7 @@ def test_bad_requests_get_clear_4xx(client: TestClient) -> None:
     outside_path = client.post("/sessions", json={"map": "/etc/passwd"})
     assert outside_path.status_code == 422
     assert client.post("/sessions", json={"task": "maze"}).status_code == 422
-    assert client.post("/sessions", json={"reward_mode": "dense"}).status_code == 422
+    assert client.post("/sessions", json={"reward_mode": "geodesic"}).status_code == 422
     assert client.post("/sessions", json={"surprise": 1}).status_code == 422
 
     sid = open_session(client)["id"]
