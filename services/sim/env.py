@@ -38,8 +38,8 @@ STEP_REWARD = -1.0
 RICH_DISTANCE_COEF = -1.0
 RICH_HEADING_COEF = -0.3
 SHAPING_GAMMA = 0.99
-POTENTIAL_SCALE = 1.0
-"""Reward units per action of the oracle's path in the shaping potential (1: the step cost)."""
+DENSE_DISTANCE_COEF = 0.1
+"""The dense reward's cost per step and per action of the oracle's path from the new pose."""
 """Default discount of the shaping term: the learner's gamma (PPOConfig.gamma)."""
 NO_PATH_STEPS = 120.0
 """Cost-to-go given to a pose from which the oracle finds no way to the goal (about 0.7 %
@@ -148,7 +148,7 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         render_height: int = rendering.FRAME_HEIGHT,
         oracle_cache_dir: str | Path | None = None,
         shaping_gamma: float = SHAPING_GAMMA,
-        potential_scale: float = POTENTIAL_SCALE,
+        distance_coef: float = DENSE_DISTANCE_COEF,
     ) -> None:
         if task not in ("sssg", "vssg"):
             raise ValueError(f"task must be 'sssg' or 'vssg', got {task!r}")
@@ -157,9 +157,11 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         if not 0.0 < shaping_gamma <= 1.0:
             raise ValueError(f"shaping_gamma must be in (0, 1], got {shaping_gamma!r}")
         self.shaping_gamma = float(shaping_gamma)
-        if not (math.isfinite(potential_scale) and potential_scale > 0.0):
-            raise ValueError(f"potential_scale must be positive, got {potential_scale!r}")
-        self.potential_scale = float(potential_scale)
+        if not (math.isfinite(distance_coef) and distance_coef > 0.0):
+            raise ValueError(f"distance_coef must be positive, got {distance_coef!r}")
+        if reward_mode == "dense" and shaping_gamma >= 1.0:
+            raise ValueError("the dense reward needs shaping_gamma < 1 (the crash's cost)")
+        self.distance_coef = float(distance_coef)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         for name, size in (("render_width", render_width), ("render_height", render_height)):
@@ -325,14 +327,19 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         obs, _, _ = self._observation()
         info = self._info(success=False, collision=False)
         info["shortest_path_steps"] = self._shortest_path_steps()
-        self._potential = -float(info["shortest_path_steps"]) * self.potential_scale
+        self._potential = -float(info["shortest_path_steps"]) * abs(STEP_REWARD)
         return obs, info
 
     def potential(self) -> float:
         """The shaping potential ``Phi`` of the current (non-terminal) pose: minus the
         oracle's shortest path to the goal, in actions (see Rewards)."""
+        return -self.path_cost() * abs(STEP_REWARD)
+
+    def path_cost(self) -> float:
+        """``c(s)``: the oracle's shortest path from the current pose to the goal, in
+        actions (``NO_PATH_STEPS`` where it finds none)."""
         steps = self.oracle.cost_to_go(self._x, self._y, self._yaw)
-        return -(steps if math.isfinite(steps) else NO_PATH_STEPS) * self.potential_scale
+        return steps if math.isfinite(steps) else NO_PATH_STEPS
 
     def _shortest_path_steps(self) -> int:
         """The oracle policy's path length from the current pose (cached for SSSG)."""
@@ -394,17 +401,15 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         if self.reward_mode == "rich":
             heading_error = abs(wrap_angle(bearing - self._yaw))
             reward += RICH_DISTANCE_COEF * distance + RICH_HEADING_COEF * heading_error
-        elif self.reward_mode in ("shaped", "dense"):
-            if success:
-                next_potential = 0.0
-            elif collision:
-                # shaped: Phi = 0 at every terminal state (the crash gives c(s) back);
-                # dense: the crash state keeps its potential (the robot stays where it was).
-                next_potential = 0.0 if self.reward_mode == "shaped" else self._potential
-            else:
-                next_potential = self.potential()
+        elif self.reward_mode == "shaped":
+            next_potential = 0.0 if success or collision else self.potential()
             reward += self.shaping_gamma * next_potential - self._potential
             self._potential = next_potential
+        elif self.reward_mode == "dense":
+            # c of the pose after the step; on a collision the robot stayed where it was,
+            # and the crash costs what staying there for ever would: c / (1 - gamma).
+            cost = 0.0 if success else self.distance_coef * self.path_cost()
+            reward -= cost / (1.0 - self.shaping_gamma) if collision else cost
         return (
             obs,
             reward,

@@ -145,68 +145,54 @@ def test_shaped_reward_prefers_the_oracle_action() -> None:
         environment.close()
 
 
-@pytest.mark.parametrize(("gamma", "scale"), [(0.99, 1.0), (0.9, 2.5)])
-@pytest.mark.parametrize(
-    ("seed", "plan", "outcome"),
-    [
-        (3, _oracle_path, "goal"),
-        (4, lambda e: [Action.FORWARD] * 20, "collision"),
-        (5, lambda e: [Action.TURN_LEFT] * 3 + [Action.FORWARD] * 40, "collision"),
-        (6, lambda e: list(np.random.default_rng(6).integers(0, 3, 25)), None),
-    ],
-)
-def test_dense_reward_telescopes_to_the_last_state_potential(
-    seed: int, plan, outcome: str | None, gamma: float, scale: float
-) -> None:
-    """sum_t gamma^t F_t = gamma^T Phi(s_T) - Phi(s_0) with F the dense minus the sparse
-    reward and Phi = -scale * (oracle's path): 0 in the goal, but a crash keeps the
-    potential of the pose it happened at (unlike ``shaped``, which resets it to 0)."""
-    sparse = BrainNavEnv(task="vssg", reward_mode="sparse")
-    dense = BrainNavEnv(
-        task="vssg", reward_mode="dense", shaping_gamma=gamma, potential_scale=scale
-    )
-    try:
-        _, info = sparse.reset(seed=seed)
-        dense.reset(seed=seed)
-        phi_0 = -scale * info["shortest_path_steps"]
-        assert dense.potential() == phi_0
-        discounted, t, step_info = 0.0, 0, {}
-        for action in plan(sparse):
-            _, r_sparse, terminated, _, step_info = sparse.step(int(action))
-            _, r_dense, _, _, _ = dense.step(int(action))
-            discounted += gamma**t * (r_dense - r_sparse)
-            t += 1
-            if terminated:
-                break
-        phi_t = 0.0 if step_info["is_success"] else dense.potential()  # the crash pose's
-        assert discounted == pytest.approx(gamma**t * phi_t - phi_0, abs=1e-9)
-        ended = (
-            "goal" if step_info["is_success"] else "collision" if step_info["collision"] else None
-        )
-        assert ended == outcome
-        if outcome == "collision":
-            assert phi_t < 0.0  # the crash pose is not the goal: its potential is charged
-    finally:
-        sparse.close()
-        dense.close()
-
-
 def _discounted_return(environment: BrainNavEnv, actions, gamma: float) -> tuple[float, dict]:
     total, info = 0.0, {}
     for t, action in enumerate(actions):
-        _, reward, terminated, _, info = environment.step(int(action))
+        _, reward, terminated, truncated, info = environment.step(int(action))
         total += gamma**t * reward
-        if terminated:
+        if terminated or truncated:
             break
     return total, info
 
 
+def test_dense_reward_values_on_a_hand_built_case() -> None:
+    """By hand from the SSSG start: each step costs 1 + alpha * c(s'), the goal pays +100,
+    a crash costs 100 + alpha * c(s) / (1 - gamma), c the oracle's path in actions."""
+    gamma, alpha = 0.9, 0.25
+    environment = BrainNavEnv(
+        task="sssg", reward_mode="dense", shaping_gamma=gamma, distance_coef=alpha
+    )
+    try:
+        _, info = environment.reset(seed=0)
+        c = info["shortest_path_steps"]
+        rewards, terminated = [], False
+        while not terminated:
+            action = environment.oracle.policy_action(*environment.pose)
+            _, reward, terminated, _, step_info = environment.step(action)
+            rewards.append(reward)
+        assert step_info["is_success"] is True and len(rewards) == c
+        expected = [-1.0 - alpha * (c - 1 - t) for t in range(c - 1)] + [100.0]
+        assert rewards == pytest.approx(expected)
+        environment.reset(seed=0)
+        for _ in range(20):  # facing +x from (2, 6): the wall at x = 4 stops the robot
+            before = environment.path_cost()
+            _, reward, terminated, _, step_info = environment.step(Action.FORWARD)
+            if terminated:
+                break
+        assert step_info["collision"] is True
+        assert reward == pytest.approx(-100.0 - alpha * before / (1.0 - gamma))
+    finally:
+        environment.close()
+
+
 @pytest.mark.parametrize("prefix", [0, 2, 4])
 def test_dense_crash_never_pays_more_than_the_goal_from_the_same_state(prefix: int) -> None:
-    """From states on the way into a wall, crashing (now, or after driving on) returns less
-    than following the oracle to the goal, however far from the goal the crash is."""
+    """From states on the way into a wall, crashing (now, or after a detour) returns less
+    than following the oracle to the goal, and no more than turning on the spot until the
+    time limit (the crash costs what staying there for ever would)."""
     gamma = 0.99
-    environment = BrainNavEnv(task="vssg", reward_mode="dense", shaping_gamma=gamma)
+    environment = gym.make("services.sim:BrainNav-VSSG-v0", reward_mode="dense")
+    dense = environment.unwrapped
     try:
 
         def at_state() -> None:
@@ -218,41 +204,47 @@ def test_dense_crash_never_pays_more_than_the_goal_from_the_same_state(prefix: i
         crash, crash_info = _discounted_return(environment, [Action.FORWARD] * 40, gamma)
         assert crash_info["collision"] is True
         at_state()
-        goal, goal_info = _discounted_return(environment, _oracle_path(environment), gamma)
+        goal, goal_info = _discounted_return(environment, _oracle_path(dense), gamma)
         assert goal_info["is_success"] is True
         assert goal > crash
-        # A turn away from the goal, then the crash, pays less still than the goal.
         at_state()
         detour, detour_info = _discounted_return(
             environment, [Action.TURN_RIGHT] * 6 + [Action.FORWARD] * 40, gamma
         )
-        assert goal > detour and detour_info["is_success"] is False
+        assert detour_info["collision"] is True and goal > detour
+        at_state()
+        spinning, spin_info = _discounted_return(environment, [Action.TURN_LEFT] * 200, gamma)
+        assert spin_info["collision"] is False
+        assert crash < spinning  # spinning is cut off at 120 steps, the crash is not
     finally:
         environment.close()
 
 
-def test_dense_reward_values_on_a_hand_built_case() -> None:
-    """The rewards of the first steps from the SSSG start, by hand: Phi = -scale * c."""
-    gamma, scale = 0.9, 2.0
-    environment = BrainNavEnv(
-        task="sssg", reward_mode="dense", shaping_gamma=gamma, potential_scale=scale
-    )
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_dense_reward_is_best_along_the_oracle_path(seed: int) -> None:
+    """c falls by at most 1 an action, so no trajectory costs less than the oracle's path:
+    random and half-oracle trajectories return less from the same VSSG start."""
+    gamma = 0.99
+    environment = gym.make("services.sim:BrainNav-VSSG-v0", reward_mode="dense")
+    rng = np.random.default_rng(seed)
     try:
-        _, info = environment.reset(seed=0)
-        c = info["shortest_path_steps"]
-        best = environment.oracle.policy_action(*environment.pose)
-        _, reward, *_ = environment.step(best)  # one step along the path: c -> c - 1
-        assert reward == pytest.approx(-1.0 + gamma * -scale * (c - 1) + scale * c)
-        environment.reset(seed=0)
-        for _ in range(20):  # facing +x from (2, 6): the wall at x = 4 stops the robot
-            before = -environment.potential()
-            _, reward, terminated, _, step_info = environment.step(Action.FORWARD)
-            if terminated:
-                break
-        assert step_info["collision"] is True
-        # The crash: -100, and the potential stays (the robot stays): F = (gamma - 1) Phi.
-        assert reward == pytest.approx(-100.0 + (1.0 - gamma) * before)
-        assert reward < -100.0 + (1.0 - gamma) * scale * 120  # never near the goal's +100
+        environment.reset(seed=seed)
+        oracle_path = _oracle_path(environment.unwrapped)
+        best, info = _discounted_return(environment, oracle_path, gamma)
+        assert info["is_success"] is True
+        for _ in range(5):
+            environment.reset(seed=seed)
+            actions, total, t, done = [], 0.0, 0, False
+            while not done:
+                pose = environment.unwrapped.pose
+                oracle = environment.unwrapped.oracle.policy_action(*pose)
+                action = oracle if rng.random() < 0.5 else int(rng.integers(0, 3))
+                _, reward, terminated, truncated, _ = environment.step(action)
+                total += gamma**t * reward
+                t, done = t + 1, terminated or truncated
+                actions.append(action)
+            assert actions != oracle_path  # a random choice differed
+            assert total < best
     finally:
         environment.close()
 
@@ -342,8 +334,10 @@ def test_invalid_arguments_are_rejected(env: BrainNavEnv) -> None:
         BrainNavEnv(task="maze")
     with pytest.raises(ValueError, match="reward_mode"):
         BrainNavEnv(reward_mode="geodesic")
-    with pytest.raises(ValueError, match="potential_scale"):
-        BrainNavEnv(reward_mode="dense", potential_scale=0.0)
+    with pytest.raises(ValueError, match="distance_coef"):
+        BrainNavEnv(reward_mode="dense", distance_coef=0.0)
+    with pytest.raises(ValueError, match="shaping_gamma < 1"):
+        BrainNavEnv(reward_mode="dense", shaping_gamma=1.0)
     with pytest.raises(ValueError, match="shaping_gamma"):
         BrainNavEnv(reward_mode="shaped", shaping_gamma=0.0)
     with pytest.raises(ValueError, match="render_mode"):
