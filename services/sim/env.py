@@ -103,13 +103,15 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
     ``-c`` is the sparse reward's undiscounted optimal value up to a constant, the
     potential Ng et al. recommend; unlike the Euclidean distance it does not lead into
     obstacles. ``gamma`` is ``shaping_gamma`` and must be the learner's discount.
-    ``reward_mode="dense"`` (the reward of the ``rl_rich`` method) is the same shaping with
-    ``Phi = -potential_scale * c(s)`` kept, not reset to 0, at a collision: the crash
-    state's potential stays charged (the robot stays where it was, so the collision step
-    earns ``(gamma - 1) * Phi(s)``), ``Phi = 0`` only in the goal. The discounted sum of
-    ``F`` is ``gamma^T Phi(s_T) - Phi(s_0)`` with ``s_T`` the last pose, so a crash far
-    from the goal pays less than one near it, and no crash pays more than the goal from
-    the same state (with ``shaped`` a crash hands ``c(s)`` back: the crash trap).
+    ``reward_mode="dense"`` (the reward of the ``rl_rich`` method) is the paper's rich
+    reward with the oracle's geodesic path in place of the straight-line distance and
+    heading error, and a crash charged what staying there for ever would cost: every step
+    adds ``-distance_coef * c(s')`` (``c`` the oracle's path from the new pose in actions,
+    ``NO_PATH_STEPS`` where it finds none, 0 in the goal), a collision
+    ``-distance_coef * c(s) / (1 - gamma)`` with ``gamma = shaping_gamma``. Along the
+    oracle's path ``c`` falls by one an action, as fast as any path can (up to the
+    lattice's rounding), so that path is optimal for the dense reward too; no crash pays
+    more than standing still at its pose for ever.
 
     ## Starting State
 
