@@ -237,6 +237,9 @@ def bench_sb3_peer(
         int, typer.Option(min=0, help="Stop a run after this many evaluations >= 0.7 (0: never).")
     ] = 0,
     workers: Annotated[int, typer.Option(min=1, help="Runs at a time.")] = 2,
+    reward_scale: Annotated[
+        float, typer.Option(min=0.0, help="Factor on SB3's rewards (default: our PPO's).")
+    ] = 0.01,
 ) -> None:
     """Stable-Baselines3 PPO with its defaults on our env, per method's reward: SPL curves.
 
@@ -265,6 +268,7 @@ def bench_sb3_peer(
                 eval_every=eval_every,
                 stop_when_held=stop_when_held or None,
                 workers=workers,
+                reward_scale=reward_scale,
                 progress=progress,
             )
         except ValueError as exc:

@@ -25,12 +25,16 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.wrappers import TransformReward
 
 from services.core.files import write_results_json
 from services.learner.evaluation import eval_seeds, evaluate_spl
+from services.learner.ppo import PPOConfig
 from services.learner.specs import N_VSSG_EVAL_STARTS, REWARD_MODES, TASK_ENV_IDS
 
 SPL_TARGET = 0.7
+REWARD_SCALE = PPOConfig().reward_scale
+"""The reward scale of our PPO (0.01), applied to SB3's rewards too: one factor less."""
 Progress = Callable[[str], None]
 
 
@@ -42,13 +46,15 @@ def sb3_run(
     eval_every: int,
     stop_when_held: int | None = None,
     partial_path: Path | None = None,
+    reward_scale: float = REWARD_SCALE,
 ) -> dict[str, Any]:
     """One SB3 PPO run (defaults) of ``method``'s reward on ``task``: its record.
 
     With ``stop_when_held`` the run stops once that many evaluations in a row reached
     SPL 0.7 (to spare CPU on a shared machine; the record says where it stopped). With
     ``partial_path`` the record so far (``"partial": true``) is written there after every
-    evaluation, so a run cut short still shows its curve.
+    evaluation, so a run cut short still shows its curve. SB3 sees the env's rewards times
+    ``reward_scale`` (default: our PPO's, so that both learners see the same rewards).
     """
     import torch
     from stable_baselines3 import PPO
@@ -73,6 +79,7 @@ def sb3_run(
             "total_steps": total_steps,
             "eval_every": eval_every,
             "stop_when_held": stop_when_held,
+            "reward_scale": reward_scale,
             "stopped_at": None if partial or curve[-1][0] >= total_steps else curve[-1][0],
             "partial": partial,
             "curve": curve,
@@ -82,7 +89,14 @@ def sb3_run(
             "wall_seconds": time.perf_counter() - started,
         }
 
-    env = make_vec_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
+    env = make_vec_env(
+        env_id,
+        n_envs=1,
+        seed=seed,
+        env_kwargs=env_kwargs,
+        wrapper_class=TransformReward,
+        wrapper_kwargs={"func": lambda reward: reward_scale * reward},
+    )
     with closing(gym.make(env_id, reward_mode="sparse")) as eval_env:
 
         def evaluate(model: PPO) -> None:
@@ -116,7 +130,12 @@ def _key(record: dict[str, Any]) -> tuple[str, str, int]:
 
 
 def _settings(record: dict[str, Any]) -> tuple[Any, ...]:
-    return (record["total_steps"], record.get("stop_when_held"), record.get("eval_every"))
+    return (
+        record["total_steps"],
+        record.get("stop_when_held"),
+        record.get("eval_every"),
+        record.get("reward_scale"),
+    )
 
 
 def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -209,6 +228,7 @@ def run(
     eval_every: int,
     stop_when_held: int | None,
     workers: int,
+    reward_scale: float = REWARD_SCALE,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Every (task, method, seed) run not yet in ``out/sb3_peer.json`` (runs there with
@@ -221,7 +241,7 @@ def run(
             raise ValueError(f"unknown method {method!r}; expected one of {list(REWARD_MODES)}")
     path = out / "sb3_peer.json"
     runs: list[dict[str, Any]] = json.loads(path.read_text())["runs"] if path.exists() else []
-    wanted = (total_steps, stop_when_held, eval_every)
+    wanted = (total_steps, stop_when_held, eval_every, reward_scale)
     if any(_settings(r) != wanted for r in runs):
         raise ValueError(f"{path} holds runs with other settings; use another --out")
     done = {_key(r) for r in runs}
@@ -252,6 +272,7 @@ def run(
                 eval_every,
                 stop_when_held,
                 partial / f"{task}_{method}_{seed}.json",
+                reward_scale,
             )
             for task, method, seed in todo
         ]
