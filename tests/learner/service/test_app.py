@@ -33,6 +33,11 @@ PAPER_FHAT = {
     "revisit_window": 24,
     "kernel_bandwidth": 0.1,
     "label_channel": "hard",
+    "query_certainty": 0.95,
+    "query_cell_m": 0.3,
+    "query_fit_period": 25,
+    "query_fit_steps": 50,
+    "query_final_fit_steps": 1500,
 }
 PLATFORM_FHAT = {**PAPER_FHAT, "method": RECOMMENDED_METHOD}
 """What a session gets by default: the paper's settings with the recommended stage-2 method."""
