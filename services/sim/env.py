@@ -227,15 +227,16 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self._potential = 0.0
 
     # ------------------------------------------------------------------ world
-    def _build_world(self) -> tuple[int, float]:
-        """Create floor, walls, boxes, goal pillar and the Husky in this env's client.
+    def _build_world(self) -> tuple[int | None, float]:
+        """Create floor, walls, boxes, goal pillar and (an env that renders) the Husky.
 
         Rays are cast 0.4 m above the floor (below the lowest obstacle's half height), so
         the floor needs no collision shape.
         """
         cid = self._client
         m = self.nav_map
-        robot = bullet.add_husky(cid)  # visual only: rays never hit the robot
+        # visual only (rays never hit the robot), and ~9 MB of meshes: built for frames only
+        robot = bullet.add_husky(cid) if self.render_mode == "rgb_array" else None
 
         def add_box(cx: float, cy: float, sx: float, sy: float, h: float, yaw: float, rgba):
             half = [sx / 2.0, sy / 2.0, h / 2.0]
@@ -450,7 +451,7 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         )
 
     def _sync_body(self) -> None:
-        if not self._body_synced:
+        if not self._body_synced and self._robot_id is not None:
             pybullet.resetBasePositionAndOrientation(
                 self._robot_id,
                 [self._x, self._y, 0.0],

@@ -85,6 +85,26 @@ def test_env_construction_leaves_stdout_alone(capfd: pytest.CaptureFixture) -> N
     assert capfd.readouterr().out == "still here\n"
 
 
+def test_only_an_env_that_renders_builds_the_husky(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The Husky is visual only (rays never hit it) and its meshes cost ~9 MB of a ~36 MB
+    env: a headless env (training, sweeps) goes without it and sees the same rays."""
+    built: list[int] = []
+    real = bullet.add_husky
+    monkeypatch.setattr(bullet, "add_husky", lambda client: built.append(client) or real(client))
+    headless, rendering = BrainNavEnv(), BrainNavEnv(render_mode="rgb_array")
+    try:
+        assert built == [rendering._client]
+        obs_a, _ = headless.reset(seed=3)
+        obs_b, _ = rendering.reset(seed=3)
+        assert np.array_equal(obs_a, obs_b)
+        for action in [0, 0, 1, 0, 2, 0, 0]:
+            assert np.array_equal(headless.step(action)[0], rendering.step(action)[0])
+        assert headless.render() is None and rendering.render().shape[2] == 3
+    finally:
+        headless.close()
+        rendering.close()
+
+
 def test_clients_are_released_on_every_path(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     def live_clients() -> int:
         return sum(pybullet.isConnected(physicsClientId=c) for c in range(64))
@@ -101,7 +121,7 @@ def test_clients_are_released_on_every_path(tmp_path, monkeypatch: pytest.Monkey
 
     monkeypatch.setattr(bullet, "add_husky", broken_husky)
     with pytest.raises(RuntimeError, match="mesh missing"):
-        BrainNavEnv()
+        BrainNavEnv(render_mode="rgb_array")  # the Husky is built for frames only
     assert live_clients() == before  # the half-built env's client is gone too
     unreachable = tmp_path / "walled.json"
     unreachable.write_text(
