@@ -325,8 +325,11 @@ def _soak(
             if alive_kinds:
                 kind = rng.choice(alive_kinds)
                 pid = rng.choice(sorted(p for p, k in processes.items() if k == kind))
+                # bgrl up's own children; the others (a Celery pool child) their parent replaces
+                supervised = pid in {child.pid for child in psutil.Process(up.pid).children()}
                 os.kill(pid, signal.SIGKILL)
-                kills.append({"at_s": round(now - started, 1), "kind": kind, "pid": pid})
+                kills.append({"at_s": round(now - started, 1), "kind": kind, "pid": pid,
+                              "supervised": supervised})  # fmt: skip
                 progress(
                     f"killed {kind} ({len(kills)} kills, {len(jobs)} jobs, "
                     f"{len(live.sessions)} live sessions)"
@@ -389,6 +392,7 @@ def _soak(
         "live_sessions": live_report,
         "orphans": len(orphans),
         "kills": {kind: sum(k["kind"] == kind for k in kills) for kind in KINDS},
+        "kills_of_supervised": sum(k["supervised"] for k in kills),
         "restarts": {kind: restarts.get(kind, 0) for kind in KINDS},
         "reads": {
             "count": len(reads),

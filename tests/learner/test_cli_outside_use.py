@@ -344,7 +344,9 @@ def test_ctrl_c_stops_a_real_hf_sweep_at_once_and_a_rerun_resumes(tmp_path) -> N
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
-    assert time.monotonic() - sent < 15, "still running the queued runs after Ctrl-C"
+    # the run in hand may finish (~10 s idle, 18 s seen in a full suite run); the 28 queued
+    # ones (~5 min) must not start
+    assert time.monotonic() - sent < 60, "still running the queued runs after Ctrl-C"
     assert process.returncode == 130, output
     assert "Traceback" not in output and "interrupted" in output
     rows = _strict_json(out / "hf_policies.json")["runs"]

@@ -40,7 +40,9 @@ def test_a_short_soak_loses_no_job_and_leaves_no_orphan(tmp_path: Path) -> None:
     assert report["orphans"] == 0
     kills = sum(report["kills"].values())
     assert kills >= 2
-    assert sum(report["restarts"].values()) >= kills  # every killed process came back
+    # every killed process bgrl up started came back (a Celery or uvicorn child that was
+    # killed is replaced by its parent, which bgrl up does not count)
+    assert sum(report["restarts"].values()) >= report["kills_of_supervised"]
     assert report["reads"]["count"] > 0 and report["reads"]["p99_ms"] is not None
     assert (tmp_path / "soak_rss.png").stat().st_size > 0
     assert report["rss_mib"]["api"]["processes"] >= 1
