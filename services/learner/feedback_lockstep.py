@@ -49,6 +49,7 @@ from services.learner.feedback import (
     Minibatch,
 )
 from services.learner.hf_methods import get_method, label_nll
+from services.learner.lockstep_batch import leave_batch
 from services.learner.optimizer import adam_update_
 
 BATCHED_LIKELIHOODS = ("bce", "categorical")
@@ -340,21 +341,12 @@ def collect_feedback_lockstep(
 
     def leave(keep: list[int], failed: dict[int, Exception]) -> None:
         nonlocal batch, slots
-        for row, collection in enumerate(batch):
-            if row in keep:
-                continue
-            if row in failed:
-                outcomes[slots[row]] = failed[row]
-                continue
-            optimizer.write_run_state(row, collection.learner.optimizer)
-            try:
-                outcomes[slots[row]] = collection.result()
-            except Exception as exc:
-                outcomes[slots[row]] = exc
-        if len(keep) < len(batch):
-            model.keep(keep)
-            optimizer.keep(keep)
-        batch, slots = [batch[r] for r in keep], [slots[r] for r in keep]
+        for row, collection in enumerate(batch):  # a finished run's own Adam state first
+            if row not in keep and row not in failed:
+                optimizer.write_run_state(row, collection.learner.optimizer)
+        batch, slots = leave_batch(
+            batch, slots, keep, failed, outcomes, FeedbackCollection.result, (model, optimizer)
+        )
 
     while batch:
         pending: dict[int, list[Minibatch]] = {}

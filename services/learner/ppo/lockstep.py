@@ -50,6 +50,7 @@ import torch
 from torch import nn
 
 from services.learner.feedback import HFPolicy
+from services.learner.lockstep_batch import leave_batch
 from services.learner.optimizer import FlatAdam, adam_update_
 from services.learner.ppo.advantages import advantages_and_returns
 from services.learner.ppo.agent import ActorCritic
@@ -420,20 +421,9 @@ def _advance(
 
     def leave(keep: list[int]) -> None:
         nonlocal runs, slots
-        for row, run in enumerate(runs):
-            if row in keep:
-                continue
-            if row in failed:
-                outcomes[slots[row]] = failed[row]
-                continue
-            try:
-                outcomes[slots[row]] = run.finish()
-            except Exception as exc:
-                outcomes[slots[row]] = exc
-        if len(keep) < len(runs):
-            model.keep(keep)
-            optimizer.keep(keep)
-        runs, slots = [runs[r] for r in keep], [slots[r] for r in keep]
+        runs, slots = leave_batch(
+            runs, slots, keep, failed, outcomes, PPORun.finish, (model, optimizer)
+        )
         failed.clear()
 
     config = runs[0].config
