@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 from services.eeg.recordings.conventions import STIM_CHANNEL
-from services.eeg.recordings.formats import RawWithStatus
 from services.eeg.recordings.io import action_events, read_recording
+from services.eeg.recordings.status_channel import RawWithStatus
 from tests.eeg.caps import CAP_8
 from tests.eeg.test_formats import CODES, SFREQ, action_samples, write_set, write_vhdr
 from tests.helpers import env_without_bgrl

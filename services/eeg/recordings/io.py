@@ -41,8 +41,8 @@ from services.eeg.recordings.formats import (
     read_brainvision,
     read_eeglab,
     read_xdf,
-    with_status,
 )
+from services.eeg.recordings.status_channel import with_status
 from services.eeg.signal.preprocessing import PreprocessingParams
 
 __all__ = [
@@ -422,7 +422,8 @@ def read_recording(
         Load all samples into memory (float64: 1.3 GB for 20 minutes of 64 channels at
         2048 Hz). By default samples are read from the file when asked for, and
         validation reads the file in chunks; a ``Status`` channel made from annotations or
-        markers is one value per sample (:class:`~services.eeg.recordings.formats.RawWithStatus`).
+        markers is one value per sample
+        (:class:`~services.eeg.recordings.status_channel.RawWithStatus`).
         XDF files and EEGLAB datasets holding double-precision samples are loaded.
     ch_names : list of str | None
         EEG channels (standard names) that must be present, e.g. a classifier's; by
