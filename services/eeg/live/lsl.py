@@ -253,15 +253,20 @@ class MarkerInlet:
     """
 
     def __init__(self, name: str = MARKER_STREAM_NAME, *, timeout: float = 5.0) -> None:
-        # resolve_streams stops at the first stream of any name, so ask until the deadline.
+        # resolve_streams stops at the first stream of any name, so ask until the deadline,
+        # each wait twice the last: liblsl answers a unicast query (a KnownPeers host on
+        # another network) after at least its UnicastMinRTT (0.75 s), so a short first
+        # wait finds a local stream at once and a later one gives a remote peer its time.
         deadline = time.monotonic() + timeout
         infos: list = []
-        while not infos and time.monotonic() < deadline:
+        wait_s = 0.5
+        while not infos and (remaining := deadline - time.monotonic()) > 0:
             infos = [
                 info
-                for info in resolve_streams(timeout=min(0.5, timeout), name=name)
+                for info in resolve_streams(timeout=min(wait_s, remaining), name=name)
                 if info.name == name and info.stype == MARKER_STREAM_TYPE
             ]
+            wait_s *= 2
         if not infos:
             raise RuntimeError(f"no LSL marker stream named {name!r} within {timeout:g} s")
         self._inlet = StreamInlet(infos[0], processing_flags=["clocksync"])
