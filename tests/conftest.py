@@ -21,3 +21,14 @@ os.environ.setdefault("BGRL_MIN_FREE_MB", "1")
 def _isolated_data_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch):
     """Every test writes service data (caches, uploads, models) below its own temp folder."""
     monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path_factory.mktemp("data")))
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Under pytest-xdist (``make test`` runs two test processes, ``--dist loadgroup``) a
+    module's tests run in one process, so its module-scoped platform starts once; the
+    network-namespace deployments all run in one process, one after another (each builds
+    namespaces, a subnet and compose hosts that two processes at once would fight over)."""
+    for item in items:
+        netns = item.get_closest_marker("netns") is not None
+        group = "netns" if netns else item.nodeid.split("::", 1)[0]
+        item.add_marker(pytest.mark.xdist_group(group))

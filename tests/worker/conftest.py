@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -23,10 +24,15 @@ from services.sim.oracle import Oracle
 from services.sim.settings import SimSettings
 from tests.helpers import env_without_bgrl, stop_processes
 
-REDIS_URL = "redis://127.0.0.1:6379/11"
-"""A Redis database of its own, so other tests on this machine's Redis are not disturbed."""
+XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+"""This test process's name under pytest-xdist (``make test`` runs several); gw0 alone."""
+_WORKER_INDEX = int(XDIST_WORKER.removeprefix("gw") or 0)
+REDIS_URL = f"redis://127.0.0.1:6379/{11 + _WORKER_INDEX % 5}"
+"""A Redis database of its own (11-15, one per test process), so other tests on this
+machine's Redis, and the other test processes of the same run, are not disturbed."""
 PG_ADMIN_URL = "host=127.0.0.1 port=5432 dbname=test user=postgres"
-PG_DATABASE = "bgrl_worker_test"
+PG_DATABASE = f"bgrl_worker_test_{XDIST_WORKER}"
+"""A PostgreSQL database of its own per test process, dropped and made anew per module."""
 
 
 def pg_url(database: str = PG_DATABASE) -> str:

@@ -17,7 +17,7 @@ from services.core.db.base import utcnow
 from services.core.db.migrate import upgrade_database
 from services.core.db.models import Job
 from services.core.db.session import make_engine, make_session_factory
-from tests.worker.conftest import pg_url, postgres_database
+from tests.worker.conftest import XDIST_WORKER, pg_url, postgres_database
 
 Claim = job_rows.ClaimOutcome
 
@@ -30,10 +30,11 @@ def database(
     if request.param == "sqlite":
         url = f"sqlite:///{tmp_path_factory.mktemp('leases') / 'jobs.db'}"
     else:
-        reason = postgres_database("bgrl_worker_leases")
+        database_name = f"bgrl_worker_leases_{XDIST_WORKER}"
+        reason = postgres_database(database_name)
         if reason:
             pytest.skip(reason)
-        url = pg_url("bgrl_worker_leases")
+        url = pg_url(database_name)
     upgrade_database(url)
     engine = make_engine(url)
     yield make_session_factory(engine)
