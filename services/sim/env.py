@@ -38,9 +38,9 @@ STEP_REWARD = -1.0
 RICH_DISTANCE_COEF = -1.0
 RICH_HEADING_COEF = -0.3
 SHAPING_GAMMA = 0.99
+"""Default discount of the shaping term: the learner's gamma (PPOConfig.gamma)."""
 DENSE_DISTANCE_COEF = 0.1
 """The dense reward's cost per step and per action of the oracle's path from the new pose."""
-"""Default discount of the shaping term: the learner's gamma (PPOConfig.gamma)."""
 NO_PATH_STEPS = 120.0
 """Cost-to-go given to a pose from which the oracle finds no way to the goal (about 0.7 %
 of a random walk's poses, pressed against a wall): the episode's time limit."""
