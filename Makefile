@@ -26,12 +26,12 @@ format: install
 	$(VENV)/bin/ruff check --fix services benchmarks tests
 	$(VENV)/bin/ruff format services benchmarks tests
 
-# Two test processes (pytest-xdist; the netns deployments share one): about half the wall
-# time of one on a 2-core machine. `make test TEST_PROCESSES=0` runs them in this process.
+# Two test processes (pytest-xdist; a module's tests share one, so do tests/deploy's, see
+# tests/conftest.py): less wall time on 2 cores. `make test TEST_PROCESSES=0`: one process.
 TEST_PROCESSES ?= 2
 
 test: lint
-	$(PY) -m pytest -n $(TEST_PROCESSES) --dist loadgroup
+	$(PY) -m pytest -n $(TEST_PROCESSES)
 
 bench: install
 	$(VENV)/bin/bgrl bench all --out benchmarks/results

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -23,12 +24,17 @@ def _isolated_data_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: py
     monkeypatch.setenv("BGRL_DATA_DIR", str(tmp_path_factory.mktemp("data")))
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Under pytest-xdist (``make test`` runs two test processes, ``--dist loadgroup``) a
-    module's tests run in one process, so its module-scoped platform starts once; the
-    network-namespace deployments all run in one process, one after another (each builds
-    namespaces, a subnet and compose hosts that two processes at once would fight over)."""
-    for item in items:
-        netns = item.get_closest_marker("netns") is not None
-        group = "netns" if netns else item.nodeid.split("::", 1)[0]
-        item.add_marker(pytest.mark.xdist_group(group))
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """Under pytest-xdist (``make test`` runs two test processes) a module's tests run in one
+    process, in order, so its module-scoped platform starts once; the network-namespace
+    deployments (tests/deploy) all run in one process, one after another: each builds
+    namespaces and a whole compose platform, two of which at once would starve the rest."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "tests/deploy" if module.startswith("tests/deploy/") else module
+
+    return ModuleScheduling(config, log)
