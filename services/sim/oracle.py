@@ -19,7 +19,9 @@ kinematics, footprint sweep and goal test) and scores it ``1 + V(next)`` (0 in t
 infinite on a collision). :meth:`Oracle.optimal_actions` returns every action with the
 lowest score; the oracle *policy* breaks ties in favour of forward, then left, then right.
 :meth:`Oracle.cost_to_go` is the number of actions the oracle policy takes from a pose to
-the goal (at most ``V``), so the policy reaches the goal in exactly that many steps.
+the goal (at most ``V``), so the policy reaches the goal in exactly that many steps; each
+oracle remembers the remaining length of the states on the paths it walked (a bounded memo,
+:data:`PATH_MEMO_MAX_STATES`), so queries along a walked path are answered at once.
 
 Built lattices are cached in memory per process (one build per map: concurrent callers
 wait for the first) and, when a ``cache_dir`` is given, on disk, keyed by the map's content
@@ -48,6 +50,10 @@ N_HEADINGS = round(2.0 * math.pi / TURN_STEP_RAD)
 LATTICE_VERSION = 2
 """Bumped whenever the lattice construction changes, so stale caches are not reused."""
 MAX_ROLLOUT_STEPS = 2000
+PATH_MEMO_MAX_STATES = 100_000
+"""States whose remaining path length an :class:`Oracle` remembers at most (about 20 MB
+of Python objects; emptied when full). Sweeps ask ``cost_to_go`` at every step of the
+dense and shaped rewards, mostly along paths walked before."""
 _TIE_ORDER = (Action.FORWARD, Action.TURN_LEFT, Action.TURN_RIGHT)
 
 logger = logging.getLogger(__name__)
@@ -240,6 +246,7 @@ class Oracle:
         self._start_yaw = nav_map.start.yaw
         self._goal = (nav_map.goal.x, nav_map.goal.y)
         self._goal_radius = nav_map.goal.radius
+        self._path_memo: dict[tuple[float, float, int], int] = {}
 
     @staticmethod
     def cache_key(nav_map: NavMap) -> str:
@@ -349,6 +356,19 @@ class Oracle:
             return None
         return next(int(a) for a in _TIE_ORDER if scores[a] == best)
 
+    def _policy_step(self, x: float, y: float, k: int) -> tuple[int, float, float, int] | None:
+        """The oracle policy's action from a lattice state and the state it leads to (None
+        if no action reaches the goal)."""
+        scores = self._action_scores(x, y, k)
+        best = min(scores)
+        if not math.isfinite(best):
+            return None
+        a = next(int(a) for a in _TIE_ORDER if scores[a] == best)
+        if a == Action.FORWARD:
+            yaw_k = self._yaw(k)
+            return a, x + FORWARD_STEP_M * math.cos(yaw_k), y + FORWARD_STEP_M * math.sin(yaw_k), k
+        return a, x, y, (k + (1 if a == Action.TURN_LEFT else -1)) % N_HEADINGS
+
     def rollout(self, x: float, y: float, yaw: float) -> list[int] | None:
         """The oracle policy's actions from a pose to the goal (None if it cannot get there)."""
         if not _finite(x, y, yaw) or self._geometry.collides(x, y):
@@ -361,24 +381,52 @@ class Oracle:
             if state in seen or len(actions) >= MAX_ROLLOUT_STEPS:
                 return None
             seen.add(state)
-            scores = self._action_scores(x, y, k)
-            best = min(scores)
-            if not math.isfinite(best):
+            step = self._policy_step(x, y, k)
+            if step is None:
                 return None
-            a = next(int(a) for a in _TIE_ORDER if scores[a] == best)
+            a, x, y, k = step
             actions.append(a)
-            if a == Action.FORWARD:
-                yaw_k = self._yaw(k)
-                x += FORWARD_STEP_M * math.cos(yaw_k)
-                y += FORWARD_STEP_M * math.sin(yaw_k)
-            else:
-                k = (k + (1 if a == Action.TURN_LEFT else -1)) % N_HEADINGS
         return actions
 
     def cost_to_go(self, x: float, y: float, yaw: float) -> float:
-        """Actions the oracle policy needs from this pose to the goal (``math.inf`` if none)."""
-        actions = self.rollout(x, y, yaw)
-        return math.inf if actions is None else float(len(actions))
+        """Actions the oracle policy needs from this pose to the goal (``math.inf`` if none).
+
+        The number :meth:`rollout` would give, walked with the memo of walked paths: the
+        walk stops at the first state whose remaining length is remembered, and every state
+        of a path that reaches the goal remembers its remaining length (a state's path is
+        the suffix of any path through it, the policy being deterministic in the exact
+        state). Only successes are remembered; the memo holds at most
+        :data:`PATH_MEMO_MAX_STATES` states and is emptied when a path would overflow it.
+        """
+        if not _finite(x, y, yaw) or self._geometry.collides(x, y):
+            return math.inf
+        k = self.heading_index(yaw)
+        memo = self._path_memo
+        walked: list[tuple[float, float, int]] = []
+        seen: set[tuple[float, float, int]] = set()
+        remaining = 0
+        while not self._in_goal(x, y):
+            state = (x, y, k)
+            known = memo.get(state)
+            if known is not None:
+                remaining = known
+                break
+            if state in seen or len(walked) >= MAX_ROLLOUT_STEPS:
+                return math.inf
+            seen.add(state)
+            walked.append(state)
+            step = self._policy_step(x, y, k)
+            if step is None:
+                return math.inf
+            _, x, y, k = step
+        total = len(walked) + remaining
+        if total > MAX_ROLLOUT_STEPS:  # rollout() stops at MAX_ROLLOUT_STEPS actions
+            return math.inf
+        if len(memo) + len(walked) > PATH_MEMO_MAX_STATES:
+            memo.clear()
+        for i, state in enumerate(walked):
+            memo[state] = total - i
+        return float(total)
 
 
 class NoisyOracleFeedback:

@@ -272,3 +272,60 @@ def test_noisy_feedback_rejects_bad_accuracy() -> None:
         NoisyOracleFeedback(1.2)
     with pytest.raises(ValueError, match="bad_accuracy"):
         NoisyOracleFeedback(0.7, bad_accuracy=-0.1)
+
+
+def _uncached_cost(oracle: Oracle, x: float, y: float, yaw: float) -> float:
+    """The path length by walking the whole path (rollout remembers nothing)."""
+    actions = oracle.rollout(x, y, yaw)
+    return math.inf if actions is None else float(len(actions))
+
+
+def _sweep_like_poses(seed: int, n_steps: int) -> list[tuple[float, float, float]]:
+    """Poses of a VSSG env driven by random actions (the queries of the dense reward)."""
+    env = BrainNavEnv(task="vssg")
+    rng = np.random.default_rng(seed)
+    poses = []
+    try:
+        env.reset(seed=seed)
+        for _ in range(n_steps):
+            poses.append(env.pose)
+            _, _, terminated, _, _ = env.step(int(rng.integers(3)))
+            if terminated:
+                env.reset()
+    finally:
+        env.close()
+    return poses
+
+
+def test_remembered_path_lengths_equal_walked_ones(monkeypatch: pytest.MonkeyPatch) -> None:
+    nav_map = load_map(DEFAULT_MAP_PATH)
+    oracle = Oracle(nav_map, Oracle.for_map(nav_map).cost)  # a fresh, empty memo
+    rng = np.random.default_rng(3)
+    random_poses = [
+        (float(rng.uniform(0.5, 10.5)), float(rng.uniform(0.5, 11.5)), float(rng.uniform(-4, 4)))
+        for _ in range(100)
+    ]
+    poses = _sweep_like_poses(0, 400) + random_poses
+    first = [oracle.cost_to_go(*pose) for pose in poses]
+    assert len(oracle._path_memo) > 0
+    second = [oracle.cost_to_go(*pose) for pose in reversed(poses)][::-1]  # from the memo
+    walked = [_uncached_cost(oracle, *pose) for pose in poses]
+    assert first == walked and second == walked
+    assert any(math.isinf(c) for c in walked) and any(0 < c < math.inf for c in walked)
+    # A memo that keeps emptying itself gives the same answers.
+    monkeypatch.setattr(oracle_module, "PATH_MEMO_MAX_STATES", 30)
+    small = Oracle(nav_map, oracle.cost)
+    assert [small.cost_to_go(*pose) for pose in poses] == walked
+    assert len(small._path_memo) <= 30
+
+
+def test_remembered_suffix_still_obeys_the_rollout_limit(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(oracle_module, "MAX_ROLLOUT_STEPS", 10)
+    nav_map = corridor_map()
+    oracle = Oracle(nav_map, Oracle.for_map(nav_map).cost)
+    assert oracle.cost_to_go(1.0, 1.0, 0.0) == 6  # remembers the six states of its path
+    # Facing away: six turns reach the remembered start state, 6 + 6 > 10 actions.
+    assert oracle.rollout(1.0, 1.0, math.pi) is None
+    assert oracle.cost_to_go(1.0, 1.0, math.pi) == math.inf
+    monkeypatch.setattr(oracle_module, "MAX_ROLLOUT_STEPS", 12)
+    assert oracle.cost_to_go(1.0, 1.0, math.pi) == 12 == len(oracle.rollout(1.0, 1.0, math.pi))
