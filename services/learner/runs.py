@@ -295,6 +295,20 @@ def run_one(
         checkpoint_path=checkpoint_path,
         checkpoint_every=checkpoint_every,
     )
+    export_policies(result, model_path, last_model_path, portable=portable)
+    return run_record(spec, result, guidance, time.perf_counter() - start)
+
+
+def export_policies(
+    result: TrainResult,
+    model_path: str | Path | None,
+    last_model_path: str | Path | None,
+    *,
+    portable: bool,
+) -> None:
+    """Export a trained run's best policy to ``model_path`` and its last to
+    ``last_model_path`` (each if given) as TorchScript, with ``portable`` also as a
+    ``torch.export`` program and ONNX beside it."""
     if model_path is not None:
         result.export_torchscript(model_path, which="best")
         if portable:
@@ -303,7 +317,6 @@ def run_one(
         result.export_torchscript(last_model_path, which="last")
         if portable:
             write_beside_torchscript(result.agent, Path(last_model_path))
-    return run_record(spec, result, guidance, time.perf_counter() - start)
 
 
 def run_lockstep(
@@ -314,6 +327,10 @@ def run_lockstep(
     checkpoint_every: int = 10,
     hf_policies: Sequence[HFPolicy | None] | None = None,
     feedback_factory: FeedbackSourceFactory | None = None,
+    on_label: Callable[[FeedbackRecord], None] | None = None,
+    model_paths: Sequence[str | Path | None] | None = None,
+    last_model_paths: Sequence[str | Path | None] | None = None,
+    portable: bool = False,
 ) -> list[RunRecord | RunFailure]:
     """Execute runs whose PPO settings allow one lockstep batch
     (:func:`~services.learner.ppo.lockstep.lockstep_key`): stage 2 of the hf_sparse runs in
@@ -321,15 +338,20 @@ def run_lockstep(
     (:func:`train_lockstep`). Each run's record is the one :func:`run_one` gives
     (bit-identical but for ``wall_seconds``: its stage 2 batch's plus the stage 3 batch's);
     a run that raises is a :class:`RunFailure` and the others go on.
-    ``callbacks``, ``checkpoint_paths`` and given ``hf_policies`` are per run (as
-    :func:`run_one`'s)."""
+    ``callbacks``, ``checkpoint_paths``, given ``hf_policies``, ``model_paths`` and
+    ``last_model_paths`` are per run, ``on_label`` and ``portable`` for every run (as
+    :func:`run_one`'s; an ``on_label`` that raises ends stage 2 of every run it raised in)."""
     n = len(specs)
     callbacks = list(callbacks) if callbacks is not None else [None] * n
     paths = list(checkpoint_paths) if checkpoint_paths is not None else [None] * n
     given = list(hf_policies) if hf_policies is not None else [None] * n
+    models = list(model_paths) if model_paths is not None else [None] * n
+    last_models = list(last_model_paths) if last_model_paths is not None else [None] * n
     outcomes: list[RunRecord | RunFailure | None] = [None] * n
     guided: list[tuple[int, RunGuidance]] = []
-    guidances = run_guidances(specs, hf_policies=given, feedback_factory=feedback_factory)
+    guidances = run_guidances(
+        specs, hf_policies=given, feedback_factory=feedback_factory, on_label=on_label
+    )
     for i, (spec, guidance) in enumerate(zip(specs, guidances, strict=True)):
         if isinstance(guidance, Exception):  # this run fails, the others go on
             outcomes[i] = RunFailure.from_exception(spec, guidance)
@@ -347,9 +369,14 @@ def run_lockstep(
     for (i, guidance), result in zip(guided, results, strict=True):
         if isinstance(result, Exception):
             outcomes[i] = RunFailure.from_exception(specs[i], result)
-        else:
-            wall = guidance.seconds + training_seconds
-            outcomes[i] = run_record(specs[i], result, guidance, wall)
+            continue
+        try:
+            export_policies(result, models[i], last_models[i], portable=portable)
+        except Exception as exc:  # this run fails, the others go on
+            outcomes[i] = RunFailure.from_exception(specs[i], exc)
+            continue
+        wall = guidance.seconds + training_seconds
+        outcomes[i] = run_record(specs[i], result, guidance, wall)
     return [o for o in outcomes if o is not None]
 
 
@@ -406,12 +433,14 @@ def run_guidances(
     *,
     hf_policies: Sequence[HFPolicy | None] | None = None,
     feedback_factory: FeedbackSourceFactory | None = None,
+    on_label: Callable[[FeedbackRecord], None] | None = None,
 ) -> list[RunGuidance | Exception]:
     """:func:`run_guidance` of every spec (a given pi_HF per spec or None), with the
     stage-2 sessions of the hf_sparse runs in lockstep batches of one batched method
     (:func:`~services.learner.feedback_lockstep.collect_feedback_lockstep`; the others
     alone): each run's guidance is bit-identical to :func:`run_guidance`'s (``seconds``
-    aside: the batch's), or the exception its run raised (the others go on)."""
+    aside: the batch's), or the exception its run raised (the others go on). ``on_label``
+    is called after each label of every session (raising ends that session)."""
     given = list(hf_policies) if hf_policies is not None else [None] * len(specs)
     outcomes: list[RunGuidance | Exception | None] = [None] * len(specs)
     collections: dict[int, tuple[FeedbackCollection, DecodedFeedbackSource | None]] = {}
@@ -432,6 +461,7 @@ def run_guidances(
                     spec.seed,
                     spec.n_labels,
                     method=spec.hf_method or PAPER_METHOD,
+                    on_label=on_label,
                     source=source,
                     label_channel=spec.label_channel,
                 )

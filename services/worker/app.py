@@ -28,6 +28,7 @@ from services.platform.jobs import (
     JOB_KINDS,
     LIVE_SESSION,
     REPRODUCE,
+    REPRODUCE_BATCH,
     REPRODUCE_RUN,
     SESSION_REPLAY,
 )
@@ -40,6 +41,7 @@ HANDLERS: dict[str, str] = {
     GUIDED_PPO.name: "services.worker.training:guided_ppo",
     REPRODUCE.name: "services.worker.reproduce:reproduce",
     REPRODUCE_RUN.name: "services.worker.training:reproduce_run",
+    REPRODUCE_BATCH.name: "services.worker.reproduce_batch:reproduce_batch",
     EEG_CALIBRATION.name: "services.worker.calibration:eeg_calibration",
     LIVE_SESSION.name: "services.worker.live_session:live_session",
     BIDS_EXPORT.name: "services.worker.bids:bids_export",

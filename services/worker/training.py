@@ -218,19 +218,9 @@ def train_spec(
             portable=True,
         )
         context.check_stop()
-        weights = weights_sha256(model_path)
-        last_weights = weights_sha256(last_model_path)
-        best_ids = store_policy_files(context, model_path)
-        last_ids = store_policy_files(context, last_model_path)
+        stored, best_ids = store_trained_policies(context, model_path, last_model_path)
     return JobOutcome(
-        result={
-            **record.to_dict(),
-            "model": "best",  # the job's model is the best evaluation's policy
-            "weights_sha256": weights,
-            "last_model_artifact_id": last_ids["torchscript"],
-            "last_model_artifact_ids": last_ids,
-            "last_weights_sha256": last_weights,
-        },
+        result={**record.to_dict(), **stored},
         values={
             "model_artifact_id": best_ids["torchscript"],
             "model_pt2_artifact_id": best_ids["pt2"],
@@ -239,6 +229,25 @@ def train_spec(
             "steps_done": total_steps,
         },
     )
+
+
+def store_trained_policies(
+    context: JobContext, model_path: Path, last_model_path: Path
+) -> tuple[dict[str, Any], dict[ModelFormat, str]]:
+    """Store a run's best and last policy files (:func:`store_policy_files`): the result's
+    fields saying which is the model and where the last one is, and the best one's ids."""
+    weights = weights_sha256(model_path)
+    last_weights = weights_sha256(last_model_path)
+    best_ids = store_policy_files(context, model_path)
+    last_ids = store_policy_files(context, last_model_path)
+    stored = {
+        "model": "best",  # the job's model is the best evaluation's policy
+        "weights_sha256": weights,
+        "last_model_artifact_id": last_ids["torchscript"],
+        "last_model_artifact_ids": last_ids,
+        "last_weights_sha256": last_weights,
+    }
+    return stored, best_ids
 
 
 def store_policy_files(context: JobContext, torchscript_path: Path) -> dict[ModelFormat, str]:

@@ -200,6 +200,7 @@ def test_reproduce_config_takes_the_cli_options(api: Api) -> None:
         "ppo": {"hf_guide_sampling": True},
         "preset": "paper",
         "n_labels": 1000,
+        "batch_runs": 8,
     }
     assert broker_messages(api) == [("bgrl.jobs.reproduce", [response.json()["id"]])]
     platform = submit(api, "reproduce", {"quick": True, "preset": "platform"})
@@ -215,6 +216,12 @@ def test_reproduce_config_takes_the_cli_options(api: Api) -> None:
     unknown = submit(api, "reproduce", {"quick": True, "preset": "lab"})
     assert unknown.status_code == 422
     assert unknown.json()["detail"][0]["field"] == "config.preset"
+    single = submit(api, "reproduce", {"quick": True, "batch_runs": 1})
+    assert single.json()["config"]["batch_runs"] == 1
+    for too_many in (0, 33):
+        refused = submit(api, "reproduce", {"quick": True, "batch_runs": too_many})
+        assert refused.status_code == 422
+        assert refused.json()["detail"][0]["field"] == "config.batch_runs"
 
 
 def test_list_filters_and_pages(api: Api) -> None:

@@ -14,11 +14,13 @@ from pydantic import ValidationError
 
 from services.core.hf_methods import HF_METHOD_NAMES
 from services.learner.hf_methods import HF_METHODS
+from services.learner.pool import LOCKSTEP_MAX_RUNS
 from services.learner.ppo import SETTING_BOUNDS, PPOConfig, check_settings
 from services.learner.specs import METHODS, RUN_FIXED_PPO_FIELDS, TASK_ENV_IDS, TREATMENTS
 from services.learner.specs import PRESETS as LEARNER_PRESETS
 from services.platform.jobs import GUIDED_PPO, JOB_KINDS, job_kind
 from services.platform.jobs.ppo import PRESETS, Method, PPOOverrides, Task, Treatment
+from services.platform.jobs.reproduce import MAX_BATCH_RUNS
 
 ROOT = Path(__file__).resolve().parents[2]
 REGISTRY = ROOT / "services" / "platform" / "jobs"
@@ -71,6 +73,10 @@ def test_stage2_methods_presets_tasks_and_treatments_are_the_learners() -> None:
     assert get_args(Method) == METHODS
     assert set(get_args(Task)) == set(TASK_ENV_IDS)
     assert get_args(Treatment) == TREATMENTS
+
+
+def test_a_reproduce_batch_is_at_most_the_learners_lockstep_batch() -> None:
+    assert MAX_BATCH_RUNS == LOCKSTEP_MAX_RUNS
 
 
 def test_ppo_overrides_are_the_settings_a_run_may_change() -> None:

@@ -280,8 +280,9 @@ def test_a_failed_job_for_staff_and_viewer(context: tuple, server: Server) -> No
     page.goto("/jobs")
     page.locator(f"tr[data-job='{job_id}']").wait_for()
     kinds = page.locator("#filter-kind option").evaluate_all("os => os.map((o) => o.value)")
-    assert kinds == ["", "guided_ppo", "reproduce", "reproduce_run", "eeg_calibration",
-                     "live_session", "bids_export", "session_replay"]  # fmt: skip
+    assert kinds == ["", "guided_ppo", "reproduce", "reproduce_run", "reproduce_batch",
+                     "eeg_calibration", "live_session", "bids_export",
+                     "session_replay"]  # fmt: skip
     page.locator("#filter-kind").select_option("bids_export")
     page.locator(f"tr[data-job='{export_id}']").wait_for()
     page.locator("#filter-status").select_option("failed")

@@ -11,6 +11,7 @@ from sqlalchemy import select
 
 from services.core.db.models import Artifact, Job
 from services.learner.hf_methods import PAPER_METHOD, RECOMMENDED_METHOD
+from services.platform.jobs import REPRODUCE_BATCH
 from services.worker.reproduce import specs_from_config
 from services.worker.runtime import JobConfigError
 from tests.worker.conftest import TINY_PPO, Platform
@@ -73,7 +74,9 @@ def test_reproduce_with_the_platform_preset(fs_platform: Platform, worker) -> No
     with fs_platform.sessions() as session:
         children = session.scalars(select(Job).where(Job.parent_id == job_id)).all()
         results = session.get(Artifact, job.result["artifacts"]["results.json"])
-    specs = {child.config["method"]: child.config for child in children}
+    # one lockstep batch of the two runs (batch_runs 8 by default)
+    assert [child.kind for child in children] == [REPRODUCE_BATCH.name]
+    specs = {run["method"]: run for run in children[0].config["runs"]}
     assert set(specs) == {"rl_sparse", "hf_sparse"}
     # what `bgrl reproduce --preset platform` runs: truncated_is, guide sampling, the method,
     hf = specs["hf_sparse"]

@@ -16,6 +16,7 @@ from services.platform.jobs import (
     guided_ppo,
     live_session,
     reproduce,
+    reproduce_batch,
     reproduce_run,
     session_replay,
 )
@@ -24,6 +25,7 @@ from services.platform.jobs.kind import JobKind
 GUIDED_PPO = guided_ppo.KIND
 REPRODUCE = reproduce.KIND
 REPRODUCE_RUN = reproduce_run.KIND
+REPRODUCE_BATCH = reproduce_batch.KIND
 EEG_CALIBRATION = eeg_calibration.KIND
 LIVE_SESSION = live_session.KIND
 BIDS_EXPORT = bids_export.KIND
@@ -35,6 +37,7 @@ JOB_KINDS: dict[str, JobKind] = {
         GUIDED_PPO,
         REPRODUCE,
         REPRODUCE_RUN,
+        REPRODUCE_BATCH,
         EEG_CALIBRATION,
         LIVE_SESSION,
         BIDS_EXPORT,
@@ -52,6 +55,7 @@ KindName = Literal[
     "guided_ppo",
     "reproduce",
     "reproduce_run",
+    "reproduce_batch",
     "eeg_calibration",
     "live_session",
     "bids_export",

@@ -1,4 +1,5 @@
-"""``reproduce``: a reproduction of Fig. 3 fanned out over the workers, one
+"""``reproduce``: a reproduction of Fig. 3 fanned out over the workers: ``reproduce_batch``
+jobs of up to ``batch_runs`` runs in lockstep each, or with ``batch_runs`` 1 one
 ``reproduce_run`` job per run."""
 
 from __future__ import annotations
@@ -20,10 +21,14 @@ from services.platform.jobs.ppo import (
 )
 
 MAX_REPRODUCE_RUNS = 2000
+MAX_BATCH_RUNS = 32
+"""Most runs of one ``reproduce_batch`` job: the learner's ``pool.LOCKSTEP_MAX_RUNS`` (a
+worker holds its batch's envs, ~30-40 MB a run)."""
 
 
 class ReproduceConfig(JobConfig):
-    """A reproduction of Fig. 3 (``bgrl reproduce`` options): one run per worker task.
+    """A reproduction of Fig. 3 (``bgrl reproduce`` options): the runs in lockstep batches of
+    at most ``batch_runs``, one batch per worker task (``batch_runs`` 1: one run each).
 
     Not offered: ``--out`` (the results are the job's artifacts), ``--workers`` (the runs
     are spread over the Celery workers) and ``--map`` (a path on the api's host; workers run
@@ -77,6 +82,14 @@ class ReproduceConfig(JobConfig):
         1000, ge=1, le=1_000_000, title="Feedback labels",
         description="Labels each hf_sparse run learns pi_HF from (every labelled action).",
     )  # fmt: skip
+    batch_runs: int = Field(
+        8,
+        ge=1,
+        le=MAX_BATCH_RUNS,
+        title="Runs per batch",
+        description="Runs of one PPO shape trained together in lockstep by one worker (the "
+        "same records as alone); 1: each run alone (bgrl reproduce --single-run).",
+    )
 
     @field_validator("tasks", mode="before")
     @classmethod

@@ -15,7 +15,7 @@ export function jobSummary(job) {
 }
 
 /** Kinds whose progress is environment steps (the others: "–" under Steps). */
-const STEP_KINDS = new Set(["guided_ppo", "reproduce", "reproduce_run"]);
+const STEP_KINDS = new Set(["guided_ppo", "reproduce", "reproduce_run", "reproduce_batch"]);
 
 /** A job's steps as the list shows them. */
 export function jobSteps(job) {
