@@ -33,10 +33,11 @@ import pybullet_data
 
 from services.sim import bullet
 from services.sim.bullet import pybullet
-from services.sim.env import RAY_ANGLES_RAD, RAY_HEIGHT_M, RAY_LENGTH_M, BrainNavEnv
+from services.sim.env import RAY_ANGLES_RAD, RAY_LENGTH_M, BrainNavEnv
 from services.sim.imaging import encode_image
 from services.sim.maps import DEFAULT_MAP_PATH, FOOTPRINT_RADIUS_M, NavMap, load_map
 from services.sim.oracle import Oracle, build_cost_to_go
+from services.sim.world import RAY_HEIGHT_M
 
 Progress = Callable[[str], None]
 RAYCAST_RATIO_AIM = 0.5

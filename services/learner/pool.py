@@ -159,8 +159,9 @@ def validate_maps(specs: Sequence[RunSpec]) -> None:
 CHECKPOINT_FOLDER = "checkpoints"
 """Sub-folder of a reproduction where its lockstep runs keep their checkpoints."""
 LOCKSTEP_MAX_RUNS = 32
-"""Most runs of one lockstep batch: a worker holds its batch's envs, ~38 MB of pybullet
-client a run (32 runs: ~1.7 GB with the process's own ~0.5 GB)."""
+"""Most runs of one lockstep batch. Its headless envs share one pybullet world
+(:mod:`services.sim.world`), so an env no longer costs ~30 MB a run; the cap keeps a
+batch, which one worker holds and which ends (or is lost) as a whole, a part of a sweep."""
 
 
 @dataclass(frozen=True)

@@ -24,10 +24,10 @@ from services.sim.maps import (
     wrap_angle,
 )
 from services.sim.oracle import Oracle
+from services.sim.world import acquire_shared_world, build_world, release_shared_world
 
 N_RAYS = 10
 RAY_LENGTH_M = 13.0
-RAY_HEIGHT_M = 0.4
 RAY_ANGLES_RAD = np.linspace(-math.pi / 2.0, math.pi / 2.0, N_RAYS)
 """Ray directions relative to the robot's heading, evenly over -90..+90 degrees."""
 OBS_SIZE = N_RAYS + 3
@@ -194,13 +194,19 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self.observation_space = spaces.Box(low=low, high=high, dtype=np.float32)
 
         self._closed = False
-        self._client = bullet.connect()
-        try:
-            self._robot_id, self._ray_z = self._build_world()
-        except BaseException:
-            self._closed = True
-            bullet.disconnect(self._client)
-            raise
+        # a headless env casts its rays in the map's shared world (services.sim.world)
+        self._shared_world = render_mode != "rgb_array"
+        self._robot_id: int | None = None
+        if self._shared_world:
+            self._client, self._ray_z = acquire_shared_world(self.nav_map)
+        else:
+            self._client = bullet.connect()
+            try:
+                self._robot_id, self._ray_z = build_world(self._client, self.nav_map, husky=True)
+            except BaseException:
+                self._closed = True
+                bullet.disconnect(self._client)
+                raise
         self._start_yaw = self.nav_map.start.yaw
         # Ray end offsets per heading index: yaw = start yaw + k * 30 deg exactly.
         self._ray_offsets = [
@@ -225,69 +231,6 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self._body_synced = False
         self._sssg_shortest_steps: int | None = None
         self._potential = 0.0
-
-    # ------------------------------------------------------------------ world
-    def _build_world(self) -> tuple[int | None, float]:
-        """Create floor, walls, boxes, goal pillar and (an env that renders) the Husky.
-
-        Rays are cast 0.4 m above the floor (below the lowest obstacle's half height), so
-        the floor needs no collision shape.
-        """
-        cid = self._client
-        m = self.nav_map
-        # visual only (rays never hit the robot), and ~9 MB of meshes: built for frames only
-        robot = bullet.add_husky(cid) if self.render_mode == "rgb_array" else None
-
-        def add_box(cx: float, cy: float, sx: float, sy: float, h: float, yaw: float, rgba):
-            half = [sx / 2.0, sy / 2.0, h / 2.0]
-            col = pybullet.createCollisionShape(
-                pybullet.GEOM_BOX, halfExtents=half, physicsClientId=cid
-            )
-            vis = pybullet.createVisualShape(
-                pybullet.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=cid
-            )
-            pybullet.createMultiBody(
-                0,
-                col,
-                vis,
-                basePosition=[cx, cy, h / 2.0],
-                baseOrientation=pybullet.getQuaternionFromEuler([0.0, 0.0, yaw]),
-                physicsClientId=cid,
-            )
-
-        b, t, wh = m.bounds, m.wall_thickness, m.wall_height
-        width, depth = b.x_max - b.x_min, b.y_max - b.y_min
-        mid_x, mid_y = (b.x_min + b.x_max) / 2.0, (b.y_min + b.y_max) / 2.0
-        wall_rgba = rendering.WALL_RGBA
-        add_box(mid_x, b.y_min - t / 2, width + 2 * t, t, wh, 0.0, wall_rgba)
-        add_box(mid_x, b.y_max + t / 2, width + 2 * t, t, wh, 0.0, wall_rgba)
-        add_box(b.x_min - t / 2, mid_y, t, depth, wh, 0.0, wall_rgba)
-        add_box(b.x_max + t / 2, mid_y, t, depth, wh, 0.0, wall_rgba)
-        for box in m.boxes:
-            add_box(*box.center, *box.size, box.height, box.yaw, rendering.OBSTACLE_RGBA)
-        # The floor is a flat visual box (TinyRenderer draws it far faster than
-        # plane.urdf's large textured mesh).
-        floor = pybullet.createVisualShape(
-            pybullet.GEOM_BOX,
-            halfExtents=[width / 2 + t, depth / 2 + t, 0.005],
-            rgbaColor=rendering.FLOOR_RGBA,
-            physicsClientId=cid,
-        )
-        pybullet.createMultiBody(
-            0, -1, floor, basePosition=[mid_x, mid_y, -0.005], physicsClientId=cid
-        )
-        # The goal pillar is visual only: it neither blocks the robot nor the rays.
-        pillar = pybullet.createVisualShape(
-            pybullet.GEOM_BOX,
-            halfExtents=[0.15, 0.15, 0.75],
-            rgbaColor=rendering.GOAL_RGBA,
-            physicsClientId=cid,
-        )
-        pybullet.createMultiBody(
-            0, -1, pillar, basePosition=[m.goal.x, m.goal.y, 0.75], physicsClientId=cid
-        )
-        ray_z = min(RAY_HEIGHT_M, 0.5 * min([wh, *(box.height for box in m.boxes)]))
-        return robot, ray_z
 
     def _cast_rays(self) -> None:
         x, y, z = self._x, self._y, self._ray_z
@@ -494,8 +437,11 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         )
 
     def close(self) -> None:
-        """Disconnect this env's pybullet client (a second call does nothing)."""
+        """Release this env's pybullet world (a second call does nothing)."""
         if not self._closed:
             self._closed = True
-            bullet.disconnect(self._client)
+            if self._shared_world:
+                release_shared_world(self.nav_map)
+            else:
+                bullet.disconnect(self._client)
         super().close()

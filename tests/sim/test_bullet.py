@@ -105,15 +105,47 @@ def test_only_an_env_that_renders_builds_the_husky(monkeypatch: pytest.MonkeyPat
         rendering.close()
 
 
+def test_headless_envs_of_a_map_share_one_world_with_the_same_rays() -> None:
+    """Each headless env's rays in the shared world equal a private world's (an env that
+    renders), step for step, with the other headless envs moving in between."""
+    shared = [BrainNavEnv(task="vssg") for _ in range(3)]
+    private = [BrainNavEnv(task="vssg", render_mode="rgb_array") for _ in range(3)]
+    try:
+        assert len({env._client for env in shared}) == 1
+        assert len({env._client for env in private}) == 3
+        for seed, (a, b) in enumerate(zip(shared, private, strict=True)):
+            assert np.array_equal(a.reset(seed=seed)[0], b.reset(seed=seed)[0])
+        rng = np.random.default_rng(0)
+        for _ in range(60):
+            for a, b in zip(shared, private, strict=True):
+                action = int(rng.integers(3))
+                obs_a, _, done_a, _, _ = a.step(action)
+                obs_b, _, done_b, _, _ = b.step(action)
+                assert np.array_equal(obs_a, obs_b) and done_a == done_b
+                if done_a:
+                    assert np.array_equal(a.reset()[0], b.reset()[0])
+    finally:
+        for env in shared + private:
+            env.close()
+
+
 def test_clients_are_released_on_every_path(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     def live_clients() -> int:
         return sum(pybullet.isConnected(physicsClientId=c) for c in range(64))
 
     before = live_clients()
-    env = BrainNavEnv()
+    env = BrainNavEnv(render_mode="rgb_array")  # a private world
     assert live_clients() == before + 1
     env.close()
     env.close()  # idempotent
+    assert live_clients() == before
+    headless = [BrainNavEnv(), BrainNavEnv(task="vssg")]  # one shared world of the map
+    assert live_clients() == before + 1
+    assert headless[0]._client == headless[1]._client
+    headless[0].close()
+    headless[0].close()  # idempotent: the other still holds the world
+    assert live_clients() == before + 1
+    headless[1].close()
     assert live_clients() == before
 
     def broken_husky(client: int) -> int:

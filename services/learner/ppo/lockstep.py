@@ -14,7 +14,7 @@ step on two 64-64 MLPs, and most of that step is per-operation overhead, not ari
   same code as the single-run :func:`~services.learner.ppo.train`): its env stepped in a
   loop, its random streams, episodes, evaluations, best weights, checkpoints, metrics and
   callbacks (the evaluation env, reset with each evaluation start's seed, is one per task
-  and batch: a pybullet client holds ~40 MB). Runs that differ in seed, task (env id and
+  and batch). Runs that differ in seed, task (env id and
   kwargs: reward, map), evaluation starts, treatment of pi_HF's steps and pi_HF (or none)
   share a batch; every other setting must be equal (:func:`lockstep_key`).
 
@@ -388,7 +388,7 @@ def train_lockstep(
     with ExitStack() as stack:
         runs: list[PPORun] = []
         slots: list[int] = []  # each batch row's index in configs
-        eval_envs: dict[str, gym.Env] = {}  # one per task: a pybullet client is ~40 MB
+        eval_envs: dict[str, gym.Env] = {}  # one per task (reset per evaluation start)
         for i, config in enumerate(configs):
             task = repr((config.env_id, sorted(config.env_kwargs.items())))
             try:

@@ -22,8 +22,7 @@ from services.platform.jobs.ppo import (
 
 MAX_REPRODUCE_RUNS = 2000
 MAX_BATCH_RUNS = 32
-"""Most runs of one ``reproduce_batch`` job: the learner's ``pool.LOCKSTEP_MAX_RUNS`` (a
-worker holds its batch's envs, ~30-40 MB a run)."""
+"""Most runs of one ``reproduce_batch`` job: the learner's ``pool.LOCKSTEP_MAX_RUNS``."""
 
 
 class ReproduceConfig(JobConfig):
