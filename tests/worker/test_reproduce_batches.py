@@ -172,7 +172,7 @@ def test_cancel_stops_a_batch_in_stage_3(fs_platform: Platform, workers: list) -
 
 @pytest.mark.slow
 def test_sigkill_mid_batch_resumes_every_run(fs_platform: Platform, workers: list) -> None:
-    steps = 2048
+    steps = 8192  # long enough to be caught mid-batch (progress is written every second)
     config = {
         **SWEEP, "methods": ["rl_sparse", "rl_rich"], "checkpoint_every": 2,
         "ppo": {**TINY_PPO, "total_steps": steps},
