@@ -221,6 +221,11 @@ def test_job_list_signs_in_like_every_route(api_any_db: Api) -> None:
 
     missing = client.get("/api/v1/jobs?limit=0")
     assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer"
+    for bad in ("bgrl_not-a-token", "not.a.jwt"):  # a bad token is told before a bad query
+        refused = client.get(
+            "/api/v1/jobs?limit=0&status=nope", headers={"Authorization": f"Bearer {bad}"}
+        )
+        assert refused.status_code == 401 and refused.json()["field"] == "token"
     bad_limit = client.get("/api/v1/jobs?limit=0", headers=api.as_("viewer"))
     assert bad_limit.status_code == 422 and bad_limit.json()["detail"][0]["field"] == "limit"
     assert client.app.state.engine.pool.checkedout() == 0  # type: ignore[attr-defined]
@@ -244,3 +249,35 @@ def test_job_list_reads_timestamps_stored_in_another_text_form(api: Api) -> None
     response = api.client.get("/api/v1/jobs", headers=api.as_("viewer"))
     assert response.json() == _reference(api, {}, 50, 0)
     assert response.json()["items"][0]["created_at"] == "2026-03-01T12:00:00Z"
+
+
+def test_no_two_routes_share_a_method_and_path(api: Api) -> None:
+    """The routers are included jobs first (the list is read most): that must change what a
+    request costs, never which route answers it."""
+    from fastapi.routing import APIWebSocketRoute, iter_route_contexts
+
+    from services.api.app import ROUTERS
+    from services.api.routes import jobs
+
+    assert ROUTERS[0] is jobs.router
+    seen: dict[tuple[str, str | None], str | None] = {}
+    for route in iter_route_contexts(api.client.app.routes):  # included routers walked
+        if isinstance(route.original_route, APIWebSocketRoute):
+            methods = {"WEBSOCKET"}
+        else:
+            methods = set(getattr(route, "methods", None) or ())
+        for method in methods:
+            key = (method, route.path)
+            assert key not in seen, f"{method} {route.path}: {seen[key]} and {route.name}"
+            seen[key] = route.name
+    assert ("GET", "/api/v1/jobs") in seen and ("WEBSOCKET", "/api/v1/jobs/{job_id}/events") in seen
+
+
+def test_openapi_documents_the_job_page(api: Api) -> None:
+    """The list answers its JSON bytes itself; its schema is still ``Page[JobPublic]``."""
+    schema = api.client.get("/openapi.json").json()
+    answer = schema["paths"]["/api/v1/jobs"]["get"]["responses"]["200"]
+    ref = answer["content"]["application/json"]["schema"]["$ref"]
+    page = schema["components"]["schemas"][ref.rsplit("/", 1)[1]]
+    assert page["properties"]["items"]["items"]["$ref"].endswith("/JobPublic")
+    assert set(page["required"]) == {"items", "total", "limit", "offset"}
