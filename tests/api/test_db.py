@@ -215,6 +215,19 @@ def test_constraints_and_utc_timestamps(any_db_url: str) -> None:
             db.add(naive)
             with pytest.raises(Exception, match="naive datetime"):
                 db.commit()
+        expected = datetime(2026, 12, 7, 10, 0, tzinfo=UTC)
+        with sessions() as db:  # a value in another zone is still read in UTC
+            if engine.dialect.name == "postgresql":
+                assert db.scalar(text("SHOW TIME ZONE")) == "UTC"  # every session's zone
+                db.execute(text("SET TIME ZONE 'Asia/Kolkata'"))
+            else:  # SQLite: text written by other means, with an offset
+                db.execute(text("UPDATE jobs SET started_at = '2026-12-07 15:30:00+05:30'"))
+            started = db.scalar(select(Job.started_at).where(Job.id == "t" * 32))
+            assert started == expected and started.tzinfo is UTC
+            db.rollback()
+        with sessions() as db:  # a rolled-back transaction leaves the session in UTC
+            if engine.dialect.name == "postgresql":
+                assert db.scalar(text("SHOW TIME ZONE")) == "UTC"
     finally:
         engine.dispose()
 

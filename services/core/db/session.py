@@ -30,6 +30,16 @@ def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     cursor.close()
 
 
+def _utc_session(dbapi_connection: Any, _record: Any) -> None:
+    """Run a new PostgreSQL session in UTC: timestamps then come back in UTC with
+    ``datetime.UTC`` as their zone (psycopg's reading of the session's ``TimeZone``), which
+    :class:`~services.core.db.base.UtcDateTime` passes through instead of converting each
+    one from the server's zone. Committed, so that the pool's rollbacks keep it."""
+    with dbapi_connection.cursor() as cursor:
+        cursor.execute("SET TIME ZONE 'UTC'")
+    dbapi_connection.commit()
+
+
 def _ping_when_idle(engine: Engine) -> None:
     """Ping a pooled connection at checkout only if it was unused for ``PING_AFTER_IDLE_S``
     (a dead one is replaced: ``DisconnectionError`` makes the pool open another).
@@ -79,7 +89,8 @@ def make_engine(url: str, *, connections: int | None = None, **kwargs: Any) -> E
     SQLite: WAL journal (readers never block the writer), foreign keys enforced, a busy
     timeout so concurrent writers (api and workers) wait instead of failing; the folder of
     the file is created. PostgreSQL: a pooled connection idle for a second or more is
-    checked before use (:func:`_ping_when_idle`; ``pool_pre_ping=True`` checks every one).
+    checked before use (:func:`_ping_when_idle`; ``pool_pre_ping=True`` checks every one);
+    every session runs in UTC (:func:`_utc_session`).
 
     ``connections``: a pool of at most this many connections, each opened when first
     needed and then kept (no overflow). SQLAlchemy's default keeps 5 and opens up to 10
@@ -103,6 +114,7 @@ def make_engine(url: str, *, connections: int | None = None, **kwargs: Any) -> E
         return engine
     ping_every_checkout = kwargs.setdefault("pool_pre_ping", False)
     engine = create_engine(url, **kwargs)
+    event.listen(engine, "connect", _utc_session)
     if not ping_every_checkout:
         _ping_when_idle(engine)
     return engine
