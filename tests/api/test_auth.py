@@ -216,6 +216,41 @@ def test_api_token_expiry(api: Api) -> None:
     assert bad.json()["detail"][0]["field"] == "expires_in_days"
 
 
+def test_a_token_use_read_stale_by_several_requests_is_written_once(api_any_db: Api) -> None:
+    """Requests that all read a token's last use as older than the resolution write it once:
+    the later ones find it fresh and write nothing (no chain of commits on one row)."""
+    from datetime import timedelta
+
+    from services.api.deps import API_TOKEN_USE_RESOLUTION_S, API_TOKEN_USED
+    from services.core.db.base import utcnow
+    from services.core.db.models import ApiToken
+
+    api = api_any_db
+    created = api.client.post(
+        "/api/v1/tokens", json={"name": "poller"}, headers=api.as_("viewer")
+    ).json()
+    now = utcnow()
+    stale_before = now - timedelta(seconds=API_TOKEN_USE_RESOLUTION_S)
+    sessions = api.client.app.state.sessions
+    with sessions() as db:
+        db.get(ApiToken, created["id"]).last_used_at = now - timedelta(hours=1)  # type: ignore[union-attr]
+        db.commit()
+    written = []
+    for later in range(3):  # three requests that read the old time, one after the other
+        with sessions() as db:
+            params = {"token_id": created["id"], "stale_before": stale_before}
+            at = now + timedelta(milliseconds=later)
+            written.append(db.execute(API_TOKEN_USED, {**params, "now": at}).rowcount)
+            db.commit()
+    assert written == [1, 0, 0]
+    with sessions() as db:
+        assert db.get(ApiToken, created["id"]).last_used_at == now  # type: ignore[union-attr]
+    response = api.client.get(
+        "/api/v1/users/me", headers={"Authorization": f"Bearer {created['token']}"}
+    )
+    assert response.status_code == 200
+
+
 def test_jwt_key_is_generated_once_with_mode_600(tmp_path: Path) -> None:
     settings = make_settings(tmp_path / "data", f"sqlite:///{tmp_path / 'db.sqlite'}")
     with TestClient(create_app(settings)) as client:
