@@ -22,7 +22,8 @@ MAX_DEFAULT_API_WORKERS = 4
 def default_api_workers(settings: Mapping[str, Any]) -> int:
     """One api process per CPU core, at most ``MAX_DEFAULT_API_WORKERS``, on PostgreSQL;
     one on SQLite (the embedded default, one host), where the processes would share one
-    file's locks and each holds its own ~150 MiB (docs/benchmarks.md, api)."""
+    file's locks and each holds its own ~150 MiB; one carries the job list at 200 req/s
+    (~0.4 of a core) and two measured worse on 2 cores (docs/benchmarks.md, api)."""
     url = settings.get("database_url")
     if not url or str(url).startswith("sqlite"):
         return 1
