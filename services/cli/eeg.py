@@ -156,7 +156,15 @@ def information_command(
     targets: Annotated[
         str, typer.Option(help="Comma-separated target held-out accuracies of the decoder.")
     ] = "0.55,0.6,0.65,0.7,0.8",
-    seeds: Annotated[int, typer.Option(min=1, help="Virtual subjects (seeds 0..n-1).")] = 3,
+    seeds: Annotated[
+        int, typer.Option(min=1, help="Virtual subjects (seeds FIRST_SEED..FIRST_SEED+n-1).")
+    ] = 3,
+    first_seed: Annotated[
+        int,
+        typer.Option(
+            min=0, help="Seed of the first virtual subject (confirmatory runs: 1000, fresh)."
+        ),
+    ] = 0,
     decoders: Annotated[
         str,
         typer.Option(
@@ -192,7 +200,7 @@ def information_command(
         raise typer.BadParameter("targets must lie in (0.5, 1)", param_hint="--targets")
     output_folder(out)
     rows = []
-    for seed in range(seeds):
+    for seed in range(first_seed, first_seed + seeds):
         rows.extend(
             measure_subject(
                 seed, target_list, config, cache_dir=str(out / FEEDBACK_CACHE), n_epochs=epochs
