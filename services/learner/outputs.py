@@ -72,7 +72,8 @@ def write_outputs(out: Path, runs: Sequence[RunRecord]) -> None:
 def write_csv(path: Path, runs: Sequence[RunRecord]) -> None:
     """One row per run (the curve flattened to ``step:spl`` pairs)."""
     fields = [
-        "task", "method", "hf_treatment", "accuracy", "seed", "final_spl", "hf_policy_spl",
+        "task", "method", "hf_treatment", "accuracy", "feedback", "label_channel",
+        "decoder_accuracy", "subject_quality", "seed", "final_spl", "hf_policy_spl",
         "steps_to_0_7", "wall_seconds", "curve",
     ]  # fmt: skip
     with path.open("w", newline="") as handle:
@@ -113,7 +114,21 @@ def summary_markdown(rows: Sequence[dict[str, Any]]) -> str:
             f"{r['runs_reaching_0_7']}/{r['n_seeds']} | {fmt(r['median_steps_to_0_7'], 0)} | "
             f"{hf} |"
         )
-    return "\n".join(lines) + "\n"
+    notes = [
+        f"- {r['task'].upper()} {r['group']}: decoder held-out accuracy "
+        f"{r['decoder_accuracy_mean']:.3f} on average over the subjects"
+        + (
+            "; outside the target's tolerance (kept): "
+            + ", ".join(
+                f"seed {m['seed']} {m['decoder_accuracy']:.3f}" for m in r["decoder_off_target"]
+            )
+            if r["decoder_off_target"]
+            else ""
+        )
+        for r in rows
+        if r["decoder_accuracy_mean"] is not None
+    ]
+    return "\n".join(lines) + "\n" + ("\n" + "\n".join(notes) + "\n" if notes else "")
 
 
 def claims_markdown(claims: Sequence[dict[str, Any]]) -> str:

@@ -41,6 +41,10 @@ FEEDBACKS = ("oracle", "virtual_subject")
 """Where an hf_sparse run's labels come from: the noisy oracle at accuracy C (the paper's
 simulated feedback) or the virtual subject decoded by its own calibrated decoder
 (end to end, ``services.worker.e2e_feedback``)."""
+DECODER_ACCURACY_TOLERANCE = 0.02
+"""How close a virtual subject's decoder's held-out accuracy must come to its target (the
+subject finder's tolerance). A run whose subject got no closer is kept and reported, with
+its measured ``decoder_accuracy`` (docs/protocol.md, "Before the runs")."""
 PRESETS = ("paper", "platform")
 """Settings of a reproduction (``bgrl reproduce --preset``, ``reproduce`` jobs): the paper's
 or the platform's recommended ones."""

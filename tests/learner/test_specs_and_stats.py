@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from services.learner.outputs import load_results
+from services.learner.outputs import load_results, write_outputs
 from services.learner.runs import RunRecord, episode_stats, steps_to_reach
 from services.learner.specs import RunSpec, build_specs, settings_conflict
 from services.learner.stats import paper_claims, summarize
@@ -149,3 +149,44 @@ def test_paper_claims_verdicts() -> None:
     ]
     flat_verdicts = {c["claim"]: c["holds"] for c in paper_claims(summarize(flat))}
     assert flat_verdicts["HF policy SPL increases with C [authors]"] is False
+
+
+def _subject_run(seed: int, curve: list[float], decoder_accuracy: float) -> RunRecord:
+    spec = RunSpec(
+        "vssg", "hf_sparse", seed, hf_treatment="truncated_is", feedback="virtual_subject",
+        label_channel="soft", decoder_accuracy=0.6,
+    )  # fmt: skip
+    run = _run("hf_sparse", seed, curve, None, 0.5)
+    return RunRecord.from_dict(
+        {
+            **run.to_dict(),
+            "hf_treatment": "truncated_is",
+            "spec": spec.to_dict(),
+            "feedback": "virtual_subject",
+            "label_channel": "soft",
+            "decoder_accuracy": decoder_accuracy,
+            "subject_quality": 0.1,
+        }
+    )
+
+
+def test_a_virtual_subject_study_is_summarised_with_its_decoders_misses(tmp_path) -> None:
+    """``bgrl reproduce --feedback virtual_subject`` crashed formatting C = None; a subject
+    whose decoder missed its target by more than 0.02 is kept and named."""
+    runs = [
+        _run("rl_sparse", 0, [0, 0, 0, 0]),
+        _run("rl_sparse", 1, [0, 0, 0.8, 0.8]),
+        _subject_run(0, [0, 0.8, 0.9, 0.9], 0.61),
+        _subject_run(1, [0, 0, 0.9, 0.9], 0.55),
+    ]
+    write_outputs(tmp_path, runs)
+    (row,) = [r for r in summarize(runs) if r["method"] == "hf_sparse"]
+    assert row["group"] == "hf_sparse subject@0.6 soft [truncated_is]" and row["n_seeds"] == 2
+    assert row["decoder_accuracy_target"] == 0.6
+    assert row["decoder_accuracy_mean"] == pytest.approx(0.58)
+    assert row["decoder_off_target"] == [{"seed": 1, "target": 0.6, "decoder_accuracy": 0.55}]
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| VSSG | hf_sparse subject@0.6 soft [truncated_is] | 2 |" in summary
+    assert "outside the target's tolerance (kept): seed 1 0.550" in summary
+    claims = {c["claim"] for c in paper_claims(summarize(runs))}
+    assert not any("increases with C" in claim for claim in claims)  # C is the oracle's
