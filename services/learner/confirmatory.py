@@ -70,7 +70,7 @@ class Estimate:
     def text(self) -> str:
         if self.kind == "count":
             return f"{self.label} {self.k}/{self.n} [{self.low:.2f}, {self.high:.2f}]"
-        return f"{self.label} {self.value:.3g} [{self.low:.3g}, {self.high:.3g}]"
+        return f"{self.label} {self.value:#.3g} [{self.low:#.3g}, {self.high:#.3g}]"
 
 
 def count_estimate(label: str, k: int, n: int) -> Estimate:
@@ -440,7 +440,7 @@ def markdown_table(results: Sequence[HypothesisResult]) -> str:
             estimates += f" ({r.detail})"
         met = "-" if r.threshold_met is None else ("yes" if r.threshold_met else "no")
         lines.append(
-            f"| {r.hypothesis} | {(r.task or 'both').upper()} | {r.test} | {r.n} "
+            f"| {r.hypothesis} | {(r.task or '-').upper()} | {r.test} | {r.n} "
             f"| {_p(r.p_raw)} | {_p(r.p_holm)} | {_p(r.p_holm_family)} | {estimates} "
             f"| {r.threshold} | {met} | {r.verdict} |"
         )
@@ -467,7 +467,7 @@ def plot_estimates(results: Sequence[HypothesisResult], kind: str, path: Path) -
     units = list(dict.fromkeys(e.unit for _, e in points)) if kind == "mean" else ["share"]
     widths = [max(2, sum(1 for _, e in points if kind == "count" or e.unit == u)) for u in units]
     fig, axes = plt.subplots(
-        1, len(units), figsize=(2.0 + 0.45 * sum(widths), 4.8), squeeze=False,
+        1, len(units), figsize=(max(6.0, 2.0 + 0.45 * sum(widths)), 4.8), squeeze=False,
         gridspec_kw={"width_ratios": widths},
     )  # fmt: skip
     for ax, unit in zip(axes[0], units, strict=True):
@@ -501,7 +501,7 @@ def plot_estimates(results: Sequence[HypothesisResult], kind: str, path: Path) -
         if kind == "count"
         else "confirmatory means (dotted: last-5 0.8; dashed: ratio 1.5)"
     )
-    fig.suptitle(f"{title}; seeds 1000-1019", fontsize=9)
+    fig.suptitle(f"{title}\nconfirmatory seeds 1000-1019", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
