@@ -8,8 +8,9 @@ confirmatory seeds 1000-1019 enter; a tuning seed is never pooled with them.
 Tests, as registered: one-sided Wilcoxon signed-rank on the paired steps to SPL 0.7 with
 censoring (H1), one-sided exact McNemar on paired outcomes (H2, H4), one-sided exact binomial
 against 1/2 (H3), one-sided Wilcoxon signed-rank of ``ratio - 1.5`` (H5). Holm's step-down
-adjustment (:func:`~services.learner.stats.holm_adjust`) runs over the complete hypotheses;
-counts carry Wilson 95 % intervals, means bootstrap 95 % intervals.
+adjustment (:func:`~services.learner.stats.holm_adjust`) runs over the complete hypotheses,
+a lower bound of the registered family's Holm p; 9 p bounds it from above. Counts carry
+Wilson 95 % intervals, means bootstrap 95 % intervals.
 """
 
 from __future__ import annotations
@@ -102,10 +103,11 @@ class HypothesisResult:
     missing: str | None = None
     """Why the hypothesis has no data (its runs not made), or None."""
     p_holm: float | None = None
-    """Holm over the complete hypotheses that have data."""
-    p_holm_family: float | None = None
-    """Holm over the registered family of nine, a hypothesis without data counted as p = 1
-    (the conservative reading while the family is incomplete)."""
+    """Holm over the complete hypotheses with data: a lower bound of the family's Holm p (a
+    hypothesis added to a Holm family never lowers another's adjusted p)."""
+    p_family_bound: float | None = None
+    """Bonferroni over the registered family of nine, min(1, 9 p): an upper bound of the
+    family's Holm p whatever the hypotheses not yet run give."""
     detail: str = ""
 
     @property
@@ -114,13 +116,18 @@ class HypothesisResult:
 
     @property
     def verdict(self) -> str:
+        """``confirmed`` / ``not confirmed`` when the bounds of the family's Holm p decide
+        it, else ``provisionally confirmed`` (decided once the family is complete)."""
         if self.missing is not None:
             return "not run"
         if not self.complete:
             return f"partial ({self.n}/{len(CONFIRMATORY_SEEDS)} seeds): not decided"
-        assert self.p_holm is not None
-        confirmed = self.p_holm < ALPHA and bool(self.threshold_met)
-        return "confirmed" if confirmed else "not confirmed"
+        assert self.p_holm is not None and self.p_family_bound is not None
+        if not self.threshold_met or self.p_holm >= ALPHA:
+            return "not confirmed"
+        if self.p_family_bound < ALPHA:
+            return "confirmed"
+        return "provisionally confirmed (decided once the family of nine is complete)"
 
 
 def censored_steps(run: RunRecord, config: PPOConfig | None = None) -> int:
@@ -386,22 +393,13 @@ def _means(label: str, values: Sequence[float], unit: str = "SPL") -> list[Estim
 
 
 def adjust(results: Sequence[HypothesisResult]) -> None:
-    """Set ``p_holm`` (Holm over the complete hypotheses with data) and ``p_holm_family``
-    (Holm over the family of nine, a hypothesis without complete data counted as p = 1)."""
-    complete = [r for r in results if r.complete and r.p_raw is not None]
-    for result, p in zip(complete, holm_adjust([r.p_raw for r in complete]), strict=True):
+    """Set ``p_holm`` (Holm over the complete hypotheses with data) and ``p_family_bound``
+    (Bonferroni over the family of nine) of every complete hypothesis."""
+    complete = [(r, r.p_raw) for r in results if r.complete and r.p_raw is not None]
+    adjusted = holm_adjust([p_raw for _, p_raw in complete])
+    for (result, p_raw), p in zip(complete, adjusted, strict=True):
         result.p_holm = p
-    by_name = {r.hypothesis: r for r in results}
-    family: list[float] = []
-    for name in FAMILY:
-        result = by_name.get(name)
-        if result is not None and result.complete and result.p_raw is not None:
-            family.append(result.p_raw)
-        else:
-            family.append(1.0)
-    for name, p in zip(FAMILY, holm_adjust(family), strict=True):
-        if name in by_name and by_name[name].complete:
-            by_name[name].p_holm_family = p
+        result.p_family_bound = min(1.0, len(FAMILY) * p_raw)
 
 
 def analyse(
@@ -430,7 +428,7 @@ def _p(value: float | None) -> str:
 def markdown_table(results: Sequence[HypothesisResult]) -> str:
     """The table docs/protocol.md asks for: raw and Holm p, estimates with intervals, verdict."""
     lines = [
-        "| hypothesis | task | test | seeds | raw p | Holm p (with data) | Holm p (family of 9) "
+        "| hypothesis | task | test | seeds | raw p | Holm p (with data) | bound over 9 (9 p) "
         "| counts and means [95 % interval] | threshold | met | verdict |",
         "|---|---|---|---:|---:|---:|---:|---|---|---|---|",
     ]
@@ -441,7 +439,7 @@ def markdown_table(results: Sequence[HypothesisResult]) -> str:
         met = "-" if r.threshold_met is None else ("yes" if r.threshold_met else "no")
         lines.append(
             f"| {r.hypothesis} | {(r.task or '-').upper()} | {r.test} | {r.n} "
-            f"| {_p(r.p_raw)} | {_p(r.p_holm)} | {_p(r.p_holm_family)} | {estimates} "
+            f"| {_p(r.p_raw)} | {_p(r.p_holm)} | {_p(r.p_family_bound)} | {estimates} "
             f"| {r.threshold} | {met} | {r.verdict} |"
         )
     missing = [r.hypothesis for r in results if r.missing is not None]

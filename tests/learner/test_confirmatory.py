@@ -70,9 +70,9 @@ def test_analysis_of_a_family_with_data_for_two_hypotheses(tmp_path) -> None:
     assert "outside 0.60 +- 0.02 (kept): 1000: 0.550" in h1a.detail
     assert by_name["H1b"].missing is not None and by_name["H1b"].verdict == "not run"
     assert h5.threshold_met is False and h5.p_raw == pytest.approx(1.0)
-    # Holm over the two with data; over the family of nine the others count as p = 1
+    # Holm over the two with data (a lower bound), 9 p over the family (an upper one)
     assert h1a.p_holm == pytest.approx(2 * h1a.p_raw)
-    assert h1a.p_holm_family == pytest.approx(9 * h1a.p_raw)
+    assert h1a.p_family_bound == pytest.approx(9 * h1a.p_raw)
     assert h1a.verdict == "confirmed"
     assert h5.p_holm == pytest.approx(1.0) and h5.verdict == "not confirmed"
     table = markdown_table(results)
@@ -90,3 +90,14 @@ def test_a_partial_hypothesis_is_reported_but_not_decided() -> None:
     assert h2a.n == 7 and h2a.p_raw == pytest.approx(1 / 32)  # 5 discordant, all with SIL
     assert h2a.p_holm is None and h2a.verdict.startswith("partial (7/20")
     assert math.isclose(h2a.estimates[0].value, 1.0)
+
+
+def test_a_hypothesis_the_missing_ones_can_still_overturn_is_provisional() -> None:
+    """Raw p 1/64 (6 discordant pairs): Holm over itself 0.016 < 0.05, 9 p = 0.14."""
+    seeds = CONFIRMATORY_SEEDS
+    on = [_run("hf_sparse", s, 4000) for s in seeds]
+    off = [_run("hf_sparse", s, None if s < 1006 else 4000) for s in seeds]
+    (h2a,) = [r for r in analyse(None, on, off, None, None) if r.hypothesis == "H2a"]
+    assert h2a.p_raw == pytest.approx(1 / 64) and h2a.p_holm == pytest.approx(1 / 64)
+    assert h2a.p_family_bound == pytest.approx(9 / 64)
+    assert h2a.verdict.startswith("provisionally confirmed")
