@@ -8,7 +8,7 @@ optimiser step on PPO's tiny networks.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 import torch
 from torch import nn
@@ -108,23 +108,35 @@ class FlatAdam:
 
 
 def adam_update_(
-    params: torch.Tensor,
-    grads: torch.Tensor,
-    exp_avg: torch.Tensor,
-    exp_avg_sq: torch.Tensor,
+    params: Sequence[torch.Tensor],
+    grads: Sequence[torch.Tensor],
+    exp_avg: Sequence[torch.Tensor],
+    exp_avg_sq: Sequence[torch.Tensor],
     n_steps: int,
     lr: float,
     betas: tuple[float, float],
     eps: float,
+    denom: Sequence[torch.Tensor] | None = None,
 ) -> None:
-    """One Adam step in place on the given tensors: ``torch.optim.Adam``'s single-tensor
-    arithmetic (no weight decay), :meth:`FlatAdam.step`'s, for callers that keep their own
-    moments (the lockstep batches of PPO and of Fhat)."""
+    """One Adam step in place on the given tensors (one list entry per parameter):
+    ``torch.optim.Adam``'s single-tensor arithmetic (no weight decay), :meth:`FlatAdam.step`'s,
+    for callers that keep their own moments (the lockstep batches of PPO and of Fhat);
+    ``denom``, buffers shaped like ``params`` to hold the denominators (else allocated).
+
+    Each op runs on every tensor of the lists in one ``torch._foreach_*`` call: on the CPU
+    that is the same elementwise kernel per tensor (the same values) without a Python call
+    per tensor."""
     beta1, beta2 = betas
-    exp_avg.lerp_(grads, 1 - beta1)
-    exp_avg_sq.mul_(beta2).addcmul_(grads, grads, value=1 - beta2)
+    torch._foreach_lerp_(exp_avg, grads, 1 - beta1)
+    torch._foreach_mul_(exp_avg_sq, beta2)
+    torch._foreach_addcmul_(exp_avg_sq, grads, grads, value=1 - beta2)
     bias_correction1 = 1 - beta1**n_steps
     bias_correction2 = 1 - beta2**n_steps
-    denom = torch.sqrt(exp_avg_sq)
-    denom.div_(bias_correction2**0.5).add_(eps)
-    params.addcdiv_(exp_avg, denom, value=-lr / bias_correction1)
+    if denom is None:
+        denom = torch._foreach_sqrt(exp_avg_sq)
+    else:
+        torch._foreach_copy_(denom, exp_avg_sq)
+        torch._foreach_sqrt_(denom)
+    torch._foreach_div_(denom, bias_correction2**0.5)
+    torch._foreach_add_(denom, eps)
+    torch._foreach_addcdiv_(params, exp_avg, denom, value=-lr / bias_correction1)

@@ -101,6 +101,21 @@ class BatchedActorCritic(nn.Module):
             torch.cat([run[i].bias.detach() for run in layers]) for i in range(len(layers[0]))
         )
         self.activate = [layer.activate for layer in layers[0]]
+        self.flat_params = self.flat_grads = torch.empty(0)
+        self._bind_flat()
+
+    def _bind_flat(self) -> None:
+        """Gather the parameters into :attr:`flat_params` and their gradients into
+        :attr:`flat_grads` (each parameter's data and ``.grad`` a view of them, in
+        :meth:`tensors` order): the optimiser's elementwise ops then run once on one buffer
+        instead of once per parameter."""
+        tensors = self.tensors()
+        self.flat_params = torch.cat([p.detach().reshape(-1) for p in tensors])
+        self.flat_grads = torch.zeros_like(self.flat_params)
+        sizes = [p.numel() for p in tensors]
+        views = zip(self.flat_params.split(sizes), self.flat_grads.split(sizes), strict=True)
+        for p, (data, grad) in zip(tensors, views, strict=True):
+            p.data, p.grad = data.view_as(p), grad.view_as(p)
 
     @property
     def n_runs(self) -> int:
@@ -138,6 +153,7 @@ class BatchedActorCritic(nn.Module):
         for params in (self.weights, self.biases):
             for i, p in enumerate(params):
                 params[i] = nn.Parameter(p.detach()[towers].clone())
+        self._bind_flat()
 
 
 class BatchedAdam:
@@ -146,20 +162,36 @@ class BatchedAdam:
     The arithmetic of :class:`~services.learner.optimizer.FlatAdam` for every run: clip each
     run's gradients by the norm of its per-parameter norms, then Adam with each run's own
     step count and learning rate. :meth:`step` moves the runs given only (the others keep
-    their weights and moments, as a single run that skips a step).
+    their weights and moments, as a single run that skips a step). The moments are flat
+    buffers laid out as the model's :attr:`~BatchedActorCritic.flat_params`, so a step of
+    every run is one op per Adam operation on the whole batch (Adam is elementwise: the
+    same values as per parameter).
     """
 
     def __init__(self, model: BatchedActorCritic, optimizers: Sequence[FlatAdam]) -> None:
         first = optimizers[0]
         self.model = model
         self.betas, self.eps = first.betas, first.eps
-        self.params = model.tensors()
-        self.exp_avg = [torch.zeros_like(p) for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
         self.n_steps = [0] * len(optimizers)
         self.lr = [first.lr] * len(optimizers)
+        self._bind(torch.zeros_like(model.flat_params), torch.zeros_like(model.flat_params))
         for row, optimizer in enumerate(optimizers):
             self.load_run(row, optimizer)
+
+    def _bind(self, exp_avg: torch.Tensor, exp_avg_sq: torch.Tensor) -> None:
+        """Take the flat moments (laid out as the model's flat parameters) and view them
+        per parameter."""
+        self.params = self.model.tensors()
+        self.flat_exp_avg, self.flat_exp_avg_sq = exp_avg, exp_avg_sq
+        self.denom = torch.empty_like(exp_avg)
+        sizes = [p.numel() for p in self.params]
+        self.exp_avg = [
+            v.view_as(p) for v, p in zip(exp_avg.split(sizes), self.params, strict=True)
+        ]
+        self.exp_avg_sq = [
+            v.view_as(p) for v, p in zip(exp_avg_sq.split(sizes), self.params, strict=True)
+        ]
+        self.grad_views = [p.grad for p in self.params]
 
     def _rows(self, tensors: list[torch.Tensor]) -> list[torch.Tensor]:
         """Each tensor viewed as (runs, elements of one run)."""
@@ -186,23 +218,24 @@ class BatchedAdam:
         """After ``model.keep(rows)``: keep the state of ``rows`` only."""
         index = torch.as_tensor(list(rows), dtype=torch.long)
         n_before = len(self.n_steps)
-        self.exp_avg = [m.view(n_before, -1)[index].view(-1, *m.shape[1:]) for m in self.exp_avg]
-        self.exp_avg_sq = [
-            m.view(n_before, -1)[index].view(-1, *m.shape[1:]) for m in self.exp_avg_sq
-        ]
+        exp_avg, exp_avg_sq = (
+            torch.cat([m.view(n_before, -1)[index].reshape(-1) for m in moments])
+            for moments in (self.exp_avg, self.exp_avg_sq)
+        )
         self.n_steps = [self.n_steps[r] for r in rows]
         self.lr = [self.lr[r] for r in rows]
-        self.params = self.model.tensors()
+        self._bind(exp_avg, exp_avg_sq)
 
     def zero_grad(self) -> None:
-        """Drop every gradient (backward then writes fresh ones: no zeroing, no adding)."""
-        for p in self.params:
-            p.grad = None
+        """Zero every gradient (backward then accumulates into the model's flat buffer)."""
+        if any(p.grad is not g for p, g in zip(self.params, self.grad_views, strict=True)):
+            raise RuntimeError("a parameter's .grad was replaced; BatchedAdam no longer sees it")
+        self.model.flat_grads.zero_()
 
     def clip_grad_norm_(self, max_norm: float) -> torch.Tensor:
         """Per run, ``nn.utils.clip_grad_norm_``: the norm of its per-parameter gradient
         norms, its gradients scaled if above ``max_norm``; the norms, shape (runs,)."""
-        grads = self._rows([p.grad for p in self.params])
+        grads = self._rows(self.grad_views)
         per_parameter = torch.stack([torch.linalg.vector_norm(g, dim=1) for g in grads], dim=1)
         total = torch.linalg.vector_norm(per_parameter, dim=1)
         scale = (total + 1e-6).reciprocal_().mul_(max_norm).clamp_(max=1.0)[:, None]
@@ -220,19 +253,26 @@ class BatchedAdam:
         for row in rows:
             self.n_steps[row] += 1
             groups.setdefault((self.n_steps[row], self.lr[row]), []).append(row)
+        if len(groups) == 1 and len(rows) == n_runs:  # every run alike: the flat buffers
+            (n_steps, lr), _ = groups.popitem()
+            adam_update_(
+                [self.model.flat_params], [self.model.flat_grads], [self.flat_exp_avg],
+                [self.flat_exp_avg_sq], n_steps, lr, self.betas, self.eps, denom=[self.denom],
+            )  # fmt: skip
+            return
         params = self._rows([p.data for p in self.params])
-        grads = self._rows([p.grad for p in self.params])
+        grads = self._rows(self.grad_views)
         exp_avg, exp_avg_sq = self._rows(self.exp_avg), self._rows(self.exp_avg_sq)
         for (n_steps, lr), members in groups.items():
-            every = len(members) == n_runs
             index = torch.as_tensor(members, dtype=torch.long)
-            for p, g, m, v in zip(params, grads, exp_avg, exp_avg_sq, strict=True):
-                if every:  # in place on the whole tensors
-                    adam_update_(p, g, m, v, n_steps, lr, self.betas, self.eps)
-                    continue
-                p_rows, m_rows, v_rows = p[index], m[index], v[index]
-                adam_update_(p_rows, g[index], m_rows, v_rows, n_steps, lr, self.betas, self.eps)
-                p[index], m[index], v[index] = p_rows, m_rows, v_rows
+            p_rows, m_rows, v_rows = (
+                [t[index] for t in ts] for ts in (params, exp_avg, exp_avg_sq)
+            )
+            g_rows = [g[index] for g in grads]
+            adam_update_(p_rows, g_rows, m_rows, v_rows, n_steps, lr, self.betas, self.eps)
+            for ts, rows in ((params, p_rows), (exp_avg, m_rows), (exp_avg_sq, v_rows)):
+                for t, r in zip(ts, rows, strict=True):
+                    t[index] = r
 
 
 def _stack(arguments: Sequence[Sequence[torch.Tensor | None]], fill: float) -> list[Any]:
