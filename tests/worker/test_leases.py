@@ -192,6 +192,24 @@ def test_reaper_resends_stale_queued_jobs_and_finished_parents(
     assert row(sessions, parent).attempts == 1  # the wait gave the attempts back
 
 
+def test_a_parents_progress_weighs_each_child_by_its_runs(
+    sessions: sessionmaker[Session],
+) -> None:
+    parent = add_job(sessions, kind="reproduce")
+    with sessions() as session:
+        assert job_rows.claim_job(session, parent, "w", 30) is Claim.CLAIMED
+        assert job_rows.wait_for_children(session, parent, "w") is True
+        batch = Job(
+            kind="reproduce_batch", config={"runs": [{}, {}, {}]}, parent_id=parent, progress=0.2
+        )
+        single = Job(kind="reproduce_run", config={}, parent_id=parent, status="succeeded")
+        session.add_all([batch, single])
+        session.commit()
+        job_rows.reap(session)
+    # (3 runs x 0.2 + 1 run x 1.0) / 4 runs; a plain mean of the children would be 0.6
+    assert row(sessions, parent).progress == pytest.approx(0.4)
+
+
 def test_hand_back_does_not_use_up_an_attempt(sessions: sessionmaker[Session]) -> None:
     job_id = add_job(sessions)
     with sessions() as session:

@@ -357,15 +357,30 @@ def reap(session: Session, *, stale_queued_s: float | None = None) -> list[tuple
     return to_send
 
 
+def child_weight(config: Any) -> int:
+    """How much a child counts in its parent's progress: the runs its config lists
+    (``runs``: a ``reproduce_batch`` holds several), else 1."""
+    runs = config.get("runs") if isinstance(config, dict) else None
+    return len(runs) if isinstance(runs, list) and runs else 1
+
+
 def _update_parent_progress(session: Session, parent_id: str) -> None:
-    """A waiting parent's progress: its children's, a final child counting as done."""
-    rows = session.execute(select(Job.status, Job.progress).where(Job.parent_id == parent_id))
-    shares = [1.0 if status in JOB_FINAL_STATUSES else float(p) for status, p in rows]
+    """A waiting parent's progress: its children's, each weighted by :func:`child_weight`
+    (the runs it holds), a final child counting as done."""
+    rows = session.execute(
+        select(Job.status, Job.progress, Job.config).where(Job.parent_id == parent_id)
+    )
+    shares = [
+        (child_weight(config), 1.0 if status in JOB_FINAL_STATUSES else float(progress))
+        for status, progress, config in rows
+    ]
     if shares:
+        total = sum(weight for weight, _ in shares)
+        done = sum(weight * share for weight, share in shares)
         session.execute(
             update(Job)
             .where(Job.id == parent_id, Job.status == "running", Job.lease_owner.is_(None))
-            .values(progress=min(sum(shares) / len(shares), 0.99))
+            .values(progress=min(done / total, 0.99))
             .execution_options(synchronize_session=False)
         )
         session.commit()
