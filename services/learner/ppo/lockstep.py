@@ -13,8 +13,9 @@ step on two 64-64 MLPs, and most of that step is per-operation overhead, not ari
 * each run keeps everything else its own (:class:`~services.learner.ppo.run.PPORun`, the
   same code as the single-run :func:`~services.learner.ppo.train`): its env stepped in a
   loop, its random streams, episodes, evaluations, best weights, checkpoints, metrics and
-  callbacks (the evaluation env, reset with each evaluation start's seed, is one per task
-  and batch). Runs that differ in seed, task (env id and
+  callbacks; its greedy evaluation episodes are its own too, stepped side by side with
+  the other runs' evaluations due at the same step, one batched forward per step
+  (:func:`evaluate_lockstep`). Runs that differ in seed, task (env id and
   kwargs: reward, map), evaluation starts, treatment of pi_HF's steps and pi_HF (or none)
   share a batch; every other setting must be equal (:func:`lockstep_key`).
 
@@ -39,12 +40,11 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from contextlib import ExitStack, closing
+from contextlib import ExitStack
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
 from torch import nn
@@ -65,6 +65,7 @@ from services.learner.ppo.update import (
     minibatches,
     ppo_loss,
 )
+from services.sim.metrics import spl
 
 PER_RUN_SETTINGS = frozenset({"seed", "env_id", "env_kwargs", "eval_seeds", "hf_treatment"})
 """PPOConfig fields that may differ between the runs of one lockstep batch."""
@@ -397,6 +398,64 @@ def lockstep_self_imitation(
     return metrics
 
 
+def evaluate_lockstep(
+    model: BatchedActorCritic,
+    runs: Sequence[PPORun],
+    rows: Sequence[int],
+    failed: dict[int, Exception],
+) -> None:
+    """:meth:`PPORun.evaluate` of the runs of ``rows`` (batch rows, with ``model``'s weights
+    theirs): each run plays its greedy episodes from its evaluation starts on its own
+    evaluation env, as :func:`~services.learner.evaluation.evaluate_spl`, the runs' episodes
+    stepped side by side with one batched forward per step (each row's logits are its own
+    GEMMs: the greedy actions of :meth:`PPORun.greedy`). A run that raises goes to
+    ``failed``."""
+    starts = {row: list(runs[row].config.eval_seeds) for row in rows if row not in failed}
+    episodes: dict[int, list[tuple[bool, int, int]]] = {row: [] for row in starts}
+    playing: dict[int, list[Any]] = {}  # row -> [observation, shortest steps, steps taken]
+
+    def begin(row: int) -> None:
+        obs, info = runs[row].eval_env.reset(seed=starts[row].pop(0))
+        playing[row] = [obs, int(info["shortest_path_steps"]), 0]
+
+    for row in list(starts):
+        try:
+            begin(row)
+        except Exception as exc:
+            failed[row] = exc
+    while playing:
+        filler = next(iter(playing.values()))[0]
+        obs = np.stack([playing[row][0] if row in playing else filler for row in range(len(runs))])
+        with torch.inference_mode():
+            actions = model(torch.from_numpy(obs)[:, None])[0][:, 0].argmax(-1).tolist()
+        for row in list(playing):
+            episode = playing[row]
+            try:
+                episode[0], _, terminated, truncated, info = runs[row].eval_env.step(actions[row])
+                episode[2] += 1
+                if terminated or truncated:
+                    del playing[row]
+                    episodes[row].append(
+                        (bool(info.get("is_success", False)), episode[1], episode[2])
+                    )
+                    if starts[row]:
+                        begin(row)
+            except Exception as exc:
+                playing.pop(row, None)
+                failed[row] = exc
+    for row, done in episodes.items():
+        if row in failed:
+            continue
+        successes, shortest, taken = zip(*done, strict=True)
+        run = runs[row]
+        try:
+            run.keep_going &= run.record_evaluation(
+                float(spl(list(successes), list(shortest), list(taken)))
+            )
+        except Exception as exc:
+            failed[row] = exc
+
+
 def train_lockstep(
     configs: Sequence[PPOConfig],
     *,
@@ -428,19 +487,13 @@ def train_lockstep(
     with ExitStack() as stack:
         runs: list[PPORun] = []
         slots: list[int] = []  # each batch row's index in configs
-        eval_envs: dict[str, gym.Env] = {}  # one per task (reset per evaluation start)
         for i, config in enumerate(configs):
-            task = repr((config.env_id, sorted(config.env_kwargs.items())))
             try:
-                if task not in eval_envs:
-                    eval_envs[task] = stack.enter_context(
-                        closing(gym.make(config.env_id, **config.env_kwargs))
-                    )
                 runs.append(
                     PPORun(
                         config, stack, callback=callbacks[i], hf_policy=hf_policies[i],
                         checkpoint_path=checkpoint_paths[i], checkpoint_every=checkpoint_every,
-                        eval_env=eval_envs[task],
+                        evaluate_first=False,
                     )
                 )  # fmt: skip
                 slots.append(i)
@@ -467,13 +520,16 @@ def _advance(
         failed.clear()
 
     config = runs[0].config
-    leave([row for row, run in enumerate(runs) if run.running])
+    first = [row for row, run in enumerate(runs) if not run.state.curve]  # not resumed
+    evaluate_lockstep(model, runs, first, failed)
+    leave([row for row, run in enumerate(runs) if row not in failed and run.running])
     while runs:
         # ---- 1. rollouts: one batched forward per step, each run's env stepped in turn ------
         rollout_start = time.perf_counter()
         episode_returns: list[list[float]] = [[] for _ in runs]
         successes: list[list[tuple[int, list[int]]]] = [[] for _ in runs]
         for t in range(config.n_steps):
+            due: list[int] = []  # rows whose evaluation is due after this step
             with torch.inference_mode():
                 obs = torch.from_numpy(np.stack([run.obs for run in runs]))[:, None]
                 logits, values = model(obs)
@@ -495,9 +551,11 @@ def _advance(
                         successes[row].append(step.success)
                     run.keep_going &= run.callback.on_step(run.state.global_step, step.info)
                     if run.state.global_step % run.config.eval_every == 0:
-                        run.keep_going &= run.evaluate()
+                        due.append(row)
                 except Exception as exc:  # this run leaves the batch, the others go on
                     failed[row] = exc
+            if due:
+                evaluate_lockstep(model, runs, due, failed)
         if failed:
             keep = [row for row in range(len(runs)) if row not in failed]
             episode_returns = [episode_returns[row] for row in keep]

@@ -40,7 +40,9 @@ class PPORun:
     The envs are closed by ``stack``; ``eval_env``, for the evaluations and the replays of
     successful episodes, may be shared by runs of one task (every use resets it with its
     own seed), else the run makes its own. ``keep_going`` turns False once a hook asks to stop;
-    :attr:`running` says whether another update is due.
+    :attr:`running` says whether another update is due. Without ``evaluate_first`` the
+    evaluation at step 0 (of a run not resumed) is the caller's (the lockstep runner's,
+    batched over its runs).
     """
 
     def __init__(
@@ -53,6 +55,7 @@ class PPORun:
         checkpoint_path: str | Path | None = None,
         checkpoint_every: int = 10,
         eval_env: gym.Env | None = None,
+        evaluate_first: bool = True,
     ) -> None:
         self.start_time = time.perf_counter()
         self.config = config
@@ -104,7 +107,9 @@ class PPORun:
                 self.obs, *_ = env.step(action)
         else:
             self.obs = begin_episode(env, self.state, self.resets, self.rng, config, self.guided)
-        self.keep_going = self.evaluate() if not self.state.curve else True
+        self.keep_going = True
+        if evaluate_first and not self.state.curve:
+            self.keep_going = self.evaluate()
         self.rollout = Rollout.empty(config.n_steps, env.observation_space.shape[0])
 
     @property
@@ -121,8 +126,14 @@ class PPORun:
     def evaluate(self) -> bool:
         """SPL of the greedy pi_RL on the evaluation starts, kept in the curve (and the
         weights if it is the best so far); the ``on_eval`` hook's answer."""
+        return self.record_evaluation(
+            evaluate_spl(self.eval_env, self.greedy, self.config.eval_seeds)
+        )
+
+    def record_evaluation(self, spl: float) -> bool:
+        """Keep the SPL of an evaluation at this step in the curve (and the weights if it is
+        the best so far); the ``on_eval`` hook's answer."""
         state = self.state
-        spl = evaluate_spl(self.eval_env, self.greedy, self.config.eval_seeds)
         state.curve.append((state.global_step, spl))
         if state.best_spl is None or spl > state.best_spl:  # the first of equal bests
             state.best_step, state.best_spl = state.global_step, spl
