@@ -134,9 +134,9 @@ def adam_update_(
     bias_correction2 = 1 - beta2**n_steps
     if denom is None:
         denom = torch._foreach_sqrt(exp_avg_sq)
-    else:
-        torch._foreach_copy_(denom, exp_avg_sq)
-        torch._foreach_sqrt_(denom)
+    else:  # no foreach sqrt with out=; a copy then sqrt_ would cost a pass more
+        for buffer, squares in zip(denom, exp_avg_sq, strict=True):
+            torch.sqrt(squares, out=buffer)
     torch._foreach_div_(denom, bias_correction2**0.5)
     torch._foreach_add_(denom, eps)
     torch._foreach_addcdiv_(params, exp_avg, denom, value=-lr / bias_correction1)
