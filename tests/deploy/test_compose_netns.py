@@ -31,7 +31,11 @@ pytestmark = pytest.mark.netns
 RowT = TypeVar("RowT")
 TINY_PPO = {"n_epochs": 4, "eval_every": 256}
 REPRODUCE = {"seeds": 1, "first_seed": 3, "tasks": ["sssg"], "methods": ["rl_sparse", "rl_rich"],
-             "ppo": {**TINY_PPO, "total_steps": 1024}, "checkpoint_every": 2}  # fmt: skip
+             "ppo": {**TINY_PPO, "total_steps": 1024}, "checkpoint_every": 2,
+             "batch_runs": 1}  # fmt: skip
+"""One run a child job (batch_runs 1), so that the two runs fan out over the two worker
+hosts and a child's run checkpoints where a cut-off host's successor resumes it; a batch of
+runs in one child resumes after a SIGKILL in tests/worker/test_reproduce_batches.py."""
 RUN_RECORD = ("seed", "method", "final_spl", "curve")
 
 
