@@ -201,7 +201,12 @@ def test_a_service_killed_mid_session_loses_at_most_one_label(
     loop.kill(service)
     loop.start(service)
     worker.join(timeout=600)
-    assert outcome == ["succeeded"]
+    # A request the kill cut mid-flight (a sim step sent, its answer lost) has an unknown
+    # outcome: it is never repeated blindly, the attempt ends and the job is queued again,
+    # and the next attempt (a worker's, here the test's) resumes the run from its rows.
+    if outcome == ["queued"]:
+        outcome.append(run_job(loop.runtime, job_id, live_session))
+    assert outcome[-1] == "succeeded", outcome
     with loop.runtime.sessions() as db:
         run = db.get(LiveRun, run_id)
         assert run is not None and run.status == "completed" and run.result is not None
