@@ -21,12 +21,29 @@ export function signOut() {
   sessionStorage.removeItem(TOKEN_KEY);
 }
 
+// Once this page has started to leave, a request answering 401 afterwards (a poll sent
+// without the token just removed) must not send the user somewhere else instead.
+let leaving = false;
+
+function leave(url) {
+  if (leaving) return;
+  leaving = true;
+  location.assign(url);
+}
+
+/** The Sign out button: forget the token and open the sign-in page. */
+export function signOutToSignIn() {
+  signOut();
+  leave("/signin");
+}
+
 /** Send the user to the sign-in page, coming back here afterwards; ``reason`` (e.g. the
  *  API's "access token expired; log in again") is shown there. */
 export function toSignIn(reason = "") {
+  if (leaving) return;
   if (reason) sessionStorage.setItem(SIGNIN_REASON_KEY, reason);
   const here = location.pathname + location.search;
-  location.assign(`/signin?next=${encodeURIComponent(here)}`);
+  leave(`/signin?next=${encodeURIComponent(here)}`);
 }
 
 /** Why the user was sent to sign in (once: read and forgotten), or "". */

@@ -1,6 +1,6 @@
 // The dashboard's entry point: who is signed in, the navigation bar, and the page for the path.
 
-import { get, signOut, toSignIn, token } from "./api.js";
+import { get, signOutToSignIn, toSignIn, token } from "./api.js";
 import { h } from "./dom.js";
 import { accountPage } from "./pages/account.js";
 import { auditPage, rigsPage, usersPage } from "./pages/admin.js";
@@ -62,10 +62,7 @@ let section = "subjects"; // the section of the page being shown (for its "not f
 function showAccount(user) {
   const box = document.getElementById("account");
   const button = h("button", { type: "button", class: "btn small" }, "Sign out");
-  button.addEventListener("click", () => {
-    signOut();
-    location.assign("/signin");
-  });
+  button.addEventListener("click", () => signOutToSignIn());
   box.replaceChildren(
     h("a", { class: "who", href: "/account", "data-nav": "account", title: "Your account: password, API tokens" },
       user.email, " ", h("span", { class: "badge" }, user.role)),
