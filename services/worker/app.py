@@ -16,6 +16,7 @@ from typing import Any
 import torch
 from celery import Celery
 from celery.signals import worker_ready, worker_shutdown, worker_shutting_down
+from sqlalchemy.exc import OperationalError
 
 from services.core.gc_pauses import freeze_startup_objects, unfreeze
 from services.core.queue import make_celery, task_name
@@ -59,6 +60,10 @@ def load_handler(kind: str) -> Handler:
     return handler
 
 
+DB_RETRIES = 240
+"""Times a job's message is sent again while the database cannot be reached (~2 h)."""
+
+
 def create_runtime(settings: WorkerSettings | None = None) -> Runtime:
     """The worker runtime (settings from the environment unless given) with its tasks."""
     settings = settings or load_settings(WorkerSettings)
@@ -75,7 +80,19 @@ def _register(celery: Celery, runtime: Runtime, kind: str) -> None:
 
     task.__name__ = task.__qualname__ = kind
     task.__doc__ = f"Run the {kind} job with this id (idempotent by job id)."
-    celery.task(name=task_name(kind))(task)
+    # A database that cannot be reached (restarting, cut off) before the job is claimed or
+    # after it was released would end the task with its message acknowledged and the job
+    # queued with no message for stale_queued_s (15 min): Celery sends the message again
+    # instead, after 1, 2, 4 ... 30 s, for up to two hours; a repeat of a job that is
+    # running or finished is dropped by the claim.
+    celery.task(
+        name=task_name(kind),
+        autoretry_for=(OperationalError,),
+        retry_backoff=1,
+        retry_backoff_max=30,
+        retry_jitter=False,
+        max_retries=DB_RETRIES,
+    )(task)
 
 
 runtime: Runtime | None = None
