@@ -15,6 +15,7 @@ from contextlib import asynccontextmanager
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import OperationalError
 
 from services.api.accounts import ensure_first_admin
 from services.api.errors import TooManyRequestsError, UnauthorizedError
@@ -52,6 +53,8 @@ from services.core.web import create_service_app
 
 log = logging.getLogger(__name__)
 
+DATABASE_RETRY_AFTER_S = 2
+"""What a request that found the database unreachable asks its client to wait (503)."""
 
 MULTIPART_OVERHEAD_BYTES = 64 * 1024
 """Room for a multipart envelope around an upload of ``max_upload_bytes``."""
@@ -141,6 +144,23 @@ def create_app(settings: ApiSettings | None = None) -> FastAPI:
             status_code=429,
             content={"detail": str(exc), "field": exc.field},
             headers={"Retry-After": str(exc.retry_after_s)},
+        )
+
+    @app.exception_handler(OperationalError)
+    async def database_unreachable(request: Request, exc: OperationalError) -> JSONResponse:
+        """The database restarting or cut off: 503 with Retry-After, not a 500. The
+        request's transaction was rolled back; the pool drops the dead connection, so a
+        request sent again gets a new one once the database is back."""
+        log.warning("%s %s: the database cannot be reached: %s",
+                    request.method, request.url.path, exc.orig or exc)  # fmt: skip
+        return JSONResponse(
+            status_code=503,
+            content={
+                "detail": "the database cannot be reached (restarting?); "
+                f"try again in {DATABASE_RETRY_AFTER_S} s",
+                "field": None,
+            },
+            headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)},
         )
 
     return app

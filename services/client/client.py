@@ -107,17 +107,40 @@ def _non_finite(value: Any, path: str = "") -> str | None:
     return None
 
 
+def _retry_after_s(response: httpx.Response) -> float | None:
+    """The seconds a 503 answer asks to wait before the request is sent again (its
+    ``Retry-After`` in seconds, at least 0.1), or None if it does not ask."""
+    if response.status_code != 503:
+        return None
+    try:
+        return max(0.1, float(response.headers["Retry-After"]))
+    except (KeyError, ValueError):
+        return None
+
+
 class PlatformClient:
     """The platform api at ``base_url`` (e.g. ``http://127.0.0.1:8000``).
 
     ``token`` is an access token or API token (``bgrl_...``); without one, call
     :meth:`login` or :meth:`login_with_api_token` first. Every failed request raises
     :class:`PlatformError` with the HTTP status and the api's detail and field.
+
+    A read (GET) answered 503 with ``Retry-After`` (the api's database restarting) is sent
+    again after the wait the api asks for, for up to ``retry_s`` seconds; nothing else is
+    repeated, as a write's outcome may be unknown.
     """
 
-    def __init__(self, base_url: str, token: str | None = None, *, timeout_s: float = 30.0):
+    def __init__(
+        self,
+        base_url: str,
+        token: str | None = None,
+        *,
+        timeout_s: float = 30.0,
+        retry_s: float = 60.0,
+    ) -> None:
         self.base_url = base_url.rstrip("/")
         self.token = token
+        self.retry_s = retry_s
         self._http = httpx.Client(base_url=self.base_url, timeout=timeout_s)
 
     def close(self) -> None:
@@ -154,13 +177,18 @@ class PlatformClient:
                 f"{where} is NaN or infinite, which JSON cannot carry; give a finite number",
                 field=where,
             )
-        try:
-            response = self._http.request(method, path, headers=self._headers(), **kwargs)
-        except httpx.HTTPError as exc:
-            raise PlatformError(f"cannot reach {self.base_url}: {exc}") from None
-        if not response.is_success:
-            raise error_from_response(response)
-        return response
+        deadline = time.monotonic() + self.retry_s
+        while True:
+            try:
+                response = self._http.request(method, path, headers=self._headers(), **kwargs)
+            except httpx.HTTPError as exc:
+                raise PlatformError(f"cannot reach {self.base_url}: {exc}") from None
+            if response.is_success:
+                return response
+            wait_s = _retry_after_s(response) if method == "GET" else None
+            if wait_s is None or time.monotonic() + wait_s > deadline:
+                raise error_from_response(response)
+            time.sleep(wait_s)
 
     def _parse(self, response: httpx.Response, model: type[ModelT]) -> ModelT:
         """The answer as ``model``; :class:`PlatformError` if it is not what the api sends

@@ -5,11 +5,13 @@ several api processes share one generated JWT key, and ``bgrl up`` starts the ap
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import multiprocessing.queues
 import multiprocessing.synchronize
 import os
 import stat
+import uuid
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -21,10 +23,11 @@ from sqlalchemy.exc import OperationalError
 from services.api.security import load_jwt_key
 from services.api.settings import ApiSettings, default_api_workers
 from services.cli.serve import SERVICES, _service_processes
+from services.client import PlatformClient, PlatformError
 from services.core.db import session as db_session
 from services.core.db.session import make_engine
 from services.core.settings import SettingsError
-from tests.api.conftest import Api, make_settings
+from tests.api.conftest import Api, make_settings, start_api
 from tests.api.test_jobs import GUIDED, set_job, submit
 
 
@@ -174,4 +177,50 @@ def test_a_dead_pooled_connection_idle_long_enough_is_replaced(
             assert engine.pool.checkedout() == 0  # type: ignore[attr-defined]
     finally:
         engine.dispose()
+        admin.dispose()
+
+
+def test_a_request_that_finds_the_database_gone_is_a_503_a_client_read_waits_it_out(
+    tmp_path: Path, pg_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """PostgreSQL restarting under the api: a request on a connection the server dropped
+    is answered 503 with Retry-After (not a 500), the next one gets a new connection; the
+    Python client sends a read answered so again after the wait, and only a read."""
+    monkeypatch.setattr(db_session, "PING_AFTER_IDLE_S", 3600.0)  # no ping hides the drop
+    name = f"bgrl_test_{uuid.uuid4().hex[:12]}"
+    admin = make_engine(pg_url)
+
+    def drop_the_api_connections() -> None:
+        with admin.connect() as connection:
+            dropped = connection.execute(text(
+                "SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                "WHERE application_name = :name"), {"name": name}).all()  # fmt: skip
+        assert dropped, "the api holds no connection"
+
+    settings = make_settings(tmp_path, f"{pg_url}&application_name={name}")
+    try:
+        with contextlib.contextmanager(start_api)(settings) as api:
+            staff = api.as_("staff")
+            drop_the_api_connections()
+            cut = api.client.get("/api/v1/jobs", headers=staff)
+            assert cut.status_code == 503, cut.text
+            assert cut.headers["Retry-After"] == "2" and "database" in cut.json()["detail"]
+            assert api.client.get("/api/v1/jobs", headers=staff).status_code == 200
+
+            client = PlatformClient("http://testserver", staff["Authorization"].split()[1])
+            client._http = api.client  # the app in this process (TestClient is an httpx.Client)
+            drop_the_api_connections()
+            assert client.list_jobs().total == 0  # answered 503 once, then 200
+            client.retry_s = 0.0
+            drop_the_api_connections()
+            with pytest.raises(PlatformError) as refused:
+                client.list_jobs()
+            assert refused.value.status == 503
+            client.retry_s = 60.0
+            assert client.list_jobs().total == 0  # a new connection
+            drop_the_api_connections()
+            with pytest.raises(PlatformError) as write:  # a write is never sent twice
+                client.create_subject("S-503")
+            assert write.value.status == 503
+    finally:
         admin.dispose()
