@@ -41,7 +41,8 @@ def online(loop: LoopPlatform) -> dict[str, int]:
         subject_id = db.scalar(select(LabSession.subject_id).order_by(LabSession.id.desc()))
     session_id = loop.lab_session("online", subject_code=SUBJECT)
     options = {"accelerated": True, "classifier_id": classifier_id, "label_budget": LABELS,
-               "virtual_quality": 0.6, "seed": 3, "hf_method": HF_METHOD}  # fmt: skip
+               "virtual_quality": 0.6, "seed": 3, "hf_method": HF_METHOD,
+               "label_channel": "hard"}  # fmt: skip
     run_id, job_id = loop.live_job(session_id, options)
     assert run_job(loop.runtime, job_id, live_session) == "succeeded"
     return {"classifier_id": classifier_id, "session_id": session_id, "run_id": run_id,

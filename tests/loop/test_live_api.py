@@ -20,9 +20,9 @@ def api(tmp_path: Path) -> Iterator[Api]:
     yield from start_api(make_settings(tmp_path / "data", f"sqlite:///{tmp_path / 'bgrl.db'}"))
 
 
-def lab_session(api: Api, kind: str) -> int:
+def lab_session(api: Api, kind: str, code: str | None = None) -> int:
     staff = api.as_("staff")
-    subject = api.client.post("/api/v1/subjects", json={"code": f"S-{kind}"}, headers=staff)
+    subject = api.client.post("/api/v1/subjects", json={"code": code or f"S-{kind}"}, headers=staff)
     body = {"subject_id": subject.json()["id"], "kind": kind,
             "scheduled_at": datetime.now(UTC).isoformat()}  # fmt: skip
     response = api.client.post("/api/v1/sessions", json=body, headers=staff)
@@ -103,6 +103,30 @@ def test_start_creates_a_run_and_its_job_and_refuses_bad_starts(api: Api) -> Non
     assert stopped.status_code == 200 and stopped.json()["stop_requested"] is True
     never = api.client.post(f"/api/v1/sessions/{online}/stop", headers=staff)
     assert never.status_code == 404
+
+
+def test_an_online_session_takes_the_soft_channel_if_its_classifier_is_calibrated(
+    api: Api,
+) -> None:
+    """No label_channel asked: soft with a calibrated posterior, hard without one. The run's
+    options record it, so a resumed run keeps the channel it began with."""
+    staff = api.as_("staff")
+    with db(api) as session:
+        calibrated = Classifier(name="new", metrics={"calibration": {"method": "platt"}})
+        uncalibrated = Classifier(name="old", metrics={"test_accuracy": 0.7})
+        session.add_all([calibrated, uncalibrated])
+        session.commit()
+        classifiers = {"soft": calibrated.id, "hard": uncalibrated.id}
+    for channel, classifier_id in classifiers.items():
+        online = lab_session(api, "online", code=f"S-{channel}")
+        started = api.client.post(
+            f"/api/v1/sessions/{online}/start", json={"classifier_id": classifier_id}, headers=staff
+        )
+        assert started.status_code == 201, started.text
+        assert started.json()["options"]["label_channel"] == channel
+        with db(api) as session:
+            job = session.get(Job, started.json()["job_id"])
+            assert job is not None and job.config["run_id"] == started.json()["id"]
 
 
 def test_live_status_events_and_frames_shown(api: Api) -> None:
