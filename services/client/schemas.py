@@ -11,14 +11,13 @@ from typing import Any, Generic, Literal, TypeVar
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.platform.jobs import SubmittedKindName
+from services.platform.jobs.resource import FINAL_JOB_STATUSES, JobFields
+from services.platform.jobs.resource import JobStatus as JobStatus  # re-exported
 
 ItemT = TypeVar("ItemT")
 
 JobKind = SubmittedKindName
 """Kinds a user may submit (the job contract's, :mod:`services.platform.jobs`)."""
-JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-FINAL_JOB_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
-"""A job in one of these stays there (until it is retried)."""
 
 
 class ApiObject(BaseModel):
@@ -96,29 +95,9 @@ class LabSession(ApiObject):
     updated_at: datetime
 
 
-class Job(ApiObject):
+class Job(ApiObject, JobFields):
     """A job: its status, progress and where its results are."""
 
-    id: str
-    kind: str
-    config: dict[str, Any]
-    status: JobStatus
-    progress: float
-    attempts: int
-    max_attempts: int
-    resumed_from_step: int | None
-    steps_done: int
-    error: str | None
-    result: dict[str, Any] | None
-    submitter_id: int | None
-    parent_id: str | None
-    cancel_requested: bool
-    checkpoint_artifact_id: str | None
-    model_artifact_id: str | None
-    created_at: datetime
-    updated_at: datetime
-    started_at: datetime | None
-    finished_at: datetime | None
     summary: str = ""
     """What the job does, in one line (empty from a server older than 2026-12-03)."""
 

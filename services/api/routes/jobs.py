@@ -44,7 +44,6 @@ from services.api.schemas.jobs import (
     JobLogEntry,
     JobLogPublic,
     JobPublic,
-    JobStatus,
 )
 from services.api.settings import ApiSettings
 from services.core.artifacts import TENSORBOARD_KIND, job_folder
@@ -64,6 +63,7 @@ from services.core.disk import require_free_space
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.queue import enqueue_job
 from services.platform.jobs import EEG_CALIBRATION, GUIDED_PPO, KindName, job_kind
+from services.platform.jobs.resource import JobStatus
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"])

@@ -5,16 +5,13 @@ the same model before it runs it."""
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel, Field, computed_field
 
 from services.api.schemas.common import ApiRequest, PublicModel
-from services.core.db.models import JOB_STATUSES
 from services.platform.jobs import KindName, SubmittedKindName, job_kind
-
-JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
+from services.platform.jobs.resource import JobFields
 
 
 class JobKindPublic(BaseModel):
@@ -35,29 +32,8 @@ class JobCreate(ApiRequest):
     config: dict[str, Any] = Field(default_factory=dict)
 
 
-class JobPublic(PublicModel):
+class JobPublic(PublicModel, JobFields):
     """A job: status, progress and where its results are (the curve has its own route)."""
-
-    id: str
-    kind: str
-    config: dict[str, Any]
-    status: JobStatus
-    progress: float
-    attempts: int
-    max_attempts: int
-    resumed_from_step: int | None
-    steps_done: int
-    error: str | None
-    result: dict[str, Any] | None
-    submitter_id: int | None
-    parent_id: str | None
-    cancel_requested: bool
-    checkpoint_artifact_id: str | None
-    model_artifact_id: str | None
-    created_at: datetime
-    updated_at: datetime
-    started_at: datetime | None
-    finished_at: datetime | None
 
     @computed_field(  # type: ignore[prop-decorator]
         description="What the job does, in one line (its kind's summary of its config), "
