@@ -198,7 +198,7 @@ def demo(
             "online_actions": online["actions"],
             "rejected_epochs": online["decoding_rejected"],
             "hf_policy_spl": online["hf_policy_spl"],
-            "label_channel": "hard",
+            "label_channel": online["label_channel"],
             "guided_steps_to_0_7": steps_to_reach(trained_rl.get("curve", [])),
             "rl_sparse_steps_to_0_7": baseline.steps_to_0_7,
             "rl_sparse_final_spl": baseline.final_spl,

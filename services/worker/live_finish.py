@@ -271,6 +271,7 @@ class RunFinish:
         return {
             "actions": done,
             "labels": n_labels,
+            "label_channel": self.options.label_channel,
             "hf_model_id": model_id,
             "hf_policy_spl": spl,
             **{f"decoding_{k}": v for k, v in decoding.items()},

@@ -38,11 +38,18 @@ import numpy as np
 from mne_lsl.lsl import local_clock
 from pydantic import ValidationError
 from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
 from services.core.db.base import utcnow
 from services.core.db.live import LiveDecision, LiveMarker, LiveRun, end_live_run
-from services.core.db.models import FeedbackLabel, LabSession, Rig
-from services.core.live import DEFAULT_ACTIONS, ONLINE_ACTIONS_PER_LABEL, LiveOptions
+from services.core.db.models import Classifier, FeedbackLabel, LabSession, Rig
+from services.core.feedback import LabelChannel
+from services.core.live import (
+    DEFAULT_ACTIONS,
+    ONLINE_ACTIONS_PER_LABEL,
+    LiveOptions,
+    default_label_channel,
+)
 from services.core.markers import ActionMarker
 from services.core.settings import load_settings
 from services.worker.live_eeg import EegDecoder, install_classifier
@@ -74,6 +81,18 @@ def _options(context: JobContext) -> tuple[int, LiveOptions]:
         raise JobConfigError(f"{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
 
 
+def online_label_channel(db: Session, run: LiveRun) -> LabelChannel:
+    """The channel of an online run that asked for none: the one its learner session was
+    opened with, once it was (a resumed run keeps it), else the default for its classifier
+    (soft if the classifier has a calibrated posterior)."""
+    if run.hf_session_id is not None:
+        return "soft" if run.label_channel == "soft" else "hard"  # None: opened as hard
+    classifier_id = (run.options or {}).get("classifier_id")
+    classifier = db.get(Classifier, classifier_id) if isinstance(classifier_id, int) else None
+    calibrated = classifier is not None and bool((classifier.metrics or {}).get("calibration"))
+    return default_label_channel(calibrated)
+
+
 class LiveRunner:
     """Runs one live run from where its rows stop."""
 
@@ -95,6 +114,9 @@ class LiveRunner:
             rig = db.get(Rig, lab.rig_id) if lab.rig_id is not None else None
             self.channel_map = rig.channel_map if rig is not None else None
             self.sim_session_id = run.sim_session_id
+            if run.mode == "online" and options.label_channel is None:
+                channel = online_label_channel(db, run)
+                options = self.options = options.model_copy(update={"label_channel": channel})
             self.learner = LearnerLink(
                 self.services["learner"],
                 self.runtime,

@@ -144,11 +144,12 @@ def test_replay_refuses_a_calibration_session(loop: LoopPlatform, online: dict[s
 
 @pytest.fixture(scope="module")
 def soft_online(loop: LoopPlatform, online: dict[str, int]) -> dict[str, int]:
-    """An accelerated online session on the soft label channel, with the same classifier."""
+    """An accelerated online session with the same classifier that asks for no label
+    channel: the soft one, as the classifier has a calibrated posterior."""
     session_id = loop.lab_session("online", subject_code="S-003")  # S-002's export: 1 session
     options = {"accelerated": True, "classifier_id": online["classifier_id"],
-               "label_budget": LABELS, "virtual_quality": 0.6, "seed": 3,
-               "hf_method": HF_METHOD, "label_channel": "soft"}  # fmt: skip
+               "label_budget": LABELS, "virtual_quality": 0.6,
+               "seed": 3, "hf_method": HF_METHOD}  # fmt: skip
     run_id, job_id = loop.live_job(session_id, options)
     assert run_job(loop.runtime, job_id, live_session) == "succeeded"
     return {"session_id": session_id, "run_id": run_id}

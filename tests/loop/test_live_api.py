@@ -12,6 +12,7 @@ from sqlalchemy import select
 
 from services.core.db.live import LiveDecision, LiveMarker, LiveModelVersion, LiveRun
 from services.core.db.models import Classifier, FeedbackLabel, Job
+from services.worker.live_session import online_label_channel
 from tests.api.conftest import Api, make_settings, start_api
 
 
@@ -108,8 +109,8 @@ def test_start_creates_a_run_and_its_job_and_refuses_bad_starts(api: Api) -> Non
 def test_an_online_session_takes_the_soft_channel_if_its_classifier_is_calibrated(
     api: Api,
 ) -> None:
-    """No label_channel asked: soft with a calibrated posterior, hard without one. The run's
-    options record it, so a resumed run keeps the channel it began with."""
+    """No label_channel asked: the worker's runner takes soft with a calibrated posterior,
+    hard without one, and a run whose learner session was opened keeps its channel."""
     staff = api.as_("staff")
     with db(api) as session:
         calibrated = Classifier(name="new", metrics={"calibration": {"method": "platt"}})
@@ -123,10 +124,13 @@ def test_an_online_session_takes_the_soft_channel_if_its_classifier_is_calibrate
             f"/api/v1/sessions/{online}/start", json={"classifier_id": classifier_id}, headers=staff
         )
         assert started.status_code == 201, started.text
-        assert started.json()["options"]["label_channel"] == channel
+        assert "label_channel" not in started.json()["options"]
         with db(api) as session:
-            job = session.get(Job, started.json()["job_id"])
-            assert job is not None and job.config["run_id"] == started.json()["id"]
+            run = session.get(LiveRun, started.json()["id"])
+            assert run is not None
+            assert online_label_channel(session, run) == channel
+            run.hf_session_id, run.label_channel = "opened-before", "hard"  # a resumed run
+            assert online_label_channel(session, run) == "hard"
 
 
 def test_live_status_events_and_frames_shown(api: Api) -> None:

@@ -36,13 +36,7 @@ from services.core.db.live import (
 )
 from services.core.db.models import Classifier, FeedbackLabel, Job, LabSession
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
-from services.core.live import (
-    LiveOptions,
-    default_label_channel,
-    latency_summary,
-    pace_drift,
-    timeline_latencies,
-)
+from services.core.live import LiveOptions, latency_summary, pace_drift, timeline_latencies
 from services.platform.jobs import LIVE_SESSION
 
 router = APIRouter(
@@ -155,15 +149,12 @@ def start(
         classifier = None if too_big else db.get(Classifier, body.classifier_id)
         if classifier is None:
             raise BadRequestError(f"no classifier {body.classifier_id}", field="classifier_id")
-        calibrated = bool((classifier.metrics or {}).get("calibration"))
-        if body.label_channel == "soft" and not calibrated:
+        if body.label_channel == "soft" and not (classifier.metrics or {}).get("calibration"):
             raise BadRequestError(
                 f"classifier {body.classifier_id} has no calibrated posterior, which the soft "
                 "channel needs: calibrate it again (eeg_calibration) or use label_channel hard",
                 field="label_channel",
             )
-        if lab.kind == "online" and body.label_channel is None:
-            body = body.model_copy(update={"label_channel": default_label_channel(calibrated)})
     run = _latest_run(db, session_id)
     job = db.get(Job, run.job_id) if run is not None and run.job_id else None
     active = job is not None and job.status in ("queued", "running")
