@@ -60,8 +60,9 @@ function startForm(session, classifiers, methods, message, onStarted) {
   const hfMethod = h("select", { name: "hf_method" }, h("option", { value: "" }, "Recommended (default)"),
     methods.map((m) => h("option", { value: m }, m === "paper" ? "paper (the paper's Fhat)" : m)));
   const channel = h("select", { name: "label_channel" },
-    h("option", { value: "hard" }, "Hard: the thresholded feedback (default)"),
-    h("option", { value: "soft" }, "Soft: the calibrated likelihood ratio"));
+    h("option", { value: "" }, "Default: soft if the classifier is calibrated, else hard"),
+    h("option", { value: "soft" }, "Soft: the calibrated likelihood ratio"),
+    h("option", { value: "hard" }, "Hard: the thresholded feedback (the paper)"));
   const accelerated = h("input", { type: "checkbox", name: "accelerated", checked: true });
   const needsClassifier = session.kind !== "calibration";
   const submit = h("button", { type: "submit", class: "btn primary" }, "Start");
@@ -94,7 +95,7 @@ function startForm(session, classifiers, methods, message, onStarted) {
     if (needsClassifier) body.classifier_id = Number(classifier.value);
     if (session.kind === "online") body.label_budget = Number(budget.value);
     if (session.kind === "online" && hfMethod.value) body.hf_method = hfMethod.value;
-    if (session.kind === "online" && channel.value !== "hard") body.label_channel = channel.value;
+    if (session.kind === "online" && channel.value) body.label_channel = channel.value;
     try {
       await post(`/api/v1/sessions/${session.id}/start`, body);
       onStarted();
