@@ -24,7 +24,12 @@ from services.sim.maps import (
     wrap_angle,
 )
 from services.sim.oracle import Oracle
-from services.sim.world import acquire_shared_world, build_world, release_shared_world
+from services.sim.world import (
+    RayMemo,
+    acquire_shared_world,
+    build_world,
+    release_shared_world,
+)
 
 N_RAYS = 10
 RAY_LENGTH_M = 13.0
@@ -198,8 +203,9 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self._shared_world = render_mode != "rgb_array"
         self._robot_id: int | None = None
         if self._shared_world:
-            self._client, self._ray_z = acquire_shared_world(self.nav_map)
+            self._client, self._ray_z, self._ray_memo = acquire_shared_world(self.nav_map)
         else:
+            self._ray_memo = RayMemo()
             self._client = bullet.connect()
             try:
                 self._robot_id, self._ray_z = build_world(self._client, self.nav_map, husky=True)
@@ -227,17 +233,23 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
         self._yaw = wrap_angle(self._start_yaw)
         self._clearance_bound = 0.0
         self._trajectory: list[tuple[float, float]] = []
-        self._rays = [RAY_LENGTH_M] * N_RAYS
+        self._rays: tuple[float, ...] = (RAY_LENGTH_M,) * N_RAYS
         self._body_synced = False
         self._sssg_shortest_steps: int | None = None
         self._potential = 0.0
 
     def _cast_rays(self) -> None:
-        x, y, z = self._x, self._y, self._ray_z
-        origin = [x, y, z]
-        ends = [[x + dx, y + dy, z] for dx, dy in self._ray_offsets[self._heading]]
-        hits = pybullet.rayTestBatch([origin] * N_RAYS, ends, physicsClientId=self._client)
-        self._rays = [hit[2] * RAY_LENGTH_M for hit in hits]
+        """The rays from the current pose, cast or remembered (:class:`RayMemo`)."""
+        pose = (self._x, self._y, self._heading)
+        rays = self._ray_memo.get(pose)
+        if rays is None:
+            x, y, z = self._x, self._y, self._ray_z
+            origin = [x, y, z]
+            ends = [[x + dx, y + dy, z] for dx, dy in self._ray_offsets[self._heading]]
+            hits = pybullet.rayTestBatch([origin] * N_RAYS, ends, physicsClientId=self._client)
+            rays = tuple(hit[2] * RAY_LENGTH_M for hit in hits)
+            self._ray_memo.remember(pose, rays)
+        self._rays = rays
 
     def _observation(self) -> tuple[np.ndarray, float, float]:
         dx = self._goal[0] - self._x

@@ -9,6 +9,11 @@ them, built the same way as a private world (the same bodies in the same order, 
 rays; ``tests/sim/test_bullet.py``). An env that renders keeps a private world, with the
 Husky it moves for its frames. pybullet never releases the GIL, so threads sharing a world
 take turns call by call.
+
+A map's rays from a pose depend on the pose only (the walls and boxes never move), so the
+rays cast from each (x, y, heading) are remembered per world (:class:`RayMemo`): a robot
+turning on the spot, the repeated first steps of SSSG's fixed start and a policy's paths
+in later episodes cast each ray set once (about half of a sweep's casts).
 """
 
 from __future__ import annotations
@@ -19,6 +24,9 @@ from dataclasses import dataclass
 from services.sim import bullet, rendering
 from services.sim.bullet import pybullet
 from services.sim.maps import NavMap
+
+RAY_MEMO_MAX_POSES = 100_000
+"""Poses whose rays a :class:`RayMemo` keeps (~20 MB); a full memo is emptied."""
 
 RAY_HEIGHT_M = 0.4
 """Rays are cast this high above the floor (lower under a lower wall or box)."""
@@ -87,20 +95,32 @@ def build_world(client: int, nav_map: NavMap, *, husky: bool) -> tuple[int | Non
     return robot, ray_z
 
 
+class RayMemo(dict[tuple[float, float, int], tuple[float, ...]]):
+    """The ray distances cast in one world from each pose (x, y, heading index), at most
+    :data:`RAY_MEMO_MAX_POSES` of them (emptied when full)."""
+
+    def remember(self, pose: tuple[float, float, int], rays: tuple[float, ...]) -> None:
+        """Keep ``rays`` as cast from ``pose``."""
+        if len(self) >= RAY_MEMO_MAX_POSES:
+            self.clear()
+        self[pose] = rays
+
+
 @dataclass
 class _SharedWorld:
     client: int
     ray_z: float
     users: int
+    rays: RayMemo
 
 
 _shared_lock = threading.Lock()
 _shared: dict[str, _SharedWorld] = {}
 
 
-def acquire_shared_world(nav_map: NavMap) -> tuple[int, float]:
-    """The client and ray height of the map's shared headless world (built on first use);
-    every call needs its :func:`release_shared_world`."""
+def acquire_shared_world(nav_map: NavMap) -> tuple[int, float, RayMemo]:
+    """The client, ray height and ray memo of the map's shared headless world (built on
+    first use); every call needs its :func:`release_shared_world`."""
     key = nav_map.content_hash()
     with _shared_lock:
         world = _shared.get(key)
@@ -111,9 +131,9 @@ def acquire_shared_world(nav_map: NavMap) -> tuple[int, float]:
             except BaseException:
                 bullet.disconnect(client)
                 raise
-            world = _shared[key] = _SharedWorld(client, ray_z, 0)
+            world = _shared[key] = _SharedWorld(client, ray_z, 0, RayMemo())
         world.users += 1
-        return world.client, world.ray_z
+        return world.client, world.ray_z, world.rays
 
 
 def release_shared_world(nav_map: NavMap) -> None:

@@ -10,10 +10,11 @@ import numpy as np
 import pybullet_data
 import pytest
 
-from services.sim import bullet
+from services.sim import bullet, world
 from services.sim.bullet import pybullet
 from services.sim.env import BrainNavEnv
 from services.sim.maps import MapError
+from services.sim.world import RayMemo
 
 
 def _frames(client: int, robot: int) -> np.ndarray:
@@ -127,6 +128,46 @@ def test_headless_envs_of_a_map_share_one_world_with_the_same_rays() -> None:
     finally:
         for env in shared + private:
             env.close()
+
+
+def test_remembered_rays_equal_cast_ones(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rays remembered per pose (a memo emptied every 7 poses here) give the observations
+    of rays cast at every step, with fewer casts."""
+
+    class Forgetful(RayMemo):
+        def remember(self, pose: tuple[float, float, int], rays: tuple[float, ...]) -> None:
+            pass
+
+    casts: dict[int, int] = {}  # client -> rayTestBatch calls
+    cast = pybullet.rayTestBatch
+
+    def counted(*args, physicsClientId: int):
+        casts[physicsClientId] = casts.get(physicsClientId, 0) + 1
+        return cast(*args, physicsClientId=physicsClientId)
+
+    monkeypatch.setattr(world, "RAY_MEMO_MAX_POSES", 7)
+    monkeypatch.setattr(pybullet, "rayTestBatch", counted)
+    remembering = BrainNavEnv(task="sssg")
+    casting = BrainNavEnv(task="sssg", render_mode="rgb_array")
+    casting._ray_memo = Forgetful()
+    try:
+        rng = np.random.default_rng(1)
+        for episode in range(4):
+            assert np.array_equal(
+                remembering.reset(seed=episode)[0], casting.reset(seed=episode)[0]
+            )
+            for _ in range(40):  # turns back and forth revisit poses
+                action = int(rng.choice([0, 1, 2, 1, 2]))
+                obs_a, reward_a, done_a, _, _ = remembering.step(action)
+                obs_b, reward_b, done_b, _, _ = casting.step(action)
+                assert np.array_equal(obs_a, obs_b) and (reward_a, done_a) == (reward_b, done_b)
+                if done_a:
+                    break
+        assert len(remembering._ray_memo) <= 7
+        assert casts[remembering._client] < 0.8 * casts[casting._client]
+    finally:
+        remembering.close()
+        casting.close()
 
 
 def test_clients_are_released_on_every_path(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
