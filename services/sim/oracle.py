@@ -247,6 +247,11 @@ class Oracle:
         self._goal = (nav_map.goal.x, nav_map.goal.y)
         self._goal_radius = nav_map.goal.radius
         self._path_memo: dict[tuple[float, float, int], int] = {}
+        # a forward move's (dx, dy) per heading, as the env computes it from the yaw
+        self._forward_steps = [
+            (FORWARD_STEP_M * math.cos(yaw), FORWARD_STEP_M * math.sin(yaw))
+            for yaw in (self._yaw(k) for k in range(N_HEADINGS))
+        ]
 
     @staticmethod
     def cache_key(nav_map: NavMap) -> str:
@@ -315,25 +320,24 @@ class Oracle:
         fj = (y - self._y_min) / CELL_M
         if not (0.0 <= fi < self._nx and 0.0 <= fj < self._ny):  # also NaN and huge values
             return math.inf
-        v = int(self.cost[k, math.floor(fi), math.floor(fj)])
+        v = self.cost.item(k, math.floor(fi), math.floor(fj))
         return math.inf if v < 0 else float(v)
 
     def _action_scores(self, x: float, y: float, k: int) -> list[float]:
         """``1 + V(next)`` per action, with the env's own kinematics and collision test."""
-        scores = []
-        for a in range(N_ACTIONS):
-            if a == Action.FORWARD:
-                yaw = self._yaw(k)
-                nx = x + FORWARD_STEP_M * math.cos(yaw)
-                ny = y + FORWARD_STEP_M * math.sin(yaw)
-                if self._geometry.move_collides(x, y, nx, ny):
-                    scores.append(math.inf)
-                    continue
-                nk = k
-            else:
-                nx, ny = x, y
-                nk = (k + (1 if a == Action.TURN_LEFT else -1)) % N_HEADINGS
-            scores.append(1.0 if self._in_goal(nx, ny) else 1.0 + self._lattice_cost(nx, ny, nk))
+        scores = [math.inf] * N_ACTIONS
+        dx, dy = self._forward_steps[k]
+        nx, ny = x + dx, y + dy
+        if not self._geometry.move_collides(x, y, nx, ny):
+            scores[Action.FORWARD] = (
+                1.0 if self._in_goal(nx, ny) else 1.0 + self._lattice_cost(nx, ny, k)
+            )
+        here_in_goal = self._in_goal(x, y)  # a turn stays here
+        for a, nk in (
+            (Action.TURN_LEFT, (k + 1) % N_HEADINGS),
+            (Action.TURN_RIGHT, (k - 1) % N_HEADINGS),
+        ):
+            scores[a] = 1.0 if here_in_goal else 1.0 + self._lattice_cost(x, y, nk)
         return scores
 
     def optimal_actions(self, x: float, y: float, yaw: float) -> frozenset[int]:
@@ -365,8 +369,8 @@ class Oracle:
             return None
         a = next(int(a) for a in _TIE_ORDER if scores[a] == best)
         if a == Action.FORWARD:
-            yaw_k = self._yaw(k)
-            return a, x + FORWARD_STEP_M * math.cos(yaw_k), y + FORWARD_STEP_M * math.sin(yaw_k), k
+            dx, dy = self._forward_steps[k]
+            return a, x + dx, y + dy, k
         return a, x, y, (k + (1 if a == Action.TURN_LEFT else -1)) % N_HEADINGS
 
     def rollout(self, x: float, y: float, yaw: float) -> list[int] | None:
