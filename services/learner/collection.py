@@ -79,6 +79,49 @@ class HFPolicy:
         return int(min(np.searchsorted(np.cumsum(probs), rng.random()), len(probs) - 1))
 
 
+GREEDY_MEMO_MAX_OBSERVATIONS = 100_000
+"""Observations whose greedy action a :class:`GuidingHFPolicy` remembers (emptied when
+full)."""
+
+
+class GuidingHFPolicy(HFPolicy):
+    """A pi_HF (:class:`HFPolicy`, or any object with its methods) while it guides RL
+    (stage 3), where Fhat no longer learns: the greedy action of each observation is asked
+    once and remembered (a guided run meets the same observations again and again: SSSG's
+    fixed start, turns on the spot, pi_HF's own path). The same actions as ``policy`` as
+    long as its weights do not change."""
+
+    def __init__(self, policy: HFPolicy) -> None:  # no super().__init__: all is the policy's
+        self.policy = policy
+        self._greedy: dict[bytes, int] = {}
+
+    @property  # type: ignore[override]  # read-only: the policy's
+    def model(self) -> nn.Module:
+        """The policy's Fhat."""
+        return self.policy.model
+
+    def scores(self, obs: np.ndarray) -> np.ndarray:
+        """The policy's :meth:`HFPolicy.scores`."""
+        return self.policy.scores(obs)
+
+    def sampling_probs(self, obs: np.ndarray) -> np.ndarray:
+        """The policy's :meth:`HFPolicy.sampling_probs`."""
+        return self.policy.sampling_probs(obs)
+
+    def act(self, obs: np.ndarray, rng: np.random.Generator | None = None) -> int:
+        """The policy's :meth:`HFPolicy.act`, the greedy action remembered per observation."""
+        if rng is not None or np.ndim(obs) != 1:
+            return self.policy.act(obs, rng)
+        key = np.asarray(obs, dtype=np.float32).tobytes()
+        action = self._greedy.get(key)
+        if action is None:
+            action = self.policy.act(obs)
+            if len(self._greedy) >= GREEDY_MEMO_MAX_OBSERVATIONS:
+                self._greedy.clear()
+            self._greedy[key] = action
+        return action
+
+
 class CollectionRule:
     """The method's rule for the action to execute (and label) while labels are collected.
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from services.learner.collection import GuidingHFPolicy
 from services.learner.feedback import (
     FeedbackConfig,
     FeedbackLearner,
@@ -97,6 +98,24 @@ def test_hf_policy_sampling_is_softened_and_greedy_is_argmax() -> None:
     rng = np.random.default_rng(0)
     samples = [policy.act(obs, rng) for _ in range(500)]
     assert set(samples) >= {0, 1}
+
+
+def test_a_guiding_hf_policy_acts_as_its_policy_with_one_forward_an_observation() -> None:
+    model = FeedbackModel(box_normalizer(4), hidden_size=16)
+    policy = HFPolicy(model, beta=8.0)
+    guiding = GuidingHFPolicy(policy)
+    forwards = []
+    model.register_forward_hook(lambda *_: forwards.append(1))
+    observations = np.random.default_rng(0).uniform(-1, 1, (50, 4))
+    expected = [int(np.argmax(policy.scores(obs))) for obs in observations]
+    assert len(set(expected)) > 1
+    forwards.clear()
+    for _ in range(3):
+        assert [guiding.act(obs) for obs in observations] == expected
+    assert len(forwards) == len(observations)  # each observation's forward once
+    rng_a, rng_b = np.random.default_rng(1), np.random.default_rng(1)
+    samples = [(policy.act(o, rng_a), guiding.act(o, rng_b)) for o in observations]
+    assert all(a == b for a, b in samples)  # sampling as the policy's
 
 
 def test_oracle_source_matches_its_accuracy() -> None:

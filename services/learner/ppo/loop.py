@@ -60,7 +60,7 @@ def train(
             # ---- 1. collect n_steps with the behaviour policy (pi_HF or pi_RL per episode) --
             rollout_start = time.perf_counter()
             run.obs, hooks_go_on, episode_returns, successes = collect_rollout(
-                run.env, agent, run.obs, rollout, state, config=config, hf_policy=hf_policy,
+                run.env, agent, run.obs, rollout, state, config=config, hf_policy=run.hf_policy,
                 rng=run.rng, resets=run.resets, on_step=run.callback.on_step,
                 evaluate=run.evaluate,
             )  # fmt: skip

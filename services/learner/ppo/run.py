@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from services.learner.checkpoint import Checkpoint, RunState, load_checkpoint, save_checkpoint
+from services.learner.collection import GuidingHFPolicy
 from services.learner.evaluation import evaluate_spl
 from services.learner.feedback import HFPolicy
 from services.learner.networks import ObsNormalizer
@@ -60,7 +61,8 @@ class PPORun:
         self.start_time = time.perf_counter()
         self.config = config
         self.callback = callback or Callback()
-        self.hf_policy = hf_policy
+        # pi_HF no longer learns here: its greedy actions are remembered per observation
+        self.hf_policy = GuidingHFPolicy(hf_policy) if hf_policy is not None else None
         self.guided = hf_policy is not None
         self.checkpoint = Path(checkpoint_path) if checkpoint_path is not None else None
         self.checkpoint_every = checkpoint_every
