@@ -79,9 +79,9 @@ class HFPolicy:
         return int(min(np.searchsorted(np.cumsum(probs), rng.random()), len(probs) - 1))
 
 
-GREEDY_MEMO_MAX_OBSERVATIONS = 100_000
-"""Observations whose greedy action a :class:`GuidingHFPolicy` remembers (emptied when
-full)."""
+GREEDY_MEMO_MAX_OBSERVATIONS = 10_000
+"""Observations whose greedy action a :class:`GuidingHFPolicy` remembers (~2 MB; emptied
+when full)."""
 
 
 class GuidingHFPolicy(HFPolicy):

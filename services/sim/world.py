@@ -25,8 +25,8 @@ from services.sim import bullet, rendering
 from services.sim.bullet import pybullet
 from services.sim.maps import NavMap
 
-RAY_MEMO_MAX_POSES = 100_000
-"""Poses whose rays a :class:`RayMemo` keeps (~20 MB); a full memo is emptied."""
+RAY_MEMO_MAX_POSES = 50_000
+"""Poses whose rays a :class:`RayMemo` keeps (~26 MB); a full memo is emptied."""
 
 RAY_HEIGHT_M = 0.4
 """Rays are cast this high above the floor (lower under a lower wall or box)."""
