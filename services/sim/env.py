@@ -44,8 +44,11 @@ RICH_DISTANCE_COEF = -1.0
 RICH_HEADING_COEF = -0.3
 SHAPING_GAMMA = 0.99
 """Default discount of the shaping term: the learner's gamma (PPOConfig.gamma)."""
-DENSE_DISTANCE_COEF = 0.1
-"""The dense reward's cost per step and per action of the oracle's path from the new pose."""
+DENSE_DISTANCE_COEF = 0.3
+"""The dense reward's cost per step and per action of the oracle's path from the new pose
+(alpha). 0.3 since 2026-12-05 (0.1 before): chosen among 0.03 / 0.1 / 0.3 / 0.6 / 1.0 on
+our PPO's tuning seeds 0-9 (VSSG) and checked on fresh seeds (docs/reproduction.md, "The
+dense reward's alpha")."""
 NO_PATH_STEPS = 120.0
 """Cost-to-go given to a pose from which the oracle finds no way to the goal (about 0.7 %
 of a random walk's poses, pressed against a wall): the episode's time limit."""
@@ -113,10 +116,17 @@ class BrainNavEnv(gym.Env[np.ndarray, np.int64]):
     heading error, and a crash charged what staying there for ever would cost: every step
     adds ``-distance_coef * c(s')`` (``c`` the oracle's path from the new pose in actions,
     ``NO_PATH_STEPS`` where it finds none, 0 in the goal), a collision
-    ``-distance_coef * c(s) / (1 - gamma)`` with ``gamma = shaping_gamma``. Along the
-    oracle's path ``c`` falls by one an action, as fast as any path can (up to the
-    lattice's rounding), so that path is optimal for the dense reward too; no crash pays
-    more than standing still at its pose for ever.
+    ``-distance_coef * c(s) / (1 - gamma)`` with ``gamma = shaping_gamma``
+    (``distance_coef`` = alpha, default 0.3). Why the oracle's path stays optimal, for
+    any alpha > 0: along it ``c`` falls by one an action, as fast as any path can (up to
+    the lattice's rounding), so it minimises every later step's distance cost as well as
+    the time to the goal. Why a crash never pays more than going on: a crash at ``s``
+    costs ``-100 - alpha c(s) / (1 - gamma)``, which at gamma = 0.99 is exactly
+    ``sum_t gamma^t (-1 - alpha c(s))``, the step cost at ``s`` for ever, whereas the
+    oracle's path from ``s`` costs less at every step (``c`` falls) and ends with +100:
+    going on to the goal always returns more than crashing. A crash dearer than standing
+    at ``s`` for ever (``-200 - ...``, or charged at ``c = NO_PATH_STEPS`` wherever it
+    happens) was measured to make our PPO shun the walls and never find the doorway.
 
     ## Starting State
 

@@ -185,6 +185,30 @@ def test_dense_reward_values_on_a_hand_built_case() -> None:
         environment.close()
 
 
+def test_dense_reward_defaults_alpha_0_3_and_a_crash_costs_the_step_cost_for_ever() -> None:
+    """The default dense reward (alpha 0.3, gamma 0.99): a turn from the SSSG start costs
+    1 + 0.3 c(s'); a crash at s costs 100 + 0.3 c(s) / 0.01, exactly the step cost at s
+    summed for ever."""
+    environment = BrainNavEnv(task="sssg", reward_mode="dense")
+    try:
+        assert environment.distance_coef == 0.3 and environment.shaping_gamma == 0.99
+        environment.reset(seed=0)
+        _, reward, terminated, _, _ = environment.step(Action.TURN_LEFT)
+        assert not terminated
+        assert reward == pytest.approx(-1.0 - 0.3 * environment.path_cost())
+        environment.reset(seed=0)
+        for _ in range(20):  # facing +x from (2, 6): the wall at x = 4 stops the robot
+            c = environment.path_cost()
+            _, reward, terminated, _, info = environment.step(Action.FORWARD)
+            if terminated:
+                break
+        assert info["collision"] is True and c > 0
+        assert reward == pytest.approx(-100.0 - 30.0 * c)
+        assert reward == pytest.approx((-1.0 - 0.3 * c) / (1.0 - 0.99))
+    finally:
+        environment.close()
+
+
 @pytest.mark.parametrize("prefix", [0, 2, 4])
 def test_dense_crash_never_pays_more_than_the_goal_from_the_same_state(prefix: int) -> None:
     """From states on the way into a wall, crashing (now, or after a detour) returns less
