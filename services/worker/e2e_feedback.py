@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import IntEnum
 from pathlib import Path
 from typing import Any
@@ -68,6 +68,9 @@ MAX_BISECTION_STEPS = 14
 ACTION_PERIOD_S = 1.5
 FIRST_ONSET_S = 2.0
 CACHE_VERSION = 1
+ECE_TOLERANCE = 1e-3
+"""How far a recalibrated subject's test ECE may lie from its cached search's (the same
+decisions, other last bits: :meth:`DecoderFacts.reproduces`)."""
 
 
 class Session(IntEnum):
@@ -215,6 +218,17 @@ class DecoderFacts:
     recall_error: float
     test_ece: float | None
     """The calibration's test-split ECE of the calibrated P(error)."""
+
+    def reproduces(self, other: DecoderFacts) -> bool:
+        """The same subject and decoder as ``other``: every count-based figure equal, the ECE
+        within ``ECE_TOLERANCE``. The calibration's floating-point sums differ in their last
+        bits from one CPU to another (the BLAS kernels the CPU selects), which moves the
+        ECE, never a decision, by ~1e-5; a cache from other code or settings moves more."""
+        if replace(self, test_ece=None) != replace(other, test_ece=None):
+            return False
+        if self.test_ece is None or other.test_ece is None:
+            return self.test_ece == other.test_ece
+        return abs(self.test_ece - other.test_ece) <= ECE_TOLERANCE
 
 
 @dataclass
@@ -437,7 +451,7 @@ class VirtualSubjectFactory:
                 search.facts.decoder_accuracy,
             )
         subject = calibrate_subject(epochs, search.facts.quality, self.config)
-        if subject.facts != search.facts:  # a cache from other code or settings
+        if not subject.facts.reproduces(search.facts):  # a cache from other code or settings
             raise RuntimeError(
                 f"virtual subject {seed}: the cached quality search ({search.facts}) does not "
                 f"reproduce ({subject.facts}); remove {self.cache_dir}"

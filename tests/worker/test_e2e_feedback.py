@@ -19,6 +19,7 @@ from services.learner.specs import RunSpec, with_feedback
 from services.learner.stage2_report import summary_table
 from services.worker.e2e_feedback import (
     ACCURACY_TOLERANCE,
+    DecoderFacts,
     Session,
     SubjectEpochs,
     SubjectRecording,
@@ -215,3 +216,25 @@ class _ToySubjectFactory:
 @pytest.fixture(scope="module")
 def toy_subject_factory(small_subject) -> _ToySubjectFactory:
     return _ToySubjectFactory(small_subject)
+
+
+def test_a_cached_subject_reproduces_when_only_the_ece_moves_in_its_last_bits() -> None:
+    """A recalibration on another CPU moves the ECE by ~1e-5 (seen: 0.120943 against
+    0.120954), never a decision: the cache is the same subject. Any count-based figure,
+    the quality, the decoder or an ECE 1e-3 away is another subject."""
+    facts = DecoderFacts(
+        seed=1017,
+        quality=0.625,
+        decoder="eegnet",
+        decoder_accuracy=0.595,
+        recall_correct=0.628,
+        recall_error=0.562,
+        test_ece=0.12094341429779902,
+    )
+    assert facts.reproduces(replace(facts, test_ece=0.12095406741202915))
+    assert not facts.reproduces(replace(facts, test_ece=0.1225))
+    assert not facts.reproduces(replace(facts, test_ece=None))
+    assert replace(facts, test_ece=None).reproduces(replace(facts, test_ece=None))
+    for changed in ({"decoder_accuracy": 0.596}, {"recall_error": 0.561}, {"quality": 0.5},
+                    {"decoder": "lda"}, {"seed": 1018}):  # fmt: skip
+        assert not facts.reproduces(replace(facts, **changed))
