@@ -83,14 +83,14 @@ def test_online_session_labels_to_its_budget_and_registers_the_hf_model(
 ) -> None:
     session_id = loop.lab_session("online")
     options = {"accelerated": True, "classifier_id": classifier_id, "label_budget": 40,
-               "virtual_quality": 1.0}  # fmt: skip
+               "virtual_quality": 1.0, "label_channel": "hard"}  # fmt: skip
     run_id, job_id = loop.live_job(session_id, options)
     assert run_job(loop.runtime, job_id, live_session) == "succeeded"
     with loop.runtime.sessions() as db:
         run = db.get(LiveRun, run_id)
         assert run is not None and run.status == "completed", run.error
         assert run.result is not None and run.result["labels"] == 40
-        assert run.result["prepared_labels"] == 40  # each label's update was prepared
+        assert run.result["prepared_labels"] == 40  # a hard label's update was prepared
         model = db.get(HFModel, run.hf_model_id)
         assert model is not None and model.n_labels == 40 and model.session_id == session_id
         assert run.hf_method == model.metrics["hf_method"] == RECOMMENDED_METHOD  # the default

@@ -6,13 +6,27 @@ decoded accuracy and the steps each run needed to SPL 0.7."""
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from services.cli.main import app
 
 
+@pytest.fixture
+def environment_kept() -> Iterator[None]:
+    """The demo points this process's BGRL_* variables at the services it starts (as the
+    command's own process would): put them back for the tests after it."""
+    saved = dict(os.environ)
+    yield
+    os.environ.clear()
+    os.environ.update(saved)
+
+
+@pytest.mark.usefixtures("environment_kept")
 def test_the_accelerated_demo_reports_the_guided_run_beside_rl_sparse(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     result = CliRunner().invoke(app, [

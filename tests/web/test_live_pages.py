@@ -320,7 +320,7 @@ def test_accelerated_online_session_of_the_virtual_subject_in_the_live_view(
     assert form.get_by_label("Label budget").input_value() == "1000"  # not reached: stopped
     assert form.get_by_label("Stage-2 method").input_value() == ""  # the recommended one
     form.get_by_label("Stage-2 method").select_option("categorical")
-    assert form.get_by_label("Label channel").input_value() == "hard"
+    assert form.get_by_label("Label channel").input_value() == ""  # soft if calibrated
     form.get_by_label("Label channel").select_option("soft")
     assert form.get_by_label("Accelerated (virtual subject)").is_checked()
     form.get_by_role("button", name="Start").click()

@@ -10,8 +10,12 @@ from typing import Any
 from pydantic import BaseModel, Field, computed_field
 
 from services.api.schemas.common import ApiRequest, PublicModel
+from services.core.db.models import JOB_FINAL_STATUSES, JOB_STATUSES
 from services.platform.jobs import KindName, SubmittedKindName, job_kind
-from services.platform.jobs.resource import JobFields
+from services.platform.jobs.resource import FINAL_JOB_STATUSES, JobFields, JobStatus
+
+assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
+assert set(JOB_FINAL_STATUSES) == FINAL_JOB_STATUSES
 
 
 class JobKindPublic(BaseModel):

@@ -9,11 +9,11 @@ from typing import Any, Literal
 
 from pydantic import BaseModel
 
-from services.core.db.models import JOB_FINAL_STATUSES, JOB_STATUSES
-
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-assert set(JobStatus.__args__) == set(JOB_STATUSES)  # type: ignore[attr-defined]
-FINAL_JOB_STATUSES: frozenset[str] = frozenset(JOB_FINAL_STATUSES)
+"""A job's status (the database's ``JOB_STATUSES``, checked equal by the api's schemas; this
+module imports no database code, so the client installs without it)."""
+FINAL_JOB_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
+"""A job in one of these stays there (until it is retried)."""
 """A job in one of these stays there (until it is retried)."""
 
 
