@@ -74,6 +74,8 @@ JOB_CONFIG = {
 """A small guided-PPO job (``job_steps`` env steps); each gets its own seed."""
 UPLOAD_ACTIONS = 4
 """Actions in the uploaded recording: a virtual subject's calibration of about 8 s."""
+SETTLE_S = 60.0
+"""At most this long the report waits for killed processes still in their restart backoff."""
 RSS_EVERY_S = 5.0
 """Seconds between two RSS samples of every process."""
 RSS_WARMUP_S = 60.0
@@ -354,7 +356,7 @@ def _soak(
     drained_s = time.monotonic() - drained
     upload_report = uploads.report()
     live_report = live.report()
-    state = json.loads((run_dir / "data" / "run" / "processes.json").read_text())["processes"]
+    state = _settled_processes(run_dir / "data" / "run" / "processes.json")
     restarts: dict[str, int] = defaultdict(int)
     for process in state.values():
         restarts[process["kind"]] += process["restarts"]
@@ -452,6 +454,19 @@ def _job_counts(statuses: list[dict[str, Any]]) -> dict[str, Any]:
 
 def _rounded(value: float | None) -> float | None:
     return None if value is None else round(value, 1)
+
+
+def _settled_processes(status_file: Path, timeout_s: float = SETTLE_S) -> dict[str, Any]:
+    """``bgrl up``'s processes once none is still coming back from a kill (a process killed
+    just before the drain ended may be in its restart backoff), or as they are after
+    ``timeout_s``; the counts of restarts are read from these."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        processes: dict[str, Any] = json.loads(status_file.read_text())["processes"]
+        coming_back = [p for p in processes.values() if p["state"] in ("starting", "restarting")]
+        if not coming_back or time.monotonic() > deadline:
+            return processes
+        time.sleep(0.5)
 
 
 def _not_zombie(pid: int) -> bool:
