@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
-from typing import Literal
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
@@ -23,6 +23,12 @@ DEFAULT_ACTIONS = {"calibration": 600, "test": 200}
 ONLINE_ACTIONS_PER_LABEL = 3
 """An online session stops after this many actions per label of its budget at the latest
 (rejected epochs give no label)."""
+
+
+def has_calibrated_posterior(classifier_metrics: Mapping[str, Any] | None) -> bool:
+    """Whether a platform classifier (by its ``metrics``) has the calibrated posterior the
+    soft channel reads (every ``eeg_calibration`` since 2026-12-03)."""
+    return bool((classifier_metrics or {}).get("calibration"))
 
 
 def default_label_channel(calibrated: bool) -> LabelChannel:

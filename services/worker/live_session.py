@@ -49,6 +49,7 @@ from services.core.live import (
     ONLINE_ACTIONS_PER_LABEL,
     LiveOptions,
     default_label_channel,
+    has_calibrated_posterior,
 )
 from services.core.markers import ActionMarker
 from services.core.settings import load_settings
@@ -89,7 +90,7 @@ def online_label_channel(db: Session, run: LiveRun) -> LabelChannel:
         return "soft" if run.label_channel == "soft" else "hard"  # None: opened as hard
     classifier_id = (run.options or {}).get("classifier_id")
     classifier = db.get(Classifier, classifier_id) if isinstance(classifier_id, int) else None
-    calibrated = classifier is not None and bool((classifier.metrics or {}).get("calibration"))
+    calibrated = classifier is not None and has_calibrated_posterior(classifier.metrics)
     return default_label_channel(calibrated)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -155,6 +156,19 @@ def _discounted_return(environment: BrainNavEnv, actions, gamma: float) -> tuple
     return total, info
 
 
+def _drive_into_the_wall(environment: BrainNavEnv) -> tuple[float, float, dict[str, Any]]:
+    """From SSSG's start (seed 0), forward until the episode ends (facing +x from (2, 6):
+    the wall at x = 4 stops the robot): the oracle's path from the last pose, the last
+    reward and its info."""
+    environment.reset(seed=0)
+    for _ in range(20):
+        before = environment.path_cost()
+        _, reward, terminated, _, info = environment.step(Action.FORWARD)
+        if terminated:
+            break
+    return before, float(reward), info
+
+
 def test_dense_reward_values_on_a_hand_built_case() -> None:
     """By hand from the SSSG start: each step costs 1 + alpha * c(s'), the goal pays +100,
     a crash costs 100 + alpha * c(s) / (1 - gamma), c the oracle's path in actions."""
@@ -173,12 +187,7 @@ def test_dense_reward_values_on_a_hand_built_case() -> None:
         assert step_info["is_success"] is True and len(rewards) == c
         expected = [-1.0 - alpha * (c - 1 - t) for t in range(c - 1)] + [100.0]
         assert rewards == pytest.approx(expected)
-        environment.reset(seed=0)
-        for _ in range(20):  # facing +x from (2, 6): the wall at x = 4 stops the robot
-            before = environment.path_cost()
-            _, reward, terminated, _, step_info = environment.step(Action.FORWARD)
-            if terminated:
-                break
+        before, reward, step_info = _drive_into_the_wall(environment)
         assert step_info["collision"] is True
         assert reward == pytest.approx(-100.0 - alpha * before / (1.0 - gamma))
     finally:
@@ -196,12 +205,7 @@ def test_dense_reward_defaults_alpha_0_3_and_a_crash_costs_the_step_cost_for_eve
         _, reward, terminated, _, _ = environment.step(Action.TURN_LEFT)
         assert not terminated
         assert reward == pytest.approx(-1.0 - 0.3 * environment.path_cost())
-        environment.reset(seed=0)
-        for _ in range(20):  # facing +x from (2, 6): the wall at x = 4 stops the robot
-            c = environment.path_cost()
-            _, reward, terminated, _, info = environment.step(Action.FORWARD)
-            if terminated:
-                break
+        c, reward, info = _drive_into_the_wall(environment)
         assert info["collision"] is True and c > 0
         assert reward == pytest.approx(-100.0 - 30.0 * c)
         assert reward == pytest.approx((-1.0 - 0.3 * c) / (1.0 - 0.99))

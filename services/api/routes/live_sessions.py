@@ -36,7 +36,13 @@ from services.core.db.live import (
 )
 from services.core.db.models import Classifier, FeedbackLabel, Job, LabSession
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
-from services.core.live import LiveOptions, latency_summary, pace_drift, timeline_latencies
+from services.core.live import (
+    LiveOptions,
+    has_calibrated_posterior,
+    latency_summary,
+    pace_drift,
+    timeline_latencies,
+)
 from services.platform.jobs import LIVE_SESSION
 
 router = APIRouter(
@@ -149,7 +155,7 @@ def start(
         classifier = None if too_big else db.get(Classifier, body.classifier_id)
         if classifier is None:
             raise BadRequestError(f"no classifier {body.classifier_id}", field="classifier_id")
-        if body.label_channel == "soft" and not (classifier.metrics or {}).get("calibration"):
+        if body.label_channel == "soft" and not has_calibrated_posterior(classifier.metrics):
             raise BadRequestError(
                 f"classifier {body.classifier_id} has no calibrated posterior, which the soft "
                 "channel needs: calibrate it again (eeg_calibration) or use label_channel hard",
