@@ -339,7 +339,7 @@ def test_ctrl_c_stops_a_real_hf_sweep_at_once_and_a_rerun_resumes(tmp_path) -> N
         assert (out / "hf_policies.json").exists(), "no run finished in 240 s"
         os.killpg(process.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
         sent = time.monotonic()
-        output = process.communicate(timeout=30)[0].decode()
+        output = process.communicate(timeout=90)[0].decode()  # bounded below, not here
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
