@@ -158,10 +158,18 @@ class BatchedFhat(nn.Module):
         return [self.w1, self.b1, self.w2, self.b2]
 
     def _bind(self) -> None:
-        """Make each run's model's parameters views of its row."""
+        """Gather the parameters into :attr:`flat` (each a view of it, in :meth:`tensors`
+        order: Adam then runs once on one buffer) and make each run's model's parameters
+        views of its row."""
+        tensors = self.tensors()
+        self.flat = torch.cat([p.detach().reshape(-1) for p in tensors])
+        for p, data in zip(tensors, self.flat.split([p.numel() for p in tensors]), strict=True):
+            p.data = data.view_as(p)
+        self.run_parameters = [list(model.parameters()) for model in self.models]
+        """Each run's model's parameters (``parameters()`` walks the module tree per call)."""
         with torch.no_grad():
-            for row, model in enumerate(self.models):
-                for mine, theirs in zip(self.tensors(), model.parameters(), strict=True):
+            for row, theirs_all in enumerate(self.run_parameters):
+                for mine, theirs in zip(tensors, theirs_all, strict=True):
                     theirs.data = mine.data[row].view(theirs.shape)
 
     def forward(self, obs: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
@@ -192,20 +200,35 @@ class BatchedFhat(nn.Module):
 
 class BatchedFhatAdam:
     """``torch.optim.Adam`` (single-tensor arithmetic, no weight decay) of every run's Fhat
-    at once: the runs step together, so they share one step count."""
+    at once: the runs step together, so they share one step count. The moments are flat
+    buffers laid out as the model's :attr:`~BatchedFhat.flat` (Adam is elementwise: one op
+    on the whole batch gives each element the value it has per parameter)."""
 
     def __init__(self, model: BatchedFhat, lr: float) -> None:
         self.model, self.lr = model, lr
         self.betas, self.eps = (0.9, 0.999), 1e-8
-        self.exp_avg = [torch.zeros_like(p) for p in model.tensors()]
-        self.exp_avg_sq = [torch.zeros_like(p) for p in model.tensors()]
+        self._bind(torch.zeros_like(model.flat), torch.zeros_like(model.flat))
         self.n_steps = 0
+
+    def _bind(self, exp_avg: torch.Tensor, exp_avg_sq: torch.Tensor) -> None:
+        """Take the flat moments and view them per parameter."""
+        self.flat_exp_avg, self.flat_exp_avg_sq = exp_avg, exp_avg_sq
+        self.denom = torch.empty_like(exp_avg)
+        tensors = self.model.tensors()
+        sizes = [p.numel() for p in tensors]
+        self.exp_avg, self.exp_avg_sq = (
+            [v.view_as(p) for v, p in zip(flat.split(sizes), tensors, strict=True)]
+            for flat in (exp_avg, exp_avg_sq)
+        )
 
     def keep(self, rows: Sequence[int]) -> None:
         """After ``model.keep(rows)``: keep the moments of ``rows`` only."""
         index = torch.as_tensor(list(rows), dtype=torch.long)
-        self.exp_avg = [m[index] for m in self.exp_avg]
-        self.exp_avg_sq = [m[index] for m in self.exp_avg_sq]
+        exp_avg, exp_avg_sq = (
+            torch.cat([m[index].reshape(-1) for m in moments])
+            for moments in (self.exp_avg, self.exp_avg_sq)
+        )
+        self._bind(exp_avg, exp_avg_sq)
 
     @torch.no_grad()
     def step(self, rows: torch.Tensor | None, grads: Sequence[torch.Tensor]) -> None:
@@ -213,12 +236,14 @@ class BatchedFhatAdam:
         parameter, of ``rows`` only); the step count moves once all runs took this step
         (:meth:`next_step`)."""
         n_steps = self.n_steps + 1
-        params = [p.data for p in self.model.tensors()]
         if rows is None:
             adam_update_(
-                params, grads, self.exp_avg, self.exp_avg_sq, n_steps, self.lr, self.betas, self.eps
-            )
+                [self.model.flat], [torch.cat([g.reshape(-1) for g in grads])],
+                [self.flat_exp_avg], [self.flat_exp_avg_sq], n_steps, self.lr, self.betas,
+                self.eps, denom=[self.denom],
+            )  # fmt: skip
             return
+        params = [p.data for p in self.model.tensors()]
         grads = [g if len(g) == len(rows) else g[rows] for g in grads]
         p_rows, m_rows, v_rows = (
             [t[rows] for t in ts] for ts in (params, self.exp_avg, self.exp_avg_sq)
@@ -258,12 +283,14 @@ def _step(
     every = len(rows) == len(collections)
     index = None if every else torch.as_tensor(rows, dtype=torch.long)
     learners = [collections[row].learner for row in rows]
-    if len(minibatches[0].actions) < MIN_BATCHED_LABELS:
+    if len(minibatches[0].rows) < MIN_BATCHED_LABELS:
         grads = []
-        for learner, minibatch in zip(learners, minibatches, strict=True):
-            learner.model.zero_grad(set_to_none=True)
+        for row, learner, minibatch in zip(rows, learners, minibatches, strict=True):
+            parameters = model.run_parameters[row]
+            for p in parameters:  # zero_grad(set_to_none=True)
+                p.grad = None
             learner.loss(minibatch).backward()
-            grads.append([p.grad for p in learner.model.parameters()])
+            grads.append([p.grad for p in parameters])
         per_parameter = zip(*grads, strict=True)
         shapes = [p.shape[1:] for p in model.tensors()]
         optimizer.step(
@@ -371,7 +398,7 @@ def collect_feedback_lockstep(
             for j in range(len(updates[0]) if updates else 0):
                 sizes: dict[int, list[int]] = {}
                 for row, minibatches in enumerate(updates):
-                    sizes.setdefault(len(minibatches[j].actions), []).append(row)
+                    sizes.setdefault(len(minibatches[j].rows), []).append(row)
                 for rows in sizes.values():
                     _step(model, optimizer, batch, rows, [updates[row][j] for row in rows])
                 optimizer.next_step()
