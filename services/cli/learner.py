@@ -405,7 +405,7 @@ def hf_nstar(
     workers: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
     tasks: Annotated[str, typer.Option(help="Comma-separated: sssg,vssg.")] = "sssg,vssg",
     accuracies: Annotated[
-        str, typer.Option(help="Comma-separated oracle accuracies C.")
+        str, typer.Option(help="Comma-separated oracle accuracies C (--feedback oracle).")
     ] = "0.55,0.6,0.65,0.7,0.8",
     labels: Annotated[
         str, typer.Option(help="Comma-separated budgets (one collection to the largest).")
@@ -426,18 +426,44 @@ def hf_nstar(
     include: Annotated[
         list[Path] | None,
         typer.Option(
-            help="hf_policies.json of a `bgrl hf-sweep` (oracle rows) to add to the table."
+            help="hf_policies.json of a `bgrl hf-sweep` to add to the table (grouped by "
+            "feedback and channel as the runs here)."
         ),
     ] = None,
+    information: Annotated[
+        Path | None,
+        typer.Option(
+            help="information.json of `bgrl eeg information` (default OUT/information.json "
+            "if there): the bound per channel from the measured bits per label."
+        ),
+    ] = None,
+    feedback: FeedbackOption = "oracle",
+    decoder_accuracy: DecoderAccuracyOption = None,
+    label_channel: LabelChannelOption = "hard",
+    decoders: DecodersOption = "eegnet,lda,xdawn_rg",
 ) -> None:
-    """N*(C): labels for >= 80 % useful pi_HF (greedy SPL >= 0.5), noisy oracle, hard labels,
-    with Wilson 95 % intervals, the idealised Bayesian reference and the information bound.
+    """N*(C): labels for >= 80 % useful pi_HF (greedy SPL >= 0.5) with Wilson 95 % intervals,
+    the idealised Bayesian reference and the information bound per channel.
 
-    Writes nstar_rows.json (one row per run and budget, resumable), nstar.json, nstar.csv
-    and nstar.png.
+    The labels come from the noisy oracle at each C (hard labels), or with ``--feedback
+    virtual_subject`` from each seed's virtual subject decoded end to end (C is then the
+    decoder's target accuracy, ``--decoder-accuracy``; the quality searches are cached in
+    OUT/virtual_subjects) through ``--label-channel`` hard or soft. Runs of several
+    feedbacks and channels may share OUT: the table and N* are per feedback and channel.
+
+    Writes nstar_rows.json (one row per run and budget, resumable), nstar.json, nstar.csv,
+    nstar.md and nstar.png.
     """
     from services.learner.hf_methods import get_method
-    from services.learner.nstar import NStarJob, bounds, reference_curves, run_jobs, write_outputs
+    from services.learner.nstar import (
+        NStarJob,
+        bounds,
+        reference_curves,
+        row_key,
+        run_jobs,
+        series_label,
+        write_outputs,
+    )
 
     try:
         first, _, last = seeds.partition("-")
@@ -454,10 +480,21 @@ def hf_nstar(
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--method") from None
     task_list = _entries(tasks, "--tasks")
-    cs = _accuracies(accuracies)
+    cs = feedback_settings(feedback, label_channel, decoder_accuracy, _accuracies(accuracies))
+    factory = feedback_factory(feedback, decoders, out)
+    virtual = feedback == "virtual_subject"
     output_folder(out)
     jobs = [
-        NStarJob(task, c, seed, name, budgets)
+        NStarJob(
+            task,
+            None if virtual else c,
+            seed,
+            name,
+            budgets,
+            feedback,
+            label_channel,
+            c if virtual else None,
+        )
         for c in cs
         for task in task_list
         for name in methods
@@ -470,22 +507,26 @@ def hf_nstar(
         with typer.progressbar(length=len(jobs), label="collections") as bar:
             try:
                 rows = run_jobs(
-                    jobs, out / "nstar_rows.json", workers, lambda job, new: bar.update(1)
+                    jobs,
+                    out / "nstar_rows.json",
+                    workers,
+                    lambda job, new: bar.update(1),
+                    feedback_factory=factory,
                 )
             except KeyboardInterrupt:
                 _interrupted(out / "nstar_rows.json")
     grid = sorted({*budgets, *range(100, max(budgets) + 1, 100)})
     from services.learner.pool import load_sweep
 
-    seen = {(r["task"], r["accuracy"], r["seed"], r["n_labels"], r["method"]) for r in rows}
+    seen = {(*row_key(r), r["n_labels"]) for r in rows}
     for path in include or []:
         try:
             stored = load_sweep(path)[0]
         except (OSError, ValueError) as exc:
             raise typer.BadParameter(f"{path}: {exc}", param_hint="--include") from None
         for row in stored:
-            key = (row["task"], row["accuracy"], row["seed"], row["n_labels"], row["method"])
-            if row.get("feedback", "oracle") == "oracle" and key not in seen:
+            key = (*row_key(row), row["n_labels"])
+            if key not in seen:
                 seen.add(key)
                 rows.append({**row, "source": str(path)})
     # the reference runs on SSSG's oracle path (VSSG's starts jitter around the same start)
@@ -499,14 +540,29 @@ def hf_nstar(
     else:
         reference = reference_curves("sssg", cs, grid, reference_draws)
         cache.write_text(json.dumps({"params": params, "reference": reference}, indent=1))
-    limits = [b for task in task_list for b in bounds(task, cs)]
+    measured = _information_summary(information or out / "information.json", information)
+    limits = [b for task in task_list for b in bounds(task, cs, measured)]
     result = write_outputs(out, rows, reference, limits, figure)
     for star in result["n_star"]:
         typer.echo(
-            f"{star['method']} {star['task']} C={star['accuracy']:g}: N* = "
+            f"{series_label(star)}: N* = "
             + (str(star["n_star"]) if star["n_star"] else f"> {star['above']}")
         )
     typer.echo(f"wrote {out / 'nstar.json'}, nstar.csv and nstar.png")
+
+
+def _information_summary(path: Path, given: Path | None) -> list[dict[str, Any]]:
+    """The per-target ``summary`` of a `bgrl eeg information` information.json; none when
+    the default path holds none, a ``typer.BadParameter`` when a given one is not one."""
+    if given is None and not path.exists():
+        return []
+    try:
+        return list(json.loads(path.read_text())["summary"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise typer.BadParameter(
+            f"{path}: not an information.json of `bgrl eeg information` ({exc!r})",
+            param_hint="--information",
+        ) from None
 
 
 def compare(

@@ -288,7 +288,8 @@ def _nstar_useful(
     return {
         int(r["seed"]): float(r["greedy_spl"])
         for r in rows
-        if r["task"] == task
+        if r.get("feedback", "oracle") == "oracle"
+        and r["task"] == task
         and r["method"] == method
         and int(r["n_labels"]) == n_labels
         and math.isclose(float(r["accuracy"]), ORACLE_C)

@@ -114,7 +114,7 @@ def test_reproduce_hf_method_replaces_the_presets_stage2_method(tmp_path, monkey
     ],
 )
 def test_feedback_options_are_refused_before_anything_runs(tmp_path, options, refusal) -> None:
-    for command in ("reproduce", "hf-sweep"):
+    for command in ("reproduce", "hf-sweep", "hf-nstar"):
         out = tmp_path / command
         result = CliRunner().invoke(app, [command, "--out", str(out), *options])
         assert result.exit_code == 2, result.output

@@ -13,6 +13,7 @@ from services.eeg.decoding.calibration import TrainingConfig
 from services.eeg.signal.preprocessing import PreprocessingParams
 from services.eeg.virtual.source import VirtualEEGSource
 from services.learner.feedback_sources import DecodedLabel
+from services.learner.nstar import NStarJob, nstar_run, row_key
 from services.learner.pool import sweep_row_key
 from services.learner.runs import HFPolicySpec, RunRecord, hf_policy_run, run_lockstep
 from services.learner.specs import RunSpec, with_feedback
@@ -153,6 +154,26 @@ def test_a_virtual_subject_run_records_its_feedback(toy_subject_factory) -> None
     assert "| categorical | SSSG | subject@0.8 soft | 25 | 1 |" in summary_table([row])
     with pytest.raises(ValueError, match="feedback-source factory"):
         hf_policy_run(spec)
+
+
+def test_an_nstar_collection_on_the_soft_channel_records_its_feedback(toy_subject_factory) -> None:
+    job = NStarJob("sssg", None, 0, "bayes_query", (8, 16), "virtual_subject", "soft", 0.8)
+    rows = nstar_run(job, feedback_factory=toy_subject_factory)
+    facts = toy_subject_factory.subject.facts
+    assert [r["n_labels"] for r in rows] == [8, 16]
+    for row in rows:
+        assert (row["feedback"], row["label_channel"], row["accuracy"]) == (
+            "virtual_subject",
+            "soft",
+            None,
+        )
+        assert (row["decoder_accuracy"], row["subject_quality"]) == (
+            facts.decoder_accuracy,
+            facts.quality,
+        )
+        assert row["decoder_accuracy_target"] == 0.8 and row_key(row) == job.key
+    with pytest.raises(ValueError, match="feedback-source factory"):
+        nstar_run(job)
 
 
 def test_a_lockstep_run_with_the_virtual_subjects_feedback_records_it(toy_subject_factory) -> None:
