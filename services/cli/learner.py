@@ -552,12 +552,16 @@ def hf_nstar(
 
 
 def _information_summary(path: Path, given: Path | None) -> list[dict[str, Any]]:
-    """The per-target ``summary`` of a `bgrl eeg information` information.json; none when
-    the default path holds none, a ``typer.BadParameter`` when a given one is not one."""
+    """The per-target ``summary`` of a `bgrl eeg information` information.json (made from its
+    rows while that command is still running); none when the default path holds none, a
+    ``typer.BadParameter`` when a given one is not one."""
+    from services.worker.label_information import summarize
+
     if given is None and not path.exists():
         return []
     try:
-        return list(json.loads(path.read_text())["summary"])
+        document = json.loads(path.read_text())
+        return list(document["summary"] if "summary" in document else summarize(document["rows"]))
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise typer.BadParameter(
             f"{path}: not an information.json of `bgrl eeg information` ({exc!r})",
