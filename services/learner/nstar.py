@@ -1,10 +1,9 @@
 """N*(C): labels needed for a useful pi_HF (greedy SPL >= 0.5) in >= 80 % of runs (issue #24).
 
 One stage-2 collection per (task, C, seed, method, feedback, label channel) runs to the
-largest budget; after the
-label that completes each smaller budget, a copy of the learner is finished (the ``bayes``
-methods' final fit; nothing for the others) and its greedy pi_HF evaluated on the task's
-evaluation starts. A budget's labels are the first labels of a larger one (the collection
+largest budget; after the label that completes each smaller budget, a copy of the learner
+is finished (the ``bayes`` methods' final fit; nothing for the others) and its greedy pi_HF
+evaluated on the task's evaluation starts. A budget's labels are the first labels of a larger one (the collection
 never looks at the budget), so each measurement equals that of a run with that budget
 (``bgrl hf-sweep``'s ``greedy_spl``), at the cost of the largest budget alone.
 
@@ -434,6 +433,10 @@ def _plot_n_star(
     limits = sorted({r["accuracy"]: r for r in limits}.values(), key=lambda r: r["accuracy"])
     cs = [r["accuracy"] for r in limits]
     ax.plot(cs, [r["hard_30_1"] for r in limits], "k-", label="bound 30.1 bits / (1 - H(C))")
+    hard = [(r["measured_accuracy"], r["hard_measured_30_1"]) for r in limits if r["hard_bits"]]
+    if hard:
+        ax.plot(*zip(*hard, strict=True), "k+", markersize=9,
+                label="bound, hard: 30.1 bits / measured 1 - H(error rate)")  # fmt: skip
     soft = [(r["measured_accuracy"], r["soft_30_1"]) for r in limits if r["soft_30_1"]]
     if soft:
         ax.plot(*zip(*soft, strict=True), "k--", marker="x",
