@@ -3,9 +3,10 @@
 One stage-2 collection per (task, C, seed, method, feedback, label channel) runs to the
 largest budget; after the label that completes each smaller budget, a copy of the learner
 is finished (the ``bayes`` methods' final fit; nothing for the others) and its greedy pi_HF
-evaluated on the task's evaluation starts. A budget's labels are the first labels of a larger one (the collection
-never looks at the budget), so each measurement equals that of a run with that budget
-(``bgrl hf-sweep``'s ``greedy_spl``), at the cost of the largest budget alone.
+evaluated on the task's evaluation starts. A budget's labels are the first labels of a
+larger one (the collection never looks at the budget), so each measurement equals that of
+a run with that budget (``bgrl hf-sweep``'s ``greedy_spl``), at the cost of the largest
+budget alone.
 
 The labels come from the noisy oracle at accuracy C (hard labels; rows made before other
 feedback existed are these) or from the virtual subject decoded end to end, C then being the
@@ -406,13 +407,13 @@ def plot_nstar(
                         alpha=0.8,
                     )
         ax.axhline(SUCCESS_SHARE, color="grey", linewidth=0.8)
-        what = "noisy oracle" if feedback == "oracle" else "virtual subject (C: decoder target)"
+        what = "noisy oracle" if feedback == "oracle" else "virtual subject"
         ax.set(
             xscale="log",
-            xlabel="labels",
+            xlabel="labels" + ("" if feedback == "oracle" else " (C: the decoder's target)"),
             ylabel="share of runs with greedy SPL >= 0.5",
             title=f"{what}, {channel} labels (Wilson 95 %)"
-            + ("; dotted: idealised reference" if channel == "hard" else ""),
+            + ("; dotted: reference" if channel == "hard" else ""),
             ylim=(-0.02, 1.02),
         )
         ax.legend(fontsize=6, ncol=2)
@@ -462,7 +463,7 @@ def _plot_n_star(
         name = (
             f"{method} {task.upper()} {'oracle' if feedback == 'oracle' else 'subject'} {channel}"
         )
-        colour = colours.setdefault((method, task), f"C{len(colours)}")
+        colour = colours.setdefault((method, task), f"C{len(colours) + 3}")  # C0-C2: reference
         marker = "o" if feedback == "oracle" else "s"
         if found:
             ax.plot(*zip(*found, strict=True), marker=marker, color=colour,
