@@ -25,16 +25,39 @@ ONLINE_ACTIONS_PER_LABEL = 3
 (rejected epochs give no label)."""
 
 
+def soft_channel_refusal(classifier_metrics: Mapping[str, Any] | None) -> str | None:
+    """Why a platform classifier (by its ``metrics``) cannot feed the soft channel, or None
+    if its calibrated posterior can (every ``eeg_calibration`` since 2026-12-03 fits one).
+
+    A Platt slope <= 0 means the calibration's validation epochs found the decoder's score
+    running against the truth or carrying nothing: its likelihood ratios would point away
+    from the truth. At decoder accuracy 0.6 a fit on ~70 validation epochs came out so for 2
+    of 5 virtual subjects (docs/stage2.md, "N*(C) per label channel"); the hard decisions of
+    such a decoder still carry its held-out accuracy.
+    """
+    calibration = (classifier_metrics or {}).get("calibration")
+    if not calibration:
+        return "has no calibrated posterior"
+    slope = calibration.get("slope") if isinstance(calibration, Mapping) else None
+    if isinstance(slope, bool) or not isinstance(slope, int | float) or not slope > 0:
+        fitted_on = calibration.get("n_fit", "?") if isinstance(calibration, Mapping) else "?"
+        return (
+            f"has a calibrated posterior whose Platt slope is {slope} (fitted on {fitted_on} "
+            "validation epochs), so its soft labels would not point toward the truth"
+        )
+    return None
+
+
 def has_calibrated_posterior(classifier_metrics: Mapping[str, Any] | None) -> bool:
-    """Whether a platform classifier (by its ``metrics``) has the calibrated posterior the
-    soft channel reads (every ``eeg_calibration`` since 2026-12-03)."""
-    return bool((classifier_metrics or {}).get("calibration"))
+    """Whether a platform classifier's calibrated posterior can feed the soft channel
+    (:func:`soft_channel_refusal` finds nothing against it)."""
+    return soft_channel_refusal(classifier_metrics) is None
 
 
 def default_label_channel(calibrated: bool) -> LabelChannel:
     """An online session's label channel when none is asked for: ``soft`` if its classifier
-    has a calibrated posterior (the soft label carried 1.26-1.80x the hard label's bits in
-    each of 20 virtual subjects decoded at 0.6, docs/stage2.md), else ``hard``."""
+    has a usable calibrated posterior (the soft label carried 1.26-1.80x the hard label's
+    bits in each of 20 virtual subjects decoded at 0.6, docs/stage2.md), else ``hard``."""
     return "soft" if calibrated else "hard"
 
 

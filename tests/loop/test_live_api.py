@@ -110,16 +110,28 @@ def test_an_online_session_takes_the_soft_channel_if_its_classifier_is_calibrate
     api: Api,
 ) -> None:
     """No label_channel asked: the worker's runner takes soft with a calibrated posterior,
-    hard without one, and a run whose learner session was opened keeps its channel."""
+    hard without one or with one whose Platt slope is not positive (its soft labels would
+    point away from the truth: asked for, it is refused), and a run whose learner session
+    was opened keeps its channel."""
     staff = api.as_("staff")
+    platt = {"method": "platt", "intercept": -0.4, "prior_error": 0.3, "n_fit": 72}
     with db(api) as session:
-        calibrated = Classifier(name="new", metrics={"calibration": {"method": "platt"}})
+        calibrated = Classifier(name="new", metrics={"calibration": {**platt, "slope": 1.2}})
         uncalibrated = Classifier(name="old", metrics={"test_accuracy": 0.7})
-        session.add_all([calibrated, uncalibrated])
+        backwards = Classifier(name="backwards", metrics={"calibration": {**platt, "slope": -9.1}})
+        session.add_all([calibrated, uncalibrated, backwards])
         session.commit()
-        classifiers = {"soft": calibrated.id, "hard": uncalibrated.id}
-    for channel, classifier_id in classifiers.items():
-        online = lab_session(api, "online", code=f"S-{channel}")
+        classifiers = [("soft", calibrated.id), ("hard", uncalibrated.id), ("hard", backwards.id)]
+        backwards_id = backwards.id
+    refused = api.client.post(
+        f"/api/v1/sessions/{lab_session(api, 'online', code='S-refused')}/start",
+        json={"classifier_id": backwards_id, "label_channel": "soft"},
+        headers=staff,
+    )
+    assert refused.status_code == 422 and refused.json()["field"] == "label_channel"
+    assert "Platt slope is -9.1 (fitted on 72 validation epochs)" in refused.json()["detail"]
+    for n, (channel, classifier_id) in enumerate(classifiers):
+        online = lab_session(api, "online", code=f"S-{channel}-{n}")
         started = api.client.post(
             f"/api/v1/sessions/{online}/start", json={"classifier_id": classifier_id}, headers=staff
         )

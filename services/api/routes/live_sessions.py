@@ -38,9 +38,9 @@ from services.core.db.models import Classifier, FeedbackLabel, Job, LabSession
 from services.core.errors import BadRequestError, ConflictError, NotFoundError
 from services.core.live import (
     LiveOptions,
-    has_calibrated_posterior,
     latency_summary,
     pace_drift,
+    soft_channel_refusal,
     timeline_latencies,
 )
 from services.platform.jobs import LIVE_SESSION
@@ -155,10 +155,12 @@ def start(
         classifier = None if too_big else db.get(Classifier, body.classifier_id)
         if classifier is None:
             raise BadRequestError(f"no classifier {body.classifier_id}", field="classifier_id")
-        if body.label_channel == "soft" and not has_calibrated_posterior(classifier.metrics):
+        refusal = soft_channel_refusal(classifier.metrics)
+        if body.label_channel == "soft" and refusal is not None:
             raise BadRequestError(
-                f"classifier {body.classifier_id} has no calibrated posterior, which the soft "
-                "channel needs: calibrate it again (eeg_calibration) or use label_channel hard",
+                f"classifier {body.classifier_id} {refusal}: the soft channel needs a "
+                "calibrated posterior; calibrate again (eeg_calibration) or use label_channel "
+                "hard",
                 field="label_channel",
             )
     run = _latest_run(db, session_id)
