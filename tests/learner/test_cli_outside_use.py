@@ -320,6 +320,13 @@ def test_an_interrupted_lockstep_reproduction_keeps_the_batches_done(tmp_path, m
     assert [r["seed"] for r in _csv_rows(tmp_path / "results.csv")] == ["0", "1", "2"]
 
 
+def _sigint_as_a_terminal() -> None:
+    """The child's SIGINT as a terminal gives it: default. A test run started as a background
+    job of a shell without job control inherits SIGINT ignored, and a Python started so keeps
+    ignoring it (it installs KeyboardInterrupt only over the default)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_stops_a_real_hf_sweep_at_once_and_a_rerun_resumes(tmp_path) -> None:
     out = tmp_path / "sweep"
     command = [  # runs alone: a lockstep batch hands its rows over when it ends
@@ -330,7 +337,7 @@ def test_ctrl_c_stops_a_real_hf_sweep_at_once_and_a_rerun_resumes(tmp_path) -> N
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     process = subprocess.Popen(
         [*command, "--seeds", "30"], cwd=REPO, env=env, start_new_session=True,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, preexec_fn=_sigint_as_a_terminal,
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 240  # ~10 s idle; a loaded machine is far slower
@@ -339,7 +346,7 @@ def test_ctrl_c_stops_a_real_hf_sweep_at_once_and_a_rerun_resumes(tmp_path) -> N
         assert (out / "hf_policies.json").exists(), "no run finished in 240 s"
         os.killpg(process.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
         sent = time.monotonic()
-        output = process.communicate(timeout=90)[0].decode()  # bounded below, not here
+        output = process.communicate(timeout=90)[0].decode()  # bounded below
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
