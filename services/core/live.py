@@ -38,12 +38,13 @@ def soft_channel_refusal(classifier_metrics: Mapping[str, Any] | None) -> str | 
     calibration = (classifier_metrics or {}).get("calibration")
     if not calibration:
         return "has no calibrated posterior"
-    slope = calibration.get("slope") if isinstance(calibration, Mapping) else None
+    fit = calibration if isinstance(calibration, Mapping) else {}
+    slope = fit.get("slope")
     if isinstance(slope, bool) or not isinstance(slope, int | float) or not slope > 0:
-        fitted_on = calibration.get("n_fit", "?") if isinstance(calibration, Mapping) else "?"
         return (
-            f"has a calibrated posterior whose Platt slope is {slope} (fitted on {fitted_on} "
-            "validation epochs), so its soft labels would not point toward the truth"
+            f"has a calibrated posterior whose Platt slope is {slope} (fitted on "
+            f"{fit.get('n_fit', '?')} validation epochs), so its soft labels would not point "
+            "toward the truth"
         )
     return None
 

@@ -457,9 +457,13 @@ def _plot_n_star(
             if (s["method"], s["task"], s["feedback"], s["label_channel"])
             == (method, task, feedback, channel)
         ]
-        x = {id(s): s["decoder_accuracy"] or s["accuracy"] for s in members}
-        found = sorted((x[id(s)], s["n_star"]) for s in members if s["n_star"])
-        above = sorted((x[id(s)], s["above"]) for s in members if not s["n_star"])
+        # the virtual subject's point stands at its decoders' measured accuracy
+        found = sorted(
+            (s["decoder_accuracy"] or s["accuracy"], s["n_star"]) for s in members if s["n_star"]
+        )
+        above = sorted(
+            (s["decoder_accuracy"] or s["accuracy"], s["above"]) for s in members if not s["n_star"]
+        )
         name = (
             f"{method} {task.upper()} {'oracle' if feedback == 'oracle' else 'subject'} {channel}"
         )

@@ -14,7 +14,6 @@ JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 module imports no database code, so the client installs without it)."""
 FINAL_JOB_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 """A job in one of these stays there (until it is retried)."""
-"""A job in one of these stays there (until it is retried)."""
 
 
 class JobFields(BaseModel):
