@@ -1,16 +1,20 @@
-"""The confirmatory analysis of issue #24: the registered tests of docs/protocol.md.
+"""The confirmatory analyses of docs/protocol.md: its two registered families.
 
-Every hypothesis is computed from stored rows only: ``results.json`` runs of ``bgrl
-reproduce`` (H1: end to end; H2: self-imitation on/off), ``nstar_rows.json`` of ``bgrl
-hf-nstar`` (H3, H4) and ``information.json`` of ``bgrl eeg information`` (H5). Only the
-confirmatory seeds 1000-1019 enter; a tuning seed is never pooled with them.
+Every hypothesis is computed from stored rows only. First family (:func:`analyse`, seeds
+1000-1019): ``results.json`` runs of ``bgrl reproduce`` (H1: end to end; H2: self-imitation
+on/off), ``nstar_rows.json`` of ``bgrl hf-nstar`` (H3, H4) and ``information.json`` of
+``bgrl eeg information`` (H5). Second family (:func:`analyse_h6`, seeds 4000-4019): the end
+to end runs with and without ``anneal_lr`` (H6). Only a family's own seeds enter; a tuning
+seed is never pooled with them.
 
 Tests, as registered: one-sided Wilcoxon signed-rank on the paired steps to SPL 0.7 with
 censoring (H1), one-sided exact McNemar on paired outcomes (H2, H4), one-sided exact binomial
-against 1/2 (H3), one-sided Wilcoxon signed-rank of ``ratio - 1.5`` (H5). Holm's step-down
-adjustment (:func:`~services.learner.stats.holm_adjust`) runs over the complete hypotheses,
-a lower bound of the registered family's Holm p; 9 p bounds it from above. Counts carry
-Wilson 95 % intervals, means bootstrap 95 % intervals.
+against 1/2 (H3), one-sided Wilcoxon signed-rank of ``ratio - 1.5`` (H5), one-sided
+Wilcoxon signed-rank of the paired last-five differences (H6 last-five; H6 acceleration is
+H1's test). Holm's step-down adjustment (:func:`~services.learner.stats.holm_adjust`) runs
+within a family over its complete hypotheses, a lower bound of the family's Holm p; the
+family's size times p bounds it from above. Counts carry Wilson 95 % intervals, means
+bootstrap 95 % intervals.
 """
 
 from __future__ import annotations
@@ -49,6 +53,11 @@ H3_LABELS, H4_LABELS = 4000, 2000
 ORACLE_C = 0.6
 H1_DECODER_TARGET = 0.6
 H5_TARGET = 0.6
+H6_SEEDS = tuple(range(4000, 4020))
+"""docs/protocol.md, second family: fresh seeds and virtual subjects 4000-4019 per task."""
+H6_FAMILY = ("H6a-last5", "H6a-accel", "H6b-last5", "H6b-accel")
+H6_LAST5_MIN = 0.8
+_ACCELERATION_TEST = "one-sided Wilcoxon signed-rank, paired steps to 0.7 (censored at 42 000)"
 
 
 @dataclass(frozen=True)
@@ -106,13 +115,16 @@ class HypothesisResult:
     """Holm over the complete hypotheses with data: a lower bound of the family's Holm p (a
     hypothesis added to a Holm family never lowers another's adjusted p)."""
     p_family_bound: float | None = None
-    """Bonferroni over the registered family of nine, min(1, 9 p): an upper bound of the
+    """Bonferroni over the registered family, min(1, family_size p): an upper bound of the
     family's Holm p whatever the hypotheses not yet run give."""
     detail: str = ""
+    seeds: tuple[int, ...] = CONFIRMATORY_SEEDS
+    """The family's registered seeds: the hypothesis is complete with all of them."""
+    family_size: int = len(FAMILY)
 
     @property
     def complete(self) -> bool:
-        return self.missing is None and self.n == len(CONFIRMATORY_SEEDS)
+        return self.missing is None and self.n == len(self.seeds)
 
     @property
     def verdict(self) -> str:
@@ -121,13 +133,15 @@ class HypothesisResult:
         if self.missing is not None:
             return "not run"
         if not self.complete:
-            return f"partial ({self.n}/{len(CONFIRMATORY_SEEDS)} seeds): not decided"
+            return f"partial ({self.n}/{len(self.seeds)} seeds): not decided"
         assert self.p_holm is not None and self.p_family_bound is not None
         if not self.threshold_met or self.p_holm >= ALPHA:
             return "not confirmed"
         if self.p_family_bound < ALPHA:
             return "confirmed"
-        return "provisionally confirmed (decided once the family of nine is complete)"
+        return (
+            f"provisionally confirmed (decided once the family of {self.family_size} is complete)"
+        )
 
 
 def censored_steps(run: RunRecord, config: PPOConfig | None = None) -> int:
@@ -180,18 +194,20 @@ def binomial_greater(k: int, n: int) -> float:
 
 
 def wilcoxon_above(values: Sequence[float], bound: float) -> float:
-    """One-sided Wilcoxon signed-rank p that ``values - bound`` is > 0."""
+    """One-sided Wilcoxon signed-rank p that ``values - bound`` is > 0 (values equal to
+    ``bound`` dropped, ``zero_method="wilcox"``); 1.0 when every value equals it."""
     from scipy.stats import wilcoxon
 
-    return float(wilcoxon(np.asarray(values, float) - bound, alternative="greater").pvalue)
+    differences = np.asarray(values, float) - bound
+    if np.all(differences == 0):
+        return 1.0
+    return float(wilcoxon(differences, zero_method="wilcox", alternative="greater").pvalue)
 
 
-def _confirmatory(runs: Sequence[RunRecord], task: str, method: str) -> dict[int, RunRecord]:
-    return {
-        r.seed: r
-        for r in runs
-        if r.task == task and r.method == method and r.seed in CONFIRMATORY_SEEDS
-    }
+def _confirmatory(
+    runs: Sequence[RunRecord], task: str, method: str, seeds: Sequence[int] = CONFIRMATORY_SEEDS
+) -> dict[int, RunRecord]:
+    return {r.seed: r for r in runs if r.task == task and r.method == method and r.seed in seeds}
 
 
 def _suffix(task: str) -> str:
@@ -205,11 +221,21 @@ def h1(task: str, runs: Sequence[RunRecord] | None) -> HypothesisResult:
         task,
         "HF+sparse (virtual subject, decoder 0.6, soft) reaches SPL 0.7 in fewer steps "
         "than RL-sparse",
-        "one-sided Wilcoxon signed-rank, paired steps to 0.7 (censored at 42 000)",
+        _ACCELERATION_TEST,
         ">= 17/20 HF runs reach 0.7 and their last-five mean >= 0.8",
     )
-    hf_runs = _confirmatory(runs or [], task, "hf_sparse")
-    rl_runs = _confirmatory(runs or [], task, "rl_sparse")
+    return _acceleration(result, runs, last_five_min=H1_LAST5_MIN)
+
+
+def _acceleration(
+    result: HypothesisResult, runs: Sequence[RunRecord] | None, last_five_min: float | None
+) -> HypothesisResult:
+    """H1's test on ``runs`` of ``result``'s task and seeds: HF+sparse against RL-sparse on
+    the paired censored steps to 0.7; the threshold is >= 17/20 HF runs reaching 0.7 and,
+    unless ``last_five_min`` is None, their last-five mean at least that."""
+    task = result.task or ""
+    hf_runs = _confirmatory(runs or [], task, "hf_sparse", result.seeds)
+    rl_runs = _confirmatory(runs or [], task, "rl_sparse", result.seeds)
     seeds = sorted(set(hf_runs) & set(rl_runs))
     if not seeds:
         result.missing = "the end-to-end runs (bgrl reproduce --feedback virtual_subject)"
@@ -232,8 +258,8 @@ def h1(task: str, runs: Sequence[RunRecord] | None) -> HypothesisResult:
         *_means("RL last-5 SPL", [last_five(r) for r in rl]),
         *_means("pi_HF SPL", [r.hf_policy_spl or 0.0 for r in hf]),
     ]
-    result.threshold_met = (
-        reach_hf >= H1_REACH_SHARE * len(seeds) - 1e-9 and float(np.mean(tails)) >= H1_LAST5_MIN
+    result.threshold_met = reach_hf >= H1_REACH_SHARE * len(seeds) - 1e-9 and (
+        last_five_min is None or float(np.mean(tails)) >= last_five_min
     )
     decoded = [r.decoder_accuracy for r in hf if r.decoder_accuracy is not None]
     if decoded:
@@ -388,19 +414,82 @@ def h5(rows: Sequence[dict[str, Any]] | None) -> HypothesisResult:
     return result
 
 
+def h6_last5(
+    task: str, annealed: Sequence[RunRecord] | None, constant: Sequence[RunRecord] | None
+) -> HypothesisResult:
+    """Annealing stage 3's learning rate raises HF+sparse's last-five SPL (end to end)."""
+    result = HypothesisResult(
+        f"H6{_suffix(task)}-last5",
+        task,
+        "anneal_lr raises HF+sparse's last-five SPL (virtual subject, decoder 0.6, soft)",
+        "one-sided Wilcoxon signed-rank, paired last-five SPL, annealed - constant",
+        f">= {H6_LAST5_MIN} annealed HF last-five mean",
+        seeds=H6_SEEDS,
+        family_size=len(H6_FAMILY),
+    )
+    on = _confirmatory(annealed or [], task, "hf_sparse", H6_SEEDS)
+    off = _confirmatory(constant or [], task, "hf_sparse", H6_SEEDS)
+    seeds = sorted(set(on) & set(off))
+    if not seeds:
+        result.missing = "the H6 runs with and without anneal_lr (confirm6/anneal, base)"
+        return result
+    tails_on = [last_five(on[s]) for s in seeds]
+    tails_off = [last_five(off[s]) for s in seeds]
+    differences = [a - b for a, b in zip(tails_on, tails_off, strict=True)]
+    result.n = len(seeds)
+    result.p_raw = wilcoxon_above(differences, 0.0)
+    result.threshold_met = float(np.mean(tails_on)) >= H6_LAST5_MIN
+    result.detail = (
+        f"higher with annealing on {sum(d > 0 for d in differences)}, lower on "
+        f"{sum(d < 0 for d in differences)}, equal on {sum(d == 0 for d in differences)} seeds"
+    )
+    result.estimates = [
+        *_means("annealed HF last-5 SPL", tails_on),
+        *_means("constant-lr HF last-5 SPL", tails_off),
+        *_means("last-5 difference", differences, unit="SPL difference"),
+    ]
+    return result
+
+
+def h6_accel(task: str, annealed: Sequence[RunRecord] | None) -> HypothesisResult:
+    """H1's acceleration under annealing: both methods with ``anneal_lr``."""
+    result = HypothesisResult(
+        f"H6{_suffix(task)}-accel",
+        task,
+        "with anneal_lr for both, HF+sparse (virtual subject, decoder 0.6, soft) reaches "
+        "SPL 0.7 in fewer steps than RL-sparse",
+        _ACCELERATION_TEST,
+        ">= 17/20 annealed HF runs reach 0.7",
+        seeds=H6_SEEDS,
+        family_size=len(H6_FAMILY),
+    )
+    return _acceleration(result, annealed, last_five_min=None)
+
+
+def analyse_h6(
+    annealed: Sequence[RunRecord] | None, constant: Sequence[RunRecord] | None
+) -> list[HypothesisResult]:
+    """The second family (H6), in :data:`H6_FAMILY`'s order, Holm-adjusted within it."""
+    results = []
+    for task in TASKS:
+        results += [h6_last5(task, annealed, constant), h6_accel(task, annealed)]
+    adjust(results)
+    return results
+
+
 def _means(label: str, values: Sequence[float], unit: str = "SPL") -> list[Estimate]:
     """A mean estimate, or none for fewer than two values (no bootstrap interval)."""
     return [mean_estimate(label, values, unit)] if len(values) >= 2 else []
 
 
 def adjust(results: Sequence[HypothesisResult]) -> None:
-    """Set ``p_holm`` (Holm over the complete hypotheses with data) and ``p_family_bound``
-    (Bonferroni over the family of nine) of every complete hypothesis."""
+    """Set ``p_holm`` (Holm over the complete hypotheses with data, all of one family) and
+    ``p_family_bound`` (Bonferroni over the registered family) of every complete one."""
     complete = [(r, r.p_raw) for r in results if r.complete and r.p_raw is not None]
     adjusted = holm_adjust([p_raw for _, p_raw in complete])
     for (result, p_raw), p in zip(complete, adjusted, strict=True):
         result.p_holm = p
-        result.p_family_bound = min(1.0, len(FAMILY) * p_raw)
+        result.p_family_bound = min(1.0, result.family_size * p_raw)
 
 
 def analyse(
@@ -428,8 +517,10 @@ def _p(value: float | None) -> str:
 
 def markdown_table(results: Sequence[HypothesisResult]) -> str:
     """The table docs/protocol.md asks for: raw and Holm p, estimates with intervals, verdict."""
+    size = results[0].family_size if results else len(FAMILY)
     lines = [
-        "| hypothesis | task | test | seeds | raw p | Holm p (with data) | bound over 9 (9 p) "
+        f"| hypothesis | task | test | seeds | raw p | Holm p (with data) | bound over {size} "
+        f"({size} p) "
         "| counts and means [95 % interval] | threshold | met | verdict |",
         "|---|---|---|---:|---:|---:|---:|---|---|---|---|",
     ]
@@ -463,6 +554,7 @@ def plot_estimates(results: Sequence[HypothesisResult], kind: str, path: Path) -
     ]  # in the family's order
     if not points:
         return None
+    names = list(dict.fromkeys(r.hypothesis for r in results))
     units = list(dict.fromkeys(e.unit for _, e in points)) if kind == "mean" else ["share"]
     widths = [max(2, sum(1 for _, e in points if kind == "count" or e.unit == u)) for u in units]
     fig, axes = plt.subplots(
@@ -473,9 +565,10 @@ def plot_estimates(results: Sequence[HypothesisResult], kind: str, path: Path) -
         mine = [(r, e) for r, e in points if kind == "count" or e.unit == unit]
         x = np.arange(len(mine))
         values = np.array([e.value for _, e in mine])
-        low = values - np.array([e.low for _, e in mine])
-        high = np.array([e.high for _, e in mine]) - values
-        colours = [f"C{list(FAMILY).index(r.hypothesis) % 10}" for r, _ in mine]
+        # clipped at 0: the mean of equal values can round just outside its own interval
+        low = np.clip(values - np.array([e.low for _, e in mine]), 0.0, None)
+        high = np.clip(np.array([e.high for _, e in mine]) - values, 0.0, None)
+        colours = [f"C{names.index(r.hypothesis) % 10}" for r, _ in mine]
         ax.bar(x, values, color=colours, alpha=0.7)
         ax.errorbar(x, values, yerr=[low, high], fmt="none", ecolor="black", capsize=3)
         ax.set_xticks(x)
@@ -494,13 +587,16 @@ def plot_estimates(results: Sequence[HypothesisResult], kind: str, path: Path) -
             if unit == "SPL":
                 ax.set_ylim(0, 1.05)
                 ax.axhline(H1_LAST5_MIN, color="grey", linestyle=":", linewidth=1)
+            if unit == "SPL difference":
+                ax.axhline(0.0, color="grey", linestyle="-", linewidth=1)
         ax.grid(axis="y", alpha=0.3)
     title = (
         "confirmatory counts (dotted 17/20, dashed 16/20)"
         if kind == "count"
         else "confirmatory means (dotted: last-5 0.8; dashed: ratio 1.5)"
     )
-    fig.suptitle(f"{title}\nconfirmatory seeds 1000-1019", fontsize=9)
+    seeds = points[0][0].seeds
+    fig.suptitle(f"{title}\nconfirmatory seeds {seeds[0]}-{seeds[-1]}", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

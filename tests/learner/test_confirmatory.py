@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
 
 from services.learner.confirmatory import (
     CONFIRMATORY_SEEDS,
+    H6_FAMILY,
+    H6_SEEDS,
     analyse,
+    analyse_h6,
     binomial_greater,
     censored_steps,
     exact_mcnemar,
@@ -101,3 +105,49 @@ def test_a_hypothesis_the_missing_ones_can_still_overturn_is_provisional() -> No
     assert h2a.p_raw == pytest.approx(1 / 64) and h2a.p_holm == pytest.approx(1 / 64)
     assert h2a.p_family_bound == pytest.approx(9 / 64)
     assert h2a.verdict.startswith("provisionally confirmed")
+
+
+def _tail_run(method: str, seed: int, last_five: float, reach_at: int | None = 2000) -> RunRecord:
+    """A run reaching 1.0 at ``reach_at`` whose last five evaluations are ``last_five``."""
+    run = _run(method, seed, reach_at)
+    curve = [*run.curve[:-5], *([step, last_five] for step, _ in run.curve[-5:])]
+    return dataclasses.replace(run, curve=curve)
+
+
+def test_the_second_family_h6_on_its_own_seeds_with_holm_over_four(tmp_path) -> None:
+    seeds = H6_SEEDS
+    # annealed HF last five 0.9 on every seed; constant 0.5 + 0.01 i: 20 positive differences
+    annealed = [_tail_run("hf_sparse", s, 0.9, 2000 * (i + 1)) for i, s in enumerate(seeds)]
+    annealed += [_tail_run("rl_sparse", s, 0.0, reach_at=None) for s in seeds]
+    constant = [_tail_run("hf_sparse", s, 0.5 + 0.01 * i) for i, s in enumerate(seeds)]
+    # a first-family seed and a tuning seed in the same files: both left out
+    annealed += [_tail_run("hf_sparse", 1000, 0.0), _tail_run("rl_sparse", 1000, 1.0, 2000)]
+    constant += [_tail_run("hf_sparse", 100, 1.0)]
+    results = analyse_h6(annealed, constant)
+    by_name = {r.hypothesis: r for r in results}
+    assert list(by_name) == list(H6_FAMILY)
+    last5, accel = by_name["H6a-last5"], by_name["H6a-accel"]
+    assert last5.n == 20 and last5.p_raw == pytest.approx(0.5**20)
+    assert last5.threshold_met is True and "higher with annealing on 20" in last5.detail
+    assert [e.value for e in last5.estimates] == pytest.approx([0.9, 0.595, 0.305])
+    # annealed HF reaches at 2000, 4000, ..., 40 000, annealed RL never: H1's exact test
+    assert accel.n == 20 and accel.p_raw == pytest.approx(0.5**20)
+    assert accel.threshold_met is True  # 20/20 reach; no last-five condition
+    # Holm over the two complete ones with data; the bound is over the family of four
+    assert last5.p_holm == pytest.approx(2 * 0.5**20)
+    assert last5.p_family_bound == pytest.approx(4 * 0.5**20)
+    assert last5.verdict == accel.verdict == "confirmed"
+    assert by_name["H6b-last5"].verdict == "not run"
+    table = markdown_table(results)
+    assert "bound over 4 (4 p)" in table and "Not run: H6b-last5, H6b-accel" in table
+    assert plot_estimates(results, "mean", tmp_path / "m.png") == tmp_path / "m.png"
+
+
+def test_h6_last5_below_its_threshold_and_without_a_difference() -> None:
+    seeds = H6_SEEDS
+    same = [_tail_run("hf_sparse", s, 0.7) for s in seeds]
+    by_name = {r.hypothesis: r for r in analyse_h6(same, same)}
+    assert by_name["H6b-last5"].missing is not None  # SSSG runs only: VSSG not run
+    last5a = by_name["H6a-last5"]
+    assert last5a.p_raw == 1.0 and last5a.threshold_met is False  # every pair equal; 0.7 < 0.8
+    assert last5a.verdict == "not confirmed"
