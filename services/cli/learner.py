@@ -67,8 +67,8 @@ def _accuracies(value: str, option: str = "--accuracies") -> list[float]:
 
 
 def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
-    """``["n_epochs=10", "reward_scale=1"]`` -> typed PPOConfig overrides, checked by the
-    learner's rules (ValueError naming the setting)."""
+    """``["n_epochs=10", "reward_scale=1"]`` -> typed PPOConfig overrides, each setting
+    once, checked by the learner's rules (ValueError naming the setting)."""
     from services.learner.ppo import PPOConfig, check_settings
     from services.learner.specs import RUN_FIXED_PPO_FIELDS
 
@@ -85,6 +85,8 @@ def parse_ppo_overrides(items: list[str]) -> dict[str, Any]:
         if key not in fields:
             known = sorted(fields - RUN_FIXED_PPO_FIELDS)
             raise ValueError(f"--ppo: unknown PPO setting {key!r}; known: {known}")
+        if key in overrides:  # a factor study would silently take the last value
+            raise ValueError(f"--ppo {key} given twice; give each setting once")
         default = getattr(defaults, key)
         try:
             if default is None:  # an optional number (target_kl): a float or "none"

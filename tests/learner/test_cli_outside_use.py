@@ -86,6 +86,8 @@ REPRODUCE = ["reproduce", "--seeds", "1", "--tasks", "sssg", "--methods", "rl_sp
         (["--ppo", "learning_rate=nan"], ["--ppo learning_rate must be in (0, inf), not nan"]),
         (["--ppo", "gamma=inf"], ["--ppo gamma must be in [0, 1], not inf"]),
         (["--ppo", "hidden_sizes=64,0"], ["--ppo every entry of hidden_sizes", "[1, inf), not 0"]),
+        # a factor study must not silently take the last of two values of one setting
+        (["--ppo", "n_epochs=10", "--ppo", "n_epochs=2"], ["--ppo n_epochs given twice"]),
         (["--first-seed", str(2**31)], ["--first-seed"]),
         (["--seeds", "2", "--first-seed", str(2**31 - 1)], ["--first-seed", "2147483648"]),
     ],
