@@ -315,8 +315,9 @@ def reproduce(
 
     ``out_dir`` accumulates: runs from earlier calls stay in ``results.json`` and in the
     summary and plots, so a reproduction can be extended by more seeds or methods; failed
-    runs of earlier calls are retried. Runs with other settings (labels, map, PPO overrides)
-    and maps that do not load are refused with a ValueError before anything runs. Returns
+    runs of earlier calls are retried. Runs with other settings (labels, stage-2 method, map,
+    PPO overrides) and maps that do not load are refused with a ValueError before anything
+    runs. Returns
     the results; ``results.failed`` lists the runs that failed in this call (and earlier
     failures of runs this call did not include).
     """
@@ -336,8 +337,8 @@ def reproduce(
     runs = earlier.runs
     if settings_conflict([*specs, *(r.run_spec for r in runs)]):
         raise ValueError(
-            f"{out} holds runs with other settings (labels, map or PPO overrides); "
-            "use another output folder"
+            f"{out} holds runs with other settings (labels, stage-2 method, map or PPO "
+            "overrides); use another output folder"
         )
     out.mkdir(parents=True, exist_ok=True)
     done = {r.run_spec.key for r in runs}

@@ -235,10 +235,11 @@ def with_feedback(specs: Sequence[RunSpec], feedback: str, label_channel: str) -
 
 
 def settings_conflict(specs: Sequence[RunSpec]) -> bool:
-    """True if the specs differ in map, PPO overrides or (for hf_sparse) label count."""
+    """True if the specs differ in map, PPO overrides or (for hf_sparse) label count or
+    stage-2 method (a folder's summary and CSV do not tell two apart)."""
     base = {json.dumps([s.map_path, s.ppo_overrides], sort_keys=True) for s in specs}
-    labels = {s.n_labels for s in specs if s.method == "hf_sparse"}
-    return len(base) > 1 or len(labels) > 1
+    stage2 = {(s.n_labels, s.hf_method) for s in specs if s.method == "hf_sparse"}
+    return len(base) > 1 or len(stage2) > 1
 
 
 def build_specs(

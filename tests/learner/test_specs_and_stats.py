@@ -57,6 +57,10 @@ def test_run_spec_validates_and_round_trips() -> None:
     ]  # fmt: skip
     assert settings_conflict([*specs, *more_labels])  # one label count per output folder
     assert settings_conflict([*specs, RunSpec("sssg", "rl_sparse", 5, map_path="x.json")])
+    # one stage-2 method per folder: the summary and CSV cannot tell two apart
+    kernel = RunSpec("sssg", "hf_sparse", 0, 0.6, hf_method="categorical_kernel")
+    assert settings_conflict([*specs, kernel])
+    assert not settings_conflict([kernel, RunSpec("sssg", "rl_sparse", 0)])
     shaped = RunSpec("vssg", "rl_shaped", 1, ppo_overrides={"gamma": 0.95}).ppo_config()
     assert shaped.env_kwargs == {"reward_mode": "shaped", "shaping_gamma": 0.95}
     dense = RunSpec("vssg", "rl_rich", 1, ppo_overrides={"gamma": 0.9}).ppo_config()
