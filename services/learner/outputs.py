@@ -181,17 +181,39 @@ def plot_figure3(runs: Sequence[RunRecord], out_dir: Path) -> list[Path]:
     return paths
 
 
-def load_study(folder: str | Path) -> tuple[str, dict[str, Any], list[RunRecord]]:
-    """(name, PPO overrides, runs) of a reproduction folder; a clear error if it is none."""
+def load_study(folder: str | Path) -> tuple[dict[str, Any], list[RunRecord]]:
+    """(PPO overrides, runs) of a reproduction folder; a clear error if it is none."""
     results = load_results(Path(folder) / "results.json")
     overrides = dict(results.runs[0].run_spec.ppo_overrides) if results.runs else {}
-    return Path(folder).name, overrides, results.runs
+    return overrides, results.runs
+
+
+def study_names(folders: Sequence[str | Path]) -> list[str]:
+    """Each folder's name, with as many of its parents as it takes to tell the folders apart
+    (``jan/study``, ``feb/study``); a ValueError if one folder is given twice."""
+    paths = [Path(folder).resolve() for folder in folders]
+    for path, folder in zip(paths, folders, strict=True):
+        if paths.count(path) > 1:
+            raise ValueError(f"{folder}: the same study given twice (its runs would count twice)")
+
+    def tail(path: Path, depth: int) -> str:
+        return str(Path(*path.parts[-depth:]))
+
+    names = []
+    for path in paths:
+        depth = 1  # grows at the latest to the whole path, which no other folder's tail is
+        while any(tail(other, depth) == tail(path, depth) for other in paths if other != path):
+            depth += 1
+        names.append(tail(path, depth))
+    return names
 
 
 def compare_studies(folders: Sequence[str | Path], out_dir: str | Path) -> list[dict[str, Any]]:
     """Factor studies side by side: one :func:`summarize` row per study, task and group.
 
-    Writes ``out_dir/compare.md`` (table), ``compare.json`` and ``compare_<task>.png``: every
+    A study is named by its folder (with parents where two folders share a name; one
+    folder given twice is a ValueError). Writes ``out_dir/compare.md`` (table),
+    ``compare.json`` and ``compare_<task>.png``: every
     run's mean SPL over its last five evaluations (dots) with each group's mean ± std, so
     studies that differ in one factor (treatment, guidance, PPO setting) can be read together.
     """
@@ -200,12 +222,13 @@ def compare_studies(folders: Sequence[str | Path], out_dir: str | Path) -> list[
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    studies = [load_study(folder) for folder in folders]  # bad input fails before writing
+    names = study_names(folders)  # bad input fails before writing
+    studies = [load_study(folder) for folder in folders]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = [
         {"study": name, "ppo_overrides": overrides, **row}
-        for name, overrides, runs in studies
+        for name, (overrides, runs) in zip(names, studies, strict=True)
         for row in summarize(runs)
     ]
     lines = [

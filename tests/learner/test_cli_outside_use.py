@@ -248,6 +248,38 @@ def test_hf_sweep_keeps_earlier_failures_of_runs_it_does_not_retry(tmp_path, mon
     assert {f["spec"]["task"] for f in document["failed"]} == {"vssg"}
 
 
+def _study(folder: Path, seeds: list[int]) -> Path:
+    """A `bgrl reproduce` folder of RL-sparse runs of ``seeds`` (records made up)."""
+    from services.learner.outputs import Results, save_results
+
+    folder.mkdir(parents=True)
+    records = [_record(RunSpec("sssg", "rl_sparse", seed)) for seed in seeds]
+    save_results(folder / "results.json", Results(config={}, runs=records))
+    return folder
+
+
+def test_compare_tells_studies_of_one_folder_name_apart(tmp_path) -> None:
+    """Two `.../study` folders (e.g. two dates' runs of one command) are two rows a reader
+    can tell apart, named by as much of their paths as it takes."""
+    first = _study(tmp_path / "jan" / "study", [0, 1])
+    second = _study(tmp_path / "feb" / "study", [0, 1, 2])
+    out = tmp_path / "compare"
+    result = CliRunner().invoke(app, ["compare", str(first), str(second), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = _strict_json(out / "compare.json")["rows"]
+    assert sorted((r["study"], r["n_seeds"]) for r in rows) == [("feb/study", 3), ("jan/study", 2)]
+    assert "| jan/study |" in (out / "compare.md").read_text()
+
+
+def test_compare_refuses_one_study_given_twice(tmp_path) -> None:
+    """Its runs would count twice, as if they were another study's."""
+    study = _study(tmp_path / "study", [0])
+    out = tmp_path / "compare"
+    args = ["compare", str(study), str(tmp_path / "." / "study"), "--out", str(out)]
+    _one_line_error(CliRunner().invoke(app, args), "given twice")
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------ interruption
 
 
