@@ -143,6 +143,16 @@ def _refuse_the_others_folder(out: Path, record: str, study: str) -> None:
         )
 
 
+def _each_run_once(specs: Sequence[_Spec]) -> None:
+    """A one-line ValueError naming the first run ``specs`` hold twice (it would be trained,
+    and counted as a seed, twice)."""
+    seen: set[tuple[Any, ...]] = set()
+    for spec in specs:
+        if spec.key in seen:
+            raise ValueError(f"{spec.label} given twice: give each run once")
+        seen.add(spec.key)
+
+
 def validate_maps(specs: Sequence[RunSpec]) -> None:
     """Load every map the specs name and check that its goal can be reached; a one-line
     ValueError for the first bad one."""
@@ -316,11 +326,11 @@ def reproduce(
     ``out_dir`` accumulates: runs from earlier calls stay in ``results.json`` and in the
     summary and plots, so a reproduction can be extended by more seeds or methods; failed
     runs of earlier calls are retried. Runs with other settings (labels, stage-2 method, map,
-    PPO overrides) and maps that do not load are refused with a ValueError before anything
-    runs. Returns
-    the results; ``results.failed`` lists the runs that failed in this call (and earlier
-    failures of runs this call did not include).
+    PPO overrides), maps that do not load and a run ``specs`` hold twice are refused with a
+    ValueError before anything runs. Returns the results; ``results.failed`` lists the runs
+    that failed in this call (and earlier failures of runs this call did not include).
     """
+    _each_run_once(specs)
     validate_maps(specs)
     out = Path(out_dir)
     _refuse_the_others_folder(out, "hf_policies.json", "a stage-2 sweep (bgrl hf-sweep)")
@@ -404,8 +414,9 @@ def hf_policy_sweep(
 
     Writes ``out_dir/hf_policies.json`` (``{"runs": [...], "failed": [...]}``) after every
     run; runs already there are skipped, failed ones retried (earlier failures of runs this
-    call does not include are kept). A file there that is not such a document is a
-    ValueError naming it, before anything runs. Returns (rows, failures), the failures
+    call does not include are kept). A file there that is not such a document, or a run
+    named twice (a task, C, label budget or method repeated), is a ValueError naming it,
+    before anything runs. Returns (rows, failures), the failures
     of this call and the earlier ones kept.
     """
     virtual = feedback == "virtual_subject"
@@ -426,6 +437,7 @@ def hf_policy_sweep(
         for task in tasks
         for accuracy in accuracies
     ]
+    _each_run_once(specs)
     out = Path(out_dir)
     _refuse_the_others_folder(out, "results.json", "a reproduction (bgrl reproduce)")
     path = out / "hf_policies.json"

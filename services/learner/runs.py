@@ -42,7 +42,7 @@ from services.learner.feedback_sources import (
 )
 from services.learner.hf_methods import PAPER_METHOD, get_method
 from services.learner.policy_files import write_beside_torchscript
-from services.learner.ppo import Callback, TrainResult, train, train_lockstep
+from services.learner.ppo import Callback, TrainResult, check_one_shape, train, train_lockstep
 from services.learner.seeding import RunSeeds, Stream, evaluation_reset_seeds
 from services.learner.specs import (
     N_VSSG_EVAL_STARTS,
@@ -342,6 +342,7 @@ def run_lockstep(
     ``last_model_paths`` are per run, ``on_label`` and ``portable`` for every run (as
     :func:`run_one`'s; an ``on_label`` that raises ends stage 2 of every run it raised in)."""
     n = len(specs)
+    check_one_shape([spec.ppo_config() for spec in specs])  # before stage 2's minutes
     callbacks = list(callbacks) if callbacks is not None else [None] * n
     paths = list(checkpoint_paths) if checkpoint_paths is not None else [None] * n
     given = list(hf_policies) if hf_policies is not None else [None] * n

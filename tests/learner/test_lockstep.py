@@ -149,6 +149,37 @@ def test_only_runs_of_one_ppo_shape_share_a_batch() -> None:
         train_lockstep([toy_config(seed=1), toy_config(seed=2, n_epochs=8)])
     with pytest.raises(ValueError, match="one callback"):
         train_lockstep([toy_config(seed=1)], callbacks=[None, None])
+    assert train_lockstep([]) == []
+
+
+def test_a_batch_of_other_shapes_names_the_setting_that_differs() -> None:
+    configs = [toy_config(seed=s) for s in (1, 2)] + [toy_config(seed=3, n_epochs=8)]
+    with pytest.raises(ValueError, match=r"n_epochs: .* \(run 0\) but 8 \(run 2\)"):
+        train_lockstep(configs)
+
+
+def test_two_runs_of_a_batch_cannot_share_a_checkpoint(tmp_path) -> None:
+    """Each would resume from the other's state (or refuse it) after an interruption."""
+    configs = [toy_config(seed=s, total_steps=256) for s in (1, 2)]
+    shared = tmp_path / "run.pt"
+    with pytest.raises(ValueError, match=r"run\.pt: the checkpoint of runs 0 and 1"):
+        train_lockstep(configs, checkpoint_paths=[shared, tmp_path / "." / "run.pt"])
+    assert not shared.exists()
+
+
+def test_run_lockstep_refuses_other_shapes_before_any_stage_2(monkeypatch) -> None:
+    """Not after minutes of learning every run's pi_HF."""
+
+    def no_stage_2(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("stage 2 ran for a batch that cannot train together")
+
+    monkeypatch.setattr("services.learner.runs.run_guidances", no_stage_2)
+    specs = [
+        RunSpec("sssg", "hf_sparse", 0, 0.7, n_labels=20),
+        RunSpec("sssg", "rl_sparse", 0, ppo_overrides={"n_epochs": 8}),
+    ]
+    with pytest.raises(ValueError, match="n_epochs"):
+        run_lockstep(specs)
 
 
 def test_batched_clip_and_adam_are_each_runs_own() -> None:

@@ -86,6 +86,26 @@ def test_reproduce_writes_results_json_and_resumes(tmp_path) -> None:
         compare_studies([tmp_path / "compare"], tmp_path / "compare2")
 
 
+def _never(*args, **kwargs) -> None:
+    raise AssertionError("a sweep naming a run twice must be refused before anything runs")
+
+
+def test_a_sweep_naming_one_run_twice_is_refused_before_anything_runs(
+    tmp_path, monkeypatch
+) -> None:
+    """From Python, as the CLI's repeated entries: the run would be trained twice and count
+    as two seeds (and in lockstep share one checkpoint file)."""
+    monkeypatch.setattr(pool, "run_isolated", _never)
+    specs = [RunSpec("sssg", "rl_sparse", seed, ppo_overrides=TINY) for seed in (0, 1)]
+    with pytest.raises(ValueError, match="sssg rl_sparse seed=1 given twice"):
+        reproduce(tmp_path / "study", [*specs, specs[1]], workers=1)
+    with pytest.raises(ValueError, match=r"sssg C=0\.7 seed=0 labels=20 paper given twice"):
+        pool.hf_policy_sweep(
+            tmp_path / "sweep", tasks=("sssg", "sssg"), accuracies=(0.7,), seeds=1, labels=(20,)
+        )
+    assert not (tmp_path / "study").exists() and not (tmp_path / "sweep").exists()
+
+
 def test_a_failing_run_is_recorded_and_the_others_kept(tmp_path) -> None:
     bad_map = tmp_path / "bad.json"
     bad_map.write_text("not a map")

@@ -77,7 +77,12 @@ from services.learner.ppo.config import (
     check_settings,
     hf_epsilon,
 )
-from services.learner.ppo.lockstep import PER_RUN_SETTINGS, lockstep_key, train_lockstep
+from services.learner.ppo.lockstep import (
+    PER_RUN_SETTINGS,
+    check_one_shape,
+    lockstep_key,
+    train_lockstep,
+)
 from services.learner.ppo.loop import train
 from services.learner.ppo.result import Callback, TrainResult
 from services.learner.ppo.rollout import Rollout, begin_episode, collect_rollout
@@ -94,6 +99,7 @@ __all__ = [
     "TrainResult",
     "advantages_and_returns",
     "begin_episode",
+    "check_one_shape",
     "check_settings",
     "collect_rollout",
     "compute_advantages",

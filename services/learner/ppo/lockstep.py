@@ -78,6 +78,22 @@ def lockstep_key(config: PPOConfig) -> str:
     return repr(sorted(shared.items()))
 
 
+def check_one_shape(configs: Sequence[PPOConfig]) -> None:
+    """ValueError unless the configs can share a batch (equal :func:`lockstep_key`), naming
+    the first setting in which a run differs from run 0."""
+    if len({lockstep_key(c) for c in configs}) <= 1:
+        return
+    first = asdict(configs[0])
+    for index, config in enumerate(configs[1:], start=1):
+        for name, value in asdict(config).items():
+            if name not in PER_RUN_SETTINGS and repr(value) != repr(first[name]):
+                raise ValueError(
+                    "runs of one lockstep batch must share every PPO setting but "
+                    f"{sorted(PER_RUN_SETTINGS)}; {name}: {first[name]!r} (run 0) but "
+                    f"{value!r} (run {index})"
+                )
+
+
 class BatchedActorCritic(nn.Module):
     """The actors and critics of N runs as one module (run ``r`` is row ``r``).
 
@@ -473,20 +489,25 @@ def train_lockstep(
     Each run is what :func:`~services.learner.ppo.train` would make of its config,
     callback, pi_HF and checkpoint path (bit-identical records, see the module doc); a run
     that raises has its exception as its outcome and leaves the batch, the others go on.
-    The configs must share every setting but :data:`PER_RUN_SETTINGS` (ValueError if not).
+    The configs must share every setting but :data:`PER_RUN_SETTINGS` and the runs their
+    checkpoint paths (ValueError if not, before anything runs).
     ``charts/SPS`` and the ``*_seconds`` metrics are the batch's (all runs' steps).
     """
     n = len(configs)
-    if len({lockstep_key(c) for c in configs}) > 1:
-        raise ValueError(
-            "runs of one lockstep batch must share every PPO setting but "
-            f"{sorted(PER_RUN_SETTINGS)}"
-        )
+    check_one_shape(configs)
     callbacks = list(callbacks) if callbacks is not None else [None] * n
     hf_policies = list(hf_policies) if hf_policies is not None else [None] * n
     checkpoint_paths = list(checkpoint_paths) if checkpoint_paths is not None else [None] * n
     if not len(callbacks) == len(hf_policies) == len(checkpoint_paths) == n:
         raise ValueError("give one callback, pi_HF and checkpoint path per config (or none)")
+    owners: dict[Path, int] = {}  # a shared file would hold one run's state for both
+    for index, path in enumerate(checkpoint_paths):
+        if path is not None:
+            owner = owners.setdefault(Path(path).resolve(), index)
+            if owner != index:
+                raise ValueError(
+                    f"{path}: the checkpoint of runs {owner} and {index}; give each its own"
+                )
     outcomes: list[TrainResult | Exception | None] = [None] * n
     with ExitStack() as stack:
         runs: list[PPORun] = []
