@@ -32,12 +32,13 @@ def _hf_policy() -> HFPolicy:
 
 def _batch(**options: Any) -> tuple[list[PPOConfig], list[HFPolicy | None]]:
     """Four runs of one PPO shape that differ in what a batch allows: seed, reward,
-    treatment of pi_HF's steps, pi_HF or none (512 steps each)."""
+    treatment of pi_HF's steps, pi_HF or none (512 steps each unless ``options`` say)."""
+    options = {"total_steps": 512, **options}
     configs = [
-        toy_config(seed=1, total_steps=512, **options),
-        toy_config(seed=2, total_steps=512, env_kwargs={"reward_mode": "rich"}, **options),
-        toy_config(seed=3, total_steps=512, hf_treatment="truncated_is", **options),
-        toy_config(seed=4, total_steps=512, **options),
+        toy_config(seed=1, **options),
+        toy_config(seed=2, env_kwargs={"reward_mode": "rich"}, **options),
+        toy_config(seed=3, hf_treatment="truncated_is", **options),
+        toy_config(seed=4, **options),
     ]
     return configs, [None, None, _hf_policy(), _hf_policy()]
 
@@ -71,8 +72,9 @@ def assert_identical(alone: TrainResult, batched: TrainResult | Exception) -> No
         {"hf_guide_sampling": True, "hf_prior_coef": 0.5, "hf_handover_on_revisit": True},
         {"sil_coef": 1.0, "explore_coef": 0.5},
         {"target_kl": 1e-5, "anneal_lr": True, "max_grad_norm": 0.05},
+        {"total_steps": 640, "eval_every": 512},  # the trained policy evaluated at its end
     ],
-    ids=["paper", "guidance-options", "self-imitation", "stabilisers"],
+    ids=["paper", "guidance-options", "self-imitation", "stabilisers", "budget-not-multiple"],
 )
 def test_a_run_in_a_batch_gives_the_records_it_gives_alone(options) -> None:
     configs, policies = _batch(**options)
@@ -87,6 +89,8 @@ def test_a_run_in_a_batch_gives_the_records_it_gives_alone(options) -> None:
         assert any(m["losses/update_epochs"] < configs[0].n_epochs for m in metrics)
     if options.get("hf_prior_coef"):
         assert any("losses/hf_prior_cross_entropy" in m for m in metrics)
+    if options.get("eval_every"):
+        assert [step for step, _ in alone[0].curve] == [0, 512, 640]
 
 
 def test_a_batch_is_deterministic() -> None:
@@ -263,3 +267,34 @@ def test_a_sweep_is_dealt_into_lockstep_batches_of_one_ppo_shape() -> None:
     failures = batches[0].failures(RunFailure("spec", "label", "BrokenProcessPool", "died", ""))
     assert [f.spec for f in failures] == [paper[0].to_dict(), paper[3].to_dict()]
     assert failures[1].label == paper[3].label and failures[1].error_type == "BrokenProcessPool"
+
+
+class _KilledAtEvaluation(Callback):
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_eval(self, global_step: int, spl: float) -> bool:
+        if global_step == self.step:
+            raise KeyboardInterrupt  # the worker killed: the batch ends
+        return True
+
+
+def test_a_batch_killed_before_its_final_evaluation_resumes_to_it(tmp_path) -> None:
+    """Budget 640, evaluations every 512: killed after the last update, before the
+    evaluation at its end; resumed in a batch or alone, the records of an uninterrupted run."""
+    configs = [toy_config(seed=s, total_steps=640, eval_every=512) for s in (1, 2)]
+    paths = [tmp_path / f"run{i}.pt" for i in range(2)]
+    with pytest.raises(KeyboardInterrupt):
+        train_lockstep(
+            configs, callbacks=[_KilledAtEvaluation(640), None], checkpoint_paths=paths,
+            checkpoint_every=1,
+        )  # fmt: skip
+    alone = train(configs[0])
+    assert [step for step, _ in alone.curve] == [0, 512, 640]
+    kept = tmp_path / "alone.pt"  # the interrupted state, resumed alone
+    kept.write_bytes(paths[0].read_bytes())
+    assert_identical(alone, train(configs[0], checkpoint_path=kept))
+    for config, result in zip(
+        configs, train_lockstep(configs, checkpoint_paths=paths), strict=True
+    ):
+        assert_identical(train(config), result)

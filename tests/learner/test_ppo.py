@@ -474,3 +474,37 @@ def test_train_closes_its_envs_when_it_fails() -> None:
     assert (_ClosingGrid.opened, _ClosingGrid.closed) == (2, 2)
     train(toy_config(env_id, total_steps=128))
     assert (_ClosingGrid.opened, _ClosingGrid.closed) == (4, 4)
+
+
+class _KilledAtEvaluation(Callback):
+    """A worker killed at the evaluation of ``step`` (after the update that reached it)."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_eval(self, global_step: int, spl: float) -> bool:
+        if global_step == self.step:
+            raise KeyboardInterrupt
+        return True
+
+
+def test_a_budget_that_is_not_a_multiple_of_eval_every_ends_with_an_evaluation(
+    toy_env_id, tmp_path
+) -> None:
+    """final_spl is the trained policy's, not the one evaluated before the last updates; a
+    run killed between its last update and that evaluation resumes to the same records."""
+    config = toy_config(toy_env_id, total_steps=384)  # evaluations every 256 steps
+    full = train(config)
+    assert [step for step, _ in full.curve] == [0, 256, 384]
+    assert full.final_spl == full.curve[-1][1] and full.global_step == 384
+    checkpoint = tmp_path / "run.pt"
+    with pytest.raises(KeyboardInterrupt):
+        train(config, _KilledAtEvaluation(384), checkpoint_path=checkpoint, checkpoint_every=1)
+    resumed = train(config, checkpoint_path=checkpoint)
+    assert resumed.curve == full.curve and resumed.episodes == full.episodes
+    for p, q in zip(full.agent.parameters(), resumed.agent.parameters(), strict=True):
+        assert torch.equal(p, q)
+    # a budget that is a multiple: its last evaluation is the one due at the budget's step
+    assert [step for step, _ in train(toy_config(toy_env_id, total_steps=512)).curve] == [
+        0, 256, 512
+    ]  # fmt: skip

@@ -544,10 +544,20 @@ def _advance(
         )
         failed.clear()
 
+    def leave_when_done() -> None:
+        """The runs whose budget is spent after their last evaluation are evaluated at
+        their end (:attr:`PPORun.final_evaluation_due`, as alone); the runs done leave."""
+        ends = [
+            row for row, run in enumerate(runs) if row not in failed and run.final_evaluation_due
+        ]
+        if ends:
+            evaluate_lockstep(model, runs, ends, failed)
+        leave([row for row, run in enumerate(runs) if row not in failed and run.running])
+
     config = runs[0].config
     first = [row for row, run in enumerate(runs) if not run.state.curve]  # not resumed
     evaluate_lockstep(model, runs, first, failed)
-    leave([row for row, run in enumerate(runs) if row not in failed and run.running])
+    leave_when_done()  # a run resumed between its last update and its final evaluation
     while runs:
         # ---- 1. rollouts: one batched forward per step, each run's env stepped in turn ------
         rollout_start = time.perf_counter()
@@ -622,4 +632,4 @@ def _advance(
                 )  # fmt: skip
             except Exception as exc:
                 failed[row] = exc
-        leave([row for row, run in enumerate(runs) if row not in failed and run.running])
+        leave_when_done()

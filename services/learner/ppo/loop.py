@@ -93,4 +93,6 @@ def train(
                 rollout_start=rollout_start, rollout_seconds=rollout_seconds,
                 update_start=update_start,
             )  # fmt: skip
+        if run.final_evaluation_due:  # the trained policy's SPL, not the one before it
+            run.evaluate()
         return run.finish()

@@ -119,6 +119,17 @@ class PPORun:
         """Whether another rollout and update are due (no hook stopped it, budget left)."""
         return self.keep_going and self.state.global_step < self.config.total_steps
 
+    @property
+    def final_evaluation_due(self) -> bool:
+        """Whether the budget is spent and the last evaluation came before its end (a
+        ``total_steps`` that is not a multiple of ``eval_every``): the trained policy is
+        then evaluated once more, so ``final_spl`` is its own. With a multiple (the paper's
+        40k / 2k) the evaluation due at ``total_steps`` is the last and none is added.
+        Evaluations draw from no training stream; a run resumed between its last update and
+        this evaluation makes it on resuming."""
+        state, budget = self.state, self.config.total_steps
+        return state.global_step >= budget and bool(state.curve) and state.curve[-1][0] < budget
+
     def greedy(self, obs: np.ndarray) -> int:
         """pi_RL's greedy action."""
         with torch.inference_mode():
