@@ -167,7 +167,8 @@ def validate_maps(specs: Sequence[RunSpec]) -> None:
 
 
 CHECKPOINT_FOLDER = "checkpoints"
-"""Sub-folder of a reproduction where its lockstep runs keep their checkpoints."""
+"""Sub-folder of a reproduction where its runs keep their checkpoints (one file per run,
+the same in a lockstep batch and alone: :func:`checkpoint_path`)."""
 LOCKSTEP_MAX_RUNS = 32
 """Most runs of one lockstep batch. Its headless envs share one pybullet world
 (:mod:`services.sim.world`), so an env no longer costs ~30 MB a run; the cap keeps a
@@ -206,8 +207,9 @@ CHECKPOINT_EVERY = 10
 
 
 def checkpoint_path(folder: str | Path, spec: RunSpec) -> Path:
-    """Where a sweep keeps the checkpoint of the run of ``spec`` until its record is saved:
-    ``folder/<digest of the spec>.pt``."""
+    """Where a sweep keeps the checkpoint of the run of ``spec`` until its record is saved,
+    in a lockstep batch or alone (either resumes from the other's): ``folder/<digest of the
+    spec>.pt``."""
     digest = hashlib.sha256(json.dumps(spec.to_dict(), sort_keys=True).encode()).hexdigest()
     return Path(folder) / f"{digest[:20]}.pt"
 
@@ -251,6 +253,21 @@ def _run_batch(
     )
 
 
+def _run_alone(
+    spec: RunSpec,
+    checkpoint_dir: str | None = None,
+    feedback_factory: FeedbackSourceFactory | None = None,
+) -> RunRecord:
+    """:func:`run_one`, checkpointed at :func:`checkpoint_path` in ``checkpoint_dir`` if
+    given (as in a lockstep batch)."""
+    return run_one(
+        spec,
+        checkpoint_path=None if checkpoint_dir is None else checkpoint_path(checkpoint_dir, spec),
+        checkpoint_every=CHECKPOINT_EVERY,
+        feedback_factory=feedback_factory,
+    )
+
+
 def run_sweep(
     specs: Sequence[RunSpec],
     *,
@@ -264,36 +281,46 @@ def run_sweep(
     """Every run of ``specs`` over ``workers`` processes: each alone (:func:`run_one`), or
     in lockstep batches (:func:`lockstep_batches`, :func:`run_lockstep`; bit-identical
     records). Each run's record or failure is handed over as it is known (a batch's when
-    the batch ends). With ``checkpoint_dir``, lockstep runs write checkpoints there
-    (:func:`checkpoint_path`) and resume from them, so a batch interrupted or killed
-    resumes every run; a run's checkpoint is deleted once its record was handed over.
+    the batch ends). With ``checkpoint_dir``, every run writes its checkpoint there
+    (:func:`checkpoint_path`, one file per run whichever the path) and resumes from it, so
+    a sweep interrupted or killed resumes every run, in lockstep or alone; a run's
+    checkpoint is deleted once its record was handed over.
     ``feedback_factory`` makes the labels of runs with ``virtual_subject`` feedback."""
     if not specs:
         return
-    if not lockstep:
-        run = functools.partial(run_one, feedback_factory=feedback_factory)
-        run_isolated(run, specs, workers=workers, on_result=on_result, on_failure=on_failure)
-        return
+    if checkpoint_dir is not None:
+        Path(checkpoint_dir).mkdir(parents=True, exist_ok=True)
+
+    def done(record: RunRecord) -> None:
+        on_result(record)
+        if checkpoint_dir is not None:
+            checkpoint_path(checkpoint_dir, record.run_spec).unlink(missing_ok=True)
 
     def batch_done(outcomes: list[RunRecord | RunFailure]) -> None:
         for outcome in outcomes:
             if isinstance(outcome, RunFailure):
                 on_failure(outcome)
-                continue
-            on_result(outcome)
-            if checkpoint_dir is not None:
-                checkpoint_path(checkpoint_dir, outcome.run_spec).unlink(missing_ok=True)
+            else:
+                done(outcome)
 
     def batch_failed(failure: RunFailure) -> None:
         batch = RunBatch(tuple(RunSpec.from_dict(s) for s in failure.spec["runs"]))
         for run_failure in batch.failures(failure):
             on_failure(run_failure)
 
-    if checkpoint_dir is not None:
-        Path(checkpoint_dir).mkdir(parents=True, exist_ok=True)
-    batches = lockstep_batches(specs, workers, checkpoint_dir=checkpoint_dir)
-    run_batch = functools.partial(_run_batch, feedback_factory=feedback_factory)
-    run_isolated(run_batch, batches, workers=workers, on_result=batch_done, on_failure=batch_failed)
+    if lockstep:
+        batches = lockstep_batches(specs, workers, checkpoint_dir=checkpoint_dir)
+        run_batch = functools.partial(_run_batch, feedback_factory=feedback_factory)
+        run_isolated(
+            run_batch, batches, workers=workers, on_result=batch_done, on_failure=batch_failed
+        )
+    else:
+        run = functools.partial(
+            _run_alone,
+            checkpoint_dir=None if checkpoint_dir is None else str(checkpoint_dir),
+            feedback_factory=feedback_factory,
+        )
+        run_isolated(run, specs, workers=workers, on_result=done, on_failure=on_failure)
     if checkpoint_dir is not None and not any(Path(checkpoint_dir).iterdir()):
         Path(checkpoint_dir).rmdir()  # every run done: no folder left behind
 
@@ -313,9 +340,9 @@ def reproduce(
     """Run every spec not yet in ``out_dir/results.json`` and write the outputs.
 
     With ``lockstep`` (the default) the runs train in lockstep batches, one per worker
-    (:func:`run_sweep`), checkpointed in ``out_dir/checkpoints`` (a reproduction
-    interrupted mid-batch resumes every run from its last checkpoint); False runs each
-    alone (the same records).
+    (:func:`run_sweep`); False runs each alone (the same records). Either way each run is
+    checkpointed in ``out_dir/checkpoints`` (a reproduction interrupted mid-run resumes
+    every run from its last checkpoint, in lockstep or alone).
     ``feedback_factory`` makes the labels of specs with ``virtual_subject`` feedback
     (``services.worker.e2e_feedback.VirtualSubjectFactory``).
 

@@ -298,3 +298,40 @@ def test_a_batch_killed_before_its_final_evaluation_resumes_to_it(tmp_path) -> N
         configs, train_lockstep(configs, checkpoint_paths=paths), strict=True
     ):
         assert_identical(train(config), result)
+
+
+@pytest.mark.parametrize(
+    "first_lockstep", [True, False], ids=["batch-then-alone", "alone-then-batch"]
+)
+def test_a_reproduction_resumes_a_run_from_the_other_paths_checkpoint(
+    tmp_path, monkeypatch, first_lockstep
+) -> None:
+    """`bgrl reproduce` interrupted in lockstep and rerun with --single-run (or the other way
+    round): the run resumes from its checkpoint in OUT/checkpoints, to the records of an
+    uninterrupted run, and the file goes with its record."""
+    monkeypatch.setattr(pool, "run_isolated", _in_process)
+    spec = RunSpec("sssg", "rl_sparse", 0, ppo_overrides=TINY_RESUMED)
+    folder = tmp_path / pool.CHECKPOINT_FOLDER
+    folder.mkdir()
+    path = pool.checkpoint_path(folder, spec)
+    if first_lockstep:  # a worker stopped after two updates of its batch
+        run_lockstep([spec], callbacks=[_StopAfterUpdates(2)], checkpoint_paths=[path])
+    else:
+        run_one(spec, callback=_StopAfterUpdates(2), checkpoint_path=path)
+    assert path.exists()
+    [record] = pool.reproduce(tmp_path, [spec], workers=1, lockstep=not first_lockstep).runs
+    timings = {"wall_seconds": 0}
+    assert record.to_dict() | timings == run_one(spec).to_dict() | timings
+    assert not folder.exists()  # the run's checkpoint went with its record, then the folder
+
+
+def test_a_run_alone_reads_its_checkpoint(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(pool, "run_isolated", _in_process)
+    spec = RunSpec("sssg", "rl_sparse", 0, ppo_overrides=TINY)
+    (tmp_path / pool.CHECKPOINT_FOLDER).mkdir()
+    pool.checkpoint_path(tmp_path / pool.CHECKPOINT_FOLDER, spec).write_bytes(b"damaged")
+    with pytest.raises(ValueError, match="not a readable checkpoint"):  # in-process: raised
+        pool.reproduce(tmp_path, [spec], workers=1, lockstep=False)
+
+
+TINY_RESUMED = {"total_steps": 512, "eval_every": 256, "n_epochs": 1}
