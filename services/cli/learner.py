@@ -276,19 +276,37 @@ def reproduce(
             raise typer.BadParameter(str(exc), param_hint="--out") from None
         except KeyboardInterrupt:
             bar.close()
-            _interrupted(out / "results.json")
+            _interrupted(_kept_by_reproduction(out))
     typer.echo((out / "summary.md").read_text())
     typer.echo(f"wrote {out / 'results.json'}, results.csv, summary.md and fig3_*.png")
     _exit_on_failures(results.failed, out / "results.json")
 
 
-def _interrupted(where: Path) -> None:
-    """Ctrl-C: say what was kept and exit 130 (no traceback)."""
-    typer.echo(
-        f"interrupted: the finished runs are kept in {where}; run the same command again to resume",
-        err=True,
-    )
+def _interrupted(kept: str) -> None:
+    """Ctrl-C: say what was ``kept`` and exit 130 (no traceback)."""
+    typer.echo(f"interrupted: {kept}; run the same command again to resume", err=True)
     raise typer.Exit(EXIT_INTERRUPTED)
+
+
+def _finished(count: int, where: Path) -> str:
+    """E.g. ``2 finished run(s) kept in OUT/results.json`` (``no run finished`` if none)."""
+    if count == 0:
+        return f"no run finished (nothing kept in {where})"
+    return f"{count} finished run(s) kept in {where}"
+
+
+def _kept_by_reproduction(out: Path) -> str:
+    """What an interrupted ``bgrl reproduce`` keeps: its finished runs (results.json) and
+    the checkpoints of the unfinished ones (OUT/checkpoints, where they resume from)."""
+    from services.learner.outputs import load_results
+    from services.learner.pool import CHECKPOINT_FOLDER
+
+    path, folder = out / "results.json", out / CHECKPOINT_FOLDER
+    kept = _finished(len(load_results(path).runs) if path.is_file() else 0, path)
+    n_checkpoints = len(list(folder.glob("*.pt"))) if folder.is_dir() else 0
+    if n_checkpoints:
+        kept += f"; {n_checkpoints} unfinished run(s) keep their checkpoints in {folder}"
+    return kept
 
 
 def _exit_on_failures(failures: list[RunFailure], where: Path) -> None:
@@ -386,9 +404,10 @@ def hf_sweep(
         raise typer.BadParameter(str(exc), param_hint="--out") from None
     except KeyboardInterrupt:
         path = out / "hf_policies.json"
-        if path.exists():
-            write_report(out, load_sweep(path)[0])
-        _interrupted(path)
+        kept = load_sweep(path)[0] if path.exists() else []
+        if kept:
+            write_report(out, kept)
+        _interrupted(_finished(len(kept), path))
     write_report(out, rows)
     if rows:
         typer.echo((out / "summary.md").read_text())
@@ -516,7 +535,9 @@ def hf_nstar(
                     feedback_factory=factory,
                 )
             except KeyboardInterrupt:
-                _interrupted(out / "nstar_rows.json")
+                path = out / "nstar_rows.json"
+                n_rows = len(json.loads(path.read_text())) if path.exists() else 0
+                _interrupted(f"{n_rows} row(s) (a run at a budget each) kept in {path}")
     grid = sorted({*budgets, *range(100, max(budgets) + 1, 100)})
     from services.learner.pool import load_sweep
 

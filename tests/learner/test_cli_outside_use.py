@@ -311,6 +311,7 @@ def test_reproduce_interrupted_keeps_a_consistent_folder_and_resumes(tmp_path, m
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 130, result.output
     assert "interrupted" in result.output and "run the same command again" in result.output
+    assert f"1 finished run(s) kept in {tmp_path / 'results.json'}" in result.output
     assert len(_strict_json(tmp_path / "results.json")["runs"]) == 1
     assert [r["seed"] for r in _csv_rows(tmp_path / "results.csv")] == ["0"]  # up to date
     assert _strict_json(tmp_path / "summary.json")["groups"][0]["n_seeds"] == 1
@@ -352,6 +353,29 @@ def test_an_interrupted_lockstep_reproduction_keeps_the_batches_done(tmp_path, m
     assert CliRunner().invoke(app, args).exit_code == 0
     assert resumed == [1]
     assert [r["seed"] for r in _csv_rows(tmp_path / "results.csv")] == ["0", "1", "2"]
+
+
+def test_a_lockstep_reproduction_interrupted_before_any_run_finished_says_so(
+    tmp_path, monkeypatch
+) -> None:
+    """Not that finished runs are kept in a results.json that does not exist: the
+    checkpoints of the unfinished runs are what is kept."""
+
+    def checkpoints_then_ctrl_c(function, batches, *, workers, on_result, on_failure) -> None:
+        for spec in batches[0].specs:  # what a batch wrote before Ctrl-C
+            pool.checkpoint_path(batches[0].checkpoint_dir, spec).write_bytes(b"state")
+        raise KeyboardInterrupt
+
+    args = [*REPRODUCE, "--seeds", "3", "--out", str(tmp_path), "--workers", "2"]
+    monkeypatch.setattr(pool, "run_isolated", checkpoints_then_ctrl_c)
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 130, result.output
+    assert "finished runs are kept" not in result.output
+    assert "no run finished" in result.output
+    assert f"2 unfinished run(s) keep their checkpoints in {tmp_path / 'checkpoints'}" in (
+        result.output
+    )
+    assert not (tmp_path / "results.json").exists()
 
 
 def _sigint_as_a_terminal() -> None:
