@@ -39,8 +39,13 @@ class Results:
 
 
 def load_results(path: str | Path) -> Results:
-    """Read a ``results.json``; a one-line ValueError if it is missing or not one."""
+    """Read a ``results.json``; a one-line ValueError naming it if it is missing, a folder,
+    unreadable or not one."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(
+            f"{path}: a folder, not a results file (move it away or use another --out)"
+        )
     if not path.is_file():
         raise ValueError(f"{path.parent}: no results.json (not a `bgrl reproduce` folder)")
     try:
@@ -50,6 +55,8 @@ def load_results(path: str | Path) -> Results:
             runs=[RunRecord.from_dict(r) for r in data["runs"]],
             failed=[RunFailure.from_dict(f) for f in data.get("failed", [])],
         )
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read it ({exc})") from None
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{path}: not a reproduction results file ({exc})") from None
 

@@ -271,6 +271,19 @@ def test_compare_tells_studies_of_one_folder_name_apart(tmp_path) -> None:
     assert "| jan/study |" in (out / "compare.md").read_text()
 
 
+def test_a_results_json_that_is_a_folder_is_named_as_such(tmp_path, monkeypatch) -> None:
+    """Not reported as missing ("no results.json") when it is there, as a folder."""
+    monkeypatch.setattr(pool, "run_isolated", _no_runs)
+    (tmp_path / "study" / "results.json").mkdir(parents=True)
+    where = tmp_path / "study" / "results.json"
+    result = CliRunner().invoke(app, [*REPRODUCE, "--out", str(tmp_path / "study")])
+    _one_line_error(result, f"{where}: a folder, not a results file")
+    result = CliRunner().invoke(
+        app, ["compare", str(tmp_path / "study"), "--out", str(tmp_path / "c")]
+    )
+    _one_line_error(result, f"{where}: a folder, not a results file")
+
+
 def test_compare_refuses_one_study_given_twice(tmp_path) -> None:
     """Its runs would count twice, as if they were another study's."""
     study = _study(tmp_path / "study", [0])
