@@ -51,6 +51,9 @@ from services.learner.runs import (
 from services.learner.specs import RunSpec, build_specs
 
 Progress = Callable[[str], None]
+PARTS = 5
+"""Parts :func:`run` reports through ``progress``, one call as each begins: stage 2 alone,
+stage 2 in lockstep, the runs alone, in lockstep, and SB3's."""
 FIG3_RUNS = 100
 FIG3_STEPS = 40_000
 CORES = 2

@@ -205,11 +205,11 @@ def bench_sweep(
     Runs per CPU-hour, env steps per CPU-second and the ratios; the full Fig. 3 (100 runs x
     40k steps) extrapolated on 2 cores; peak memory. Writes OUT/sweep.json.
     """
-    from benchmarks.bench_sweep import run
+    from benchmarks.bench_sweep import PARTS, run
     from services.core.files import write_results_json
 
     output_folder(out)  # before the minutes of measuring
-    with tqdm(total=4, desc="bench sweep", unit="part") as bar:
+    with tqdm(total=PARTS, desc="bench sweep", unit="part") as bar:
 
         def progress(message: str) -> None:
             bar.set_postfix_str(message)
