@@ -15,7 +15,7 @@ import math
 import queue
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -91,6 +91,16 @@ class FeedbackSourceFactory(Protocol):
     ``services.worker.e2e_feedback.VirtualSubjectFactory`` is one."""
 
     def __call__(self, seed: int, decoder_accuracy: float) -> DecodedFeedbackSource: ...
+
+    def describe(self) -> dict[str, Any]:
+        """The settings its sources are made with (the virtual subject's decoders and
+        training passes): a study records them, and a folder holds runs of one."""
+        ...
+
+    def describe_defaults(self) -> dict[str, Any]:
+        """:meth:`describe` of a factory with the default settings: what the runs of a
+        folder that recorded none were made with (folders written before the record)."""
+        ...
 
 
 class OracleFeedbackSource:

@@ -377,6 +377,9 @@ def reproduce(
             f"{out} holds runs with other settings (labels, stage-2 method, map or PPO "
             "overrides); use another output folder"
         )
+    source = _one_feedback_source(out, earlier, specs, feedback_factory)
+    if source is not None:
+        config[FEEDBACK_SOURCE] = source
     out.mkdir(parents=True, exist_ok=True)
     done = {r.run_spec.key for r in runs}
     pending = [s for s in specs if s.key not in done]
@@ -411,6 +414,39 @@ def reproduce(
     save_results(results_path, results)
     write_outputs(out, results.runs)
     return results
+
+
+FEEDBACK_SOURCE = "feedback_source"
+"""Key of ``results.json["config"]`` holding the settings of the folder's virtual subjects
+(``FeedbackSourceFactory.describe()``: their decoders and training passes)."""
+
+
+def _one_feedback_source(
+    out: Path,
+    earlier: Results,
+    specs: Sequence[RunSpec],
+    factory: FeedbackSourceFactory | None,
+) -> dict[str, Any] | None:
+    """The feedback-source settings the folder records after this call: those of
+    ``factory`` if ``specs`` hold virtual-subject runs, else the folder's. A folder holds
+    one: a ValueError naming the setting (e.g. the decoders) if its virtual-subject runs
+    were made with others, as their groups, summary and CSV would mix the two and a run
+    would resume with a pi_HF of other decoders."""
+    recorded = earlier.config.get(FEEDBACK_SOURCE)
+    if factory is None or all(s.feedback == "oracle" for s in specs):
+        return recorded
+    given = factory.describe()
+    if recorded is None and any(r.feedback not in (None, "oracle") for r in earlier.runs):
+        # a folder written before the record: its virtual subjects had the default settings
+        recorded = factory.describe_defaults()
+    for name in sorted({*(recorded or {}), *given}):
+        if recorded is not None and recorded.get(name) != given.get(name):
+            raise ValueError(
+                f"{out} holds virtual-subject runs made with {name} {recorded.get(name)!r}, "
+                f"not {given.get(name)!r}: a folder holds one set (--decoders); use another "
+                "output folder"
+            )
+    return given
 
 
 def hf_policy_sweep(

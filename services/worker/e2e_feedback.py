@@ -459,5 +459,9 @@ class VirtualSubjectFactory:
         return VirtualSubjectFeedback(subject)
 
     def describe(self) -> dict[str, Any]:
-        """What a study records of its feedback source."""
+        """What a study records of its feedback source (a folder holds one)."""
         return {"decoders": list(self.decoders), "max_passes": self.max_passes}
+
+    def describe_defaults(self) -> dict[str, Any]:
+        """:meth:`describe` of the default decoders and passes (folders that recorded none)."""
+        return VirtualSubjectFactory().describe()

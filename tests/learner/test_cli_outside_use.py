@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -454,3 +455,58 @@ def test_quality_sweep_files_are_strict_json_a_csv_with_header_and_a_png(tmp_pat
     assert _strict_json(tmp_path / "quality_sweep.partial.json")[0]["roc_auc"] is None
     assert _csv_rows(tmp_path / "quality_sweep.csv")
     assert (tmp_path / "quality_sweep.png").read_bytes().startswith(PNG_SIGNATURE)
+
+
+class _Subjects:
+    """A virtual-subject factory that only says its settings (what a folder records)."""
+
+    def __init__(self, *decoders: str) -> None:
+        self.decoders = decoders or ("eegnet", "lda", "xdawn_rg")
+
+    def __call__(self, seed: int, decoder_accuracy: float) -> Any:
+        raise AssertionError("no run trains here")
+
+    def describe(self) -> dict[str, Any]:
+        return {"decoders": list(self.decoders), "max_passes": 3}
+
+    def describe_defaults(self) -> dict[str, Any]:
+        return _Subjects().describe()
+
+
+def test_a_reproduction_folder_holds_one_decoder_set(tmp_path, monkeypatch) -> None:
+    """Runs of another --decoders would be summarised in the same groups (and a run would
+    resume with a pi_HF learned under other decoders): refused naming the setting."""
+
+    def records(function, specs, *, workers, on_result, on_failure) -> None:
+        for spec in specs:
+            feedback = {"feedback": spec.feedback, "label_channel": spec.label_channel}
+            on_result(
+                replace(_record(spec), **feedback) if spec.method == "hf_sparse" else _record(spec)
+            )
+
+    monkeypatch.setattr(pool, "run_isolated", records)
+
+    def subject_run(seed: int) -> RunSpec:
+        return RunSpec("sssg", "hf_sparse", seed, feedback="virtual_subject", decoder_accuracy=0.7)
+
+    study = tmp_path / "study"
+    pool.reproduce(study, [subject_run(0)], feedback_factory=_Subjects("lda"), lockstep=False)
+    with pytest.raises(
+        ValueError, match=r"decoders \['lda'\], not \['eegnet', 'lda', 'xdawn_rg'\]"
+    ):
+        pool.reproduce(study, [subject_run(1)], feedback_factory=_Subjects(), lockstep=False)
+    pool.reproduce(study, [subject_run(1)], feedback_factory=_Subjects("lda"), lockstep=False)
+    # runs of the oracle's feedback need no factory and keep the folder's record
+    pool.reproduce(study, [RunSpec("sssg", "rl_sparse", 0)], lockstep=False)
+    config = _strict_json(study / "results.json")["config"]
+    assert config["feedback_source"] == {"decoders": ["lda"], "max_passes": 3}
+    # a folder written before the record: its virtual subjects had the default decoders
+    document = _strict_json(study / "results.json")
+    del document["config"]["feedback_source"]
+    (study / "results.json").write_text(json.dumps(document))
+    with pytest.raises(
+        ValueError, match=r"decoders \['eegnet', 'lda', 'xdawn_rg'\], not \['lda'\]"
+    ):
+        pool.reproduce(study, [subject_run(2)], feedback_factory=_Subjects("lda"), lockstep=False)
+    pool.reproduce(study, [subject_run(2)], feedback_factory=_Subjects(), lockstep=False)
+    assert len(_strict_json(study / "results.json")["runs"]) == 4
