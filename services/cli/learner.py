@@ -352,8 +352,8 @@ def hf_sweep(
 
     Runs learn in lockstep batches, one or more per worker (docs/learner.md, "Lockstep
     sweeps"): each row is bit-identical to learning it alone (``--single-run``) but for
-    its wall time. Writes hf_policies.json (one row per run, resumable), summary.md (the
-    table) and spl_vs_labels.png.
+    its wall time. Writes hf_policies.json (one row per run, resumable; a folder holds one
+    ``--decoders`` set), summary.md (the table) and spl_vs_labels.png.
     """
     from services.learner.hf_methods import get_method
     from services.learner.pool import hf_policy_sweep, load_sweep
@@ -404,7 +404,7 @@ def hf_sweep(
         raise typer.BadParameter(str(exc), param_hint="--out") from None
     except KeyboardInterrupt:
         path = out / "hf_policies.json"
-        kept = load_sweep(path)[0] if path.exists() else []
+        kept = load_sweep(path).rows if path.exists() else []
         if kept:
             write_report(out, kept)
         _interrupted(_finished(len(kept), path))
@@ -472,13 +472,14 @@ def hf_nstar(
     OUT/virtual_subjects) through ``--label-channel`` hard or soft. Runs of several
     feedbacks and channels may share OUT: the table and N* are per feedback and channel.
 
-    Writes nstar_rows.json (one row per run and budget, resumable), nstar.json, nstar.csv,
-    nstar.md and nstar.png.
+    Writes nstar_rows.json (one row per run and budget, resumable; a folder holds one
+    ``--decoders`` set), nstar.json, nstar.csv, nstar.md and nstar.png.
     """
     from services.learner.hf_methods import get_method
     from services.learner.nstar import (
         NStarJob,
         bounds,
+        load_rows,
         reference_curves,
         row_key,
         run_jobs,
@@ -521,30 +522,28 @@ def hf_nstar(
         for name in methods
         for seed in seed_list
     ]
-    if report_only:
-        rows_path = out / "nstar_rows.json"
-        rows = json.loads(rows_path.read_text()) if rows_path.exists() else []
-    else:
-        with typer.progressbar(length=len(jobs), label="collections") as bar:
-            try:
+    rows_path = out / "nstar_rows.json"
+    try:
+        if report_only:
+            rows = load_rows(rows_path).rows if rows_path.exists() else []
+        else:
+            with typer.progressbar(length=len(jobs), label="collections") as bar:
                 rows = run_jobs(
-                    jobs,
-                    out / "nstar_rows.json",
-                    workers,
-                    lambda job, new: bar.update(1),
+                    jobs, rows_path, workers, lambda job, new: bar.update(1),
                     feedback_factory=factory,
-                )
-            except KeyboardInterrupt:
-                path = out / "nstar_rows.json"
-                n_rows = len(json.loads(path.read_text())) if path.exists() else 0
-                _interrupted(f"{n_rows} row(s) (a run at a budget each) kept in {path}")
+                )  # fmt: skip
+    except ValueError as exc:  # e.g. the rows of another decoder set
+        raise typer.BadParameter(str(exc), param_hint="--out") from None
+    except KeyboardInterrupt:
+        n_rows = len(load_rows(rows_path).rows) if rows_path.exists() else 0
+        _interrupted(f"{n_rows} row(s) (a run at a budget each) kept in {rows_path}")
     grid = sorted({*budgets, *range(100, max(budgets) + 1, 100)})
     from services.learner.pool import load_sweep
 
     seen = {(*row_key(r), r["n_labels"]) for r in rows}
     for path in include or []:
         try:
-            stored = load_sweep(path)[0]
+            stored = load_sweep(path).rows
         except (OSError, ValueError) as exc:
             raise typer.BadParameter(f"{path}: {exc}", param_hint="--include") from None
         for row in stored:

@@ -15,6 +15,7 @@ import math
 import queue
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -101,6 +102,44 @@ class FeedbackSourceFactory(Protocol):
         """:meth:`describe` of a factory with the default settings: what the runs of a
         folder that recorded none were made with (folders written before the record)."""
         ...
+
+
+FEEDBACK_SOURCE = "feedback_source"
+"""Key of the settings block of a folder's results (``results.json["config"]``,
+``hf_policies.json["config"]``, ``nstar_rows.json["config"]``) holding the settings of its
+virtual subjects (:meth:`FeedbackSourceFactory.describe`: their decoders and training passes)."""
+
+
+def one_feedback_source(
+    folder: str | Path,
+    recorded: dict[str, Any] | None,
+    stored: Iterable[str | None],
+    given: Iterable[str],
+    factory: FeedbackSourceFactory | None,
+) -> dict[str, Any] | None:
+    """The feedback-source settings ``folder`` records after a call running runs of the
+    feedbacks ``given`` with ``factory``: the factory's if they include virtual-subject runs,
+    else ``recorded`` (the folder's record, None if none) as it is. ``stored`` are the
+    feedbacks of the runs (or rows) the folder holds (None: made before other feedback, the
+    oracle's); a folder holding virtual-subject runs that recorded nothing was written before
+    the record, with the default settings (:meth:`FeedbackSourceFactory.describe_defaults`).
+
+    A folder holds one set: a ValueError naming the setting (e.g. the decoders) and the
+    folder if its virtual-subject runs were made with others, as its groups, tables and
+    resume keys would mix the two."""
+    if factory is None or all(feedback == "oracle" for feedback in given):
+        return recorded
+    settings = factory.describe()
+    if recorded is None and any(feedback not in (None, "oracle") for feedback in stored):
+        recorded = factory.describe_defaults()
+    for name in sorted({*(recorded or {}), *settings}):
+        if recorded is not None and recorded.get(name) != settings.get(name):
+            raise ValueError(
+                f"{folder} holds virtual-subject runs made with {name} {recorded.get(name)!r}, "
+                f"not {settings.get(name)!r}: a folder holds one set (--decoders); use another "
+                "output folder"
+            )
+    return settings
 
 
 class OracleFeedbackSource:

@@ -34,7 +34,7 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import closing
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -48,7 +48,11 @@ from services.learner.bayes_reference import (
 )
 from services.learner.evaluation import eval_seeds, evaluate_spl
 from services.learner.feedback import FeedbackLearner, HFPolicy
-from services.learner.feedback_sources import FeedbackSourceFactory
+from services.learner.feedback_sources import (
+    FEEDBACK_SOURCE,
+    FeedbackSourceFactory,
+    one_feedback_source,
+)
 from services.learner.runs import HFPolicySpec, decoded_source, feedback_fields, learn_hf_policy
 from services.learner.specs import N_VSSG_EVAL_STARTS, TASK_ENV_IDS
 from services.learner.stage2_report import USEFUL_SPL
@@ -172,6 +176,42 @@ def nstar_run(
     return rows
 
 
+class RowsFile(NamedTuple):
+    """What an ``nstar_rows.json`` holds."""
+
+    rows: list[dict[str, Any]]
+    feedback_source: dict[str, Any] | None
+    """The virtual subjects' settings (``FeedbackSourceFactory.describe()``); None in a file
+    of the oracle's rows alone or written before the record (then the default settings)."""
+
+
+def load_rows(path: str | Path) -> RowsFile:
+    """The rows and feedback-source settings of an ``nstar_rows.json``: ``{"config":
+    {"feedback_source": ...}, "rows": [...]}``, or a list of rows (files written before the
+    record). A one-line ValueError naming the file if it is not one (left as it is)."""
+    path = Path(path)
+    try:
+        document = json.loads(path.read_text())
+        if isinstance(document, list):
+            document = {"rows": document}
+        rows = document["rows"]
+        source = document.get("config", {}).get(FEEDBACK_SOURCE)
+        if not isinstance(rows, list):
+            raise TypeError("rows is not a list")
+        if not isinstance(source, dict | None):
+            raise TypeError(f"config.{FEEDBACK_SOURCE} is not an object")
+        for row in rows:
+            row_key(row)
+            for name in ("n_labels", "greedy_spl"):  # what the table reads
+                if not isinstance(row[name], int | float):
+                    raise TypeError(f"{name} is not a number")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read it ({exc})") from None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{path}: not a `bgrl hf-nstar` rows file ({exc!r})") from None
+    return RowsFile(rows, source)
+
+
 def run_jobs(
     jobs: Sequence[NStarJob],
     path: Path,
@@ -179,15 +219,27 @@ def run_jobs(
     on_done: Callable[[NStarJob, list[dict[str, Any]]], None] | None = None,
     feedback_factory: FeedbackSourceFactory | None = None,
 ) -> list[dict[str, Any]]:
-    """Run the jobs not yet in ``path`` (a JSON list of rows, rewritten after each job)."""
-    rows: list[dict[str, Any]] = json.loads(path.read_text()) if path.exists() else []
+    """Run the jobs not yet in ``path`` (:func:`load_rows`; rewritten after each job) and
+    return its rows. ``path`` records the virtual subjects' settings (``feedback_source``:
+    ``feedback_factory.describe()``) and holds rows of one set: a file that is not one, or
+    virtual-subject rows made with other settings, is a ValueError naming it before anything
+    runs."""
+    rows, recorded = load_rows(path) if path.exists() else ([], None)
+    source = one_feedback_source(
+        path.parent,
+        recorded,
+        (row.get("feedback", "oracle") for row in rows),
+        (job.feedback for job in jobs),
+        feedback_factory,
+    )
+    config = {} if source is None else {FEEDBACK_SOURCE: source}
     done = {row_key(r) for r in rows}
     todo = [job for job in jobs if job.key not in done]
     run = functools.partial(nstar_run, feedback_factory=feedback_factory)
     with ProcessPoolExecutor(max_workers=workers) as pool:
         for job, new in zip(todo, pool.map(run, todo), strict=True):
             rows.extend(new)
-            path.write_text(json.dumps(rows, indent=1))
+            path.write_text(json.dumps({"config": config, "rows": rows}, indent=1))
             if on_done is not None:
                 on_done(job, new)
     return rows

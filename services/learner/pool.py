@@ -19,12 +19,16 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, NamedTuple, Protocol, TypeVar
 
 from services.core.files import write_json_atomic
 from services.core.lifetime import die_with_parent
 from services.learner.feedback import FeedbackConfig
-from services.learner.feedback_sources import FeedbackSourceFactory
+from services.learner.feedback_sources import (
+    FEEDBACK_SOURCE,
+    FeedbackSourceFactory,
+    one_feedback_source,
+)
 from services.learner.hf_methods import PAPER_METHOD
 from services.learner.outputs import Results, load_results, save_results, write_outputs
 from services.learner.ppo import PPOConfig, lockstep_key
@@ -377,7 +381,13 @@ def reproduce(
             f"{out} holds runs with other settings (labels, stage-2 method, map or PPO "
             "overrides); use another output folder"
         )
-    source = _one_feedback_source(out, earlier, specs, feedback_factory)
+    source = one_feedback_source(
+        out,
+        earlier.config.get(FEEDBACK_SOURCE),
+        (r.feedback for r in runs),
+        (s.feedback for s in specs),
+        feedback_factory,
+    )
     if source is not None:
         config[FEEDBACK_SOURCE] = source
     out.mkdir(parents=True, exist_ok=True)
@@ -416,39 +426,6 @@ def reproduce(
     return results
 
 
-FEEDBACK_SOURCE = "feedback_source"
-"""Key of ``results.json["config"]`` holding the settings of the folder's virtual subjects
-(``FeedbackSourceFactory.describe()``: their decoders and training passes)."""
-
-
-def _one_feedback_source(
-    out: Path,
-    earlier: Results,
-    specs: Sequence[RunSpec],
-    factory: FeedbackSourceFactory | None,
-) -> dict[str, Any] | None:
-    """The feedback-source settings the folder records after this call: those of
-    ``factory`` if ``specs`` hold virtual-subject runs, else the folder's. A folder holds
-    one: a ValueError naming the setting (e.g. the decoders) if its virtual-subject runs
-    were made with others, as their groups, summary and CSV would mix the two and a run
-    would resume with a pi_HF of other decoders."""
-    recorded = earlier.config.get(FEEDBACK_SOURCE)
-    if factory is None or all(s.feedback == "oracle" for s in specs):
-        return recorded
-    given = factory.describe()
-    if recorded is None and any(r.feedback not in (None, "oracle") for r in earlier.runs):
-        # a folder written before the record: its virtual subjects had the default settings
-        recorded = factory.describe_defaults()
-    for name in sorted({*(recorded or {}), *given}):
-        if recorded is not None and recorded.get(name) != given.get(name):
-            raise ValueError(
-                f"{out} holds virtual-subject runs made with {name} {recorded.get(name)!r}, "
-                f"not {given.get(name)!r}: a folder holds one set (--decoders); use another "
-                "output folder"
-            )
-    return given
-
-
 def hf_policy_sweep(
     out_dir: str | Path,
     *,
@@ -475,12 +452,14 @@ def hf_policy_sweep(
     subject's decoder (``feedback_factory`` makes the labels), read through
     ``label_channel``.
 
-    Writes ``out_dir/hf_policies.json`` (``{"runs": [...], "failed": [...]}``) after every
-    run; runs already there are skipped, failed ones retried (earlier failures of runs this
-    call does not include are kept). A file there that is not such a document, or a run
-    named twice (a task, C, label budget or method repeated), is a ValueError naming it,
-    before anything runs. Returns (rows, failures), the failures
-    of this call and the earlier ones kept.
+    Writes ``out_dir/hf_policies.json`` (``{"config": {...}, "runs": [...], "failed":
+    [...]}``) after every run; runs already there are skipped, failed ones retried (earlier
+    failures of runs this call does not include are kept). ``config`` records the virtual
+    subjects' settings (``feedback_source``: ``feedback_factory.describe()``); a folder holds
+    one set. A file there that is not such a document, virtual-subject rows made with other
+    settings, or a run named twice (a task, C, label budget or method repeated), is a
+    ValueError naming it, before anything runs. Returns (rows, failures), the failures of
+    this call and the earlier ones kept.
     """
     virtual = feedback == "virtual_subject"
     specs = [
@@ -504,7 +483,15 @@ def hf_policy_sweep(
     out = Path(out_dir)
     _refuse_the_others_folder(out, "results.json", "a reproduction (bgrl reproduce)")
     path = out / "hf_policies.json"
-    rows, earlier_failures = load_sweep(path) if path.exists() else ([], [])
+    rows, earlier_failures, recorded = load_sweep(path) if path.exists() else ([], [], None)
+    source = one_feedback_source(
+        out,
+        recorded,
+        (row.get("feedback", "oracle") for row in rows),
+        (s.feedback for s in specs),
+        feedback_factory,
+    )
+    config = {} if source is None else {FEEDBACK_SOURCE: source}
     out.mkdir(parents=True, exist_ok=True)
     done = {sweep_row_key(r) for r in rows}
     attempted = {s.key for s in specs}
@@ -512,7 +499,8 @@ def hf_policy_sweep(
     kept_failures = [f for f in earlier_failures if _sweep_spec_key(f.spec) not in attempted]
 
     def save() -> None:
-        document = {"runs": rows, "failed": [f.to_dict() for f in [*kept_failures, *failures]]}
+        failed = [f.to_dict() for f in [*kept_failures, *failures]]
+        document = {"config": config, "runs": rows, "failed": failed}
         write_json_atomic(path, document, indent=None)
 
     def finished(row: dict[str, Any]) -> None:
@@ -587,16 +575,29 @@ def _sweep_spec_key(spec: dict[str, Any]) -> tuple[Any, ...]:
     return HFPolicySpec(**spec).key
 
 
-def load_sweep(path: str | Path) -> tuple[list[dict[str, Any]], list[RunFailure]]:
-    """(rows, failures) of a ``hf_policies.json``; a one-line ValueError naming the file if it
-    is not one (the file is left as it is)."""
+class SweepFile(NamedTuple):
+    """What a ``hf_policies.json`` holds."""
+
+    rows: list[dict[str, Any]]
+    failures: list[RunFailure]
+    feedback_source: dict[str, Any] | None
+    """The virtual subjects' settings (``FeedbackSourceFactory.describe()``); None in a file
+    of the oracle's rows alone or written before the record (then the default settings)."""
+
+
+def load_sweep(path: str | Path) -> SweepFile:
+    """The rows, failures and feedback-source settings of a ``hf_policies.json``; a one-line
+    ValueError naming the file if it is not one (the file is left as it is)."""
     path = Path(path)
     try:
         document = json.loads(path.read_text())
         rows = document["runs"]
         failures = [RunFailure.from_dict(f) for f in document.get("failed", [])]
+        source = document.get("config", {}).get(FEEDBACK_SOURCE)
         if not isinstance(rows, list):
             raise TypeError("runs is not a list")
+        if not isinstance(source, dict | None):
+            raise TypeError(f"config.{FEEDBACK_SOURCE} is not an object")
         for row in rows:
             sweep_row_key(row)
             for name in ("greedy_spl", "sampled_success_rate"):  # what the report reads
@@ -608,4 +609,4 @@ def load_sweep(path: str | Path) -> tuple[list[dict[str, Any]], list[RunFailure]
         raise ValueError(f"{path}: cannot read it ({exc})") from None
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{path}: not a `bgrl hf-sweep` results file ({exc!r})") from None
-    return rows, failures
+    return SweepFile(rows, failures, source)

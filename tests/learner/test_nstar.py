@@ -156,3 +156,104 @@ def test_report_only_draws_both_channels_and_names_each_series(tmp_path: Path) -
     assert written["bounds"][0]["soft_30_1"] == pytest.approx(PATH_BITS_ISSUE / 0.042)
     table = (out / "nstar.md").read_text()
     assert "| virtual_subject | soft | 0.6 | 0.595 | 500: 2/2 (34%-100%) | 500 |" in table
+
+
+def test_an_nstar_folder_holds_one_decoder_set(tmp_path: Path, monkeypatch) -> None:
+    """Rows of another --decoders would count in the same series (and their collections be
+    skipped as done): refused naming the setting and the folder, nothing written."""
+    from services.learner import nstar
+
+    def collect(job: NStarJob, feedback_factory=None) -> list[dict]:
+        """A collection's rows without learning (no subject simulated, no decoder trained)."""
+        row = _subject_rows(job.label_channel, {job.budgets[0]: [0.0]})[0]
+        oracle = job.feedback == "oracle"
+        return [{**(_rows({job.budgets[0]: [0.0]})[0] if oracle else row), "seed": job.seed}]
+
+    monkeypatch.setattr(nstar, "nstar_run", collect)
+    monkeypatch.setattr(nstar, "ProcessPoolExecutor", _InProcess)
+    out = tmp_path / "nstar"
+    base = ["hf-nstar", "--out", str(out), "--tasks", "sssg", "--labels", "500"]
+    base += ["--method", "bayes_query", "--reference-draws", "0"]
+    subject = [*base, "--feedback", "virtual_subject", "--decoder-accuracy", "0.6"]
+    path = out / "nstar_rows.json"
+
+    result = CliRunner().invoke(app, [*subject, "--seeds", "100-100", "--decoders", "lda"])
+    assert result.exit_code == 0, result.output
+    recorded = json.loads(path.read_text())["config"]["feedback_source"]
+    assert recorded["decoders"] == ["lda"] and "max_passes" in recorded
+    before = path.read_text()
+    refused = CliRunner().invoke(app, [*subject, "--seeds", "100-101"])  # the default decoders
+    assert refused.exit_code == 2, refused.output
+    message = _flat(refused.output)
+    assert _flat("decoders ['lda'], not ['eegnet', 'lda', 'xdawn_rg']") in message
+    assert _flat(f"{out} holds virtual-subject runs") in message
+    assert path.read_text() == before
+    # collections of the oracle's feedback need no decoders and keep the folder's record
+    result = CliRunner().invoke(app, [*base, "--seeds", "100-100", "--accuracies", "0.6"])
+    assert result.exit_code == 0, result.output
+    assert nstar.load_rows(path).feedback_source == recorded
+    assert len(nstar.load_rows(path).rows) == 2
+    # a list of rows, as written before the record: its subjects had the default decoders
+    path.write_text(json.dumps(nstar.load_rows(path).rows))
+    assert nstar.load_rows(path).feedback_source is None
+    refused = CliRunner().invoke(app, [*subject, "--seeds", "100-101", "--decoders", "lda"])
+    assert refused.exit_code == 2
+    assert _flat("decoders ['eegnet', 'lda', 'xdawn_rg'], not ['lda']") in _flat(refused.output)
+    result = CliRunner().invoke(app, [*subject, "--seeds", "100-101"])
+    assert result.exit_code == 0, result.output
+    assert nstar.load_rows(path).feedback_source["decoders"] == ["eegnet", "lda", "xdawn_rg"]
+    assert len(nstar.load_rows(path).rows) == 3
+
+
+def test_a_rows_file_that_is_not_one_is_a_one_line_error_and_left_alone(tmp_path: Path) -> None:
+    out = tmp_path / "nstar"
+    out.mkdir()
+    content = '{"rows": 3}'
+    (out / "nstar_rows.json").write_text(content)
+    for extra in ([], ["--report-only"]):
+        args = ["hf-nstar", "--out", str(out), "--tasks", "sssg", "--labels", "500", *extra]
+        result = CliRunner().invoke(app, [*args, "--reference-draws", "0"])
+        assert result.exit_code == 2, result.output
+        assert _flat("not a `bgrl hf-nstar` rows file") in _flat(result.output)
+        assert (out / "nstar_rows.json").read_text() == content
+
+
+class _InProcess:
+    """``ProcessPoolExecutor`` without the spawned workers."""
+
+    def __init__(self, max_workers: int) -> None:
+        pass
+
+    def __enter__(self) -> _InProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+    def map(self, function, items):
+        return map(function, items)
+
+
+def _flat(text: str) -> str:
+    """``text`` without spaces and box borders (the CLI's error box wraps its lines)."""
+    return "".join(text.replace("│", "").split())
+
+
+def test_an_interrupted_nstar_counts_the_rows_kept(tmp_path: Path, monkeypatch) -> None:
+    """The rows file is a document beside its settings block: the rows are counted, not
+    its keys."""
+    from services.learner import nstar
+
+    def collect(job: NStarJob, feedback_factory=None) -> list[dict]:
+        if job.seed == 101:
+            raise KeyboardInterrupt
+        return [{**row, "seed": job.seed} for row in _rows({n: [0.0] for n in job.budgets})]
+
+    monkeypatch.setattr(nstar, "nstar_run", collect)
+    monkeypatch.setattr(nstar, "ProcessPoolExecutor", _InProcess)
+    out = tmp_path / "nstar"
+    args = ["hf-nstar", "--out", str(out), "--tasks", "sssg", "--labels", "250,500,1000"]
+    result = CliRunner().invoke(app, [*args, "--accuracies", "0.6", "--seeds", "100-101"])
+    assert result.exit_code == 130, result.output
+    kept = f"3 row(s) (a run at a budget each) kept in {out / 'nstar_rows.json'}"
+    assert _flat(kept) in _flat(result.output)

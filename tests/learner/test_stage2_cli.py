@@ -120,3 +120,58 @@ def test_feedback_options_are_refused_before_anything_runs(tmp_path, options, re
         assert result.exit_code == 2, result.output
         assert refusal in " ".join(result.output.split()), result.output
         assert not out.exists()
+
+
+def _subject_rows(function, specs, *, workers, on_result, on_failure) -> None:
+    """``pool.run_isolated`` making each single run's row without learning (no subject is
+    simulated, no decoder trained): what the folder records is under test, not the rows."""
+    for spec in specs:
+        on_result(
+            {**spec.to_dict(), "decoder_accuracy_target": spec.decoder_accuracy,
+             "greedy_spl": 0.0, "sampled_success_rate": 0.0}
+        )  # fmt: skip
+
+
+def test_an_hf_sweep_folder_holds_one_decoder_set(tmp_path, monkeypatch) -> None:
+    """Rows of another --decoders would be grouped with these (and their runs skipped as
+    done): refused naming the setting and the folder, the file left as it is."""
+    monkeypatch.setattr(pool, "run_isolated", _subject_rows)
+    out = tmp_path / "sweep"
+    base = ["hf-sweep", "--out", str(out), "--tasks", "sssg", "--labels", "20", "--single-run"]
+    subject = [*base, "--feedback", "virtual_subject", "--decoder-accuracy", "0.6"]
+
+    def document() -> dict:
+        return json.loads((out / "hf_policies.json").read_text())
+
+    result = CliRunner().invoke(app, [*subject, "--seeds", "1", "--decoders", "lda"])
+    assert result.exit_code == 0, result.output
+    recorded = document()["config"]["feedback_source"]
+    assert recorded["decoders"] == ["lda"] and "max_passes" in recorded
+    before = (out / "hf_policies.json").read_text()
+    refused = CliRunner().invoke(app, [*subject, "--seeds", "2"])  # the default decoders
+    assert refused.exit_code == 2, refused.output
+    message = _flat(refused.output)
+    assert _flat("decoders ['lda'], not ['eegnet', 'lda', 'xdawn_rg']") in message
+    assert _flat(f"{out} holds virtual-subject runs") in message
+    assert (out / "hf_policies.json").read_text() == before
+    # runs of the oracle's feedback need no decoders and keep the folder's record
+    result = CliRunner().invoke(app, [*base, "--seeds", "1", "--accuracies", "0.7"])
+    assert result.exit_code == 0, result.output
+    assert document()["config"]["feedback_source"] == recorded and len(document()["runs"]) == 2
+    # a file written before the record: its virtual subjects had the default decoders
+    old = document()
+    del old["config"]
+    (out / "hf_policies.json").write_text(json.dumps(old))
+    assert pool.load_sweep(out / "hf_policies.json").feedback_source is None
+    refused = CliRunner().invoke(app, [*subject, "--seeds", "2", "--decoders", "lda"])
+    assert refused.exit_code == 2
+    assert _flat("decoders ['eegnet', 'lda', 'xdawn_rg'], not ['lda']") in _flat(refused.output)
+    result = CliRunner().invoke(app, [*subject, "--seeds", "2"])
+    assert result.exit_code == 0, result.output
+    assert document()["config"]["feedback_source"]["decoders"] == ["eegnet", "lda", "xdawn_rg"]
+    assert len(document()["runs"]) == 3
+
+
+def _flat(text: str) -> str:
+    """``text`` without spaces and box borders (the CLI's error box wraps its lines)."""
+    return "".join(text.replace("│", "").split())

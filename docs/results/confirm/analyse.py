@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 from services.learner.confirmatory import analyse, markdown_table, plot_estimates, results_json
+from services.learner.nstar import load_rows
 from services.learner.outputs import load_results
 
 HERE = Path(__file__).resolve().parent
@@ -26,11 +27,12 @@ def runs(name: str):
     return load_results(path).runs if path.is_file() else None
 
 
-def rows(path: Path, key: str | None = None):
-    if not path.is_file():
-        return None
-    data = json.loads(path.read_text())
-    return data[key] if key else data
+def nstar_rows(path: Path):
+    return load_rows(path).rows if path.is_file() else None
+
+
+def information_rows(path: Path):
+    return json.loads(path.read_text())["rows"] if path.is_file() else None
 
 
 def main() -> None:
@@ -38,8 +40,8 @@ def main() -> None:
         runs("e2e"),
         runs("sil_on"),
         runs("sil_off"),
-        rows(HERE / "nstar" / "nstar_rows.json"),
-        rows(HERE / "information" / "information.json", "rows"),
+        nstar_rows(HERE / "nstar" / "nstar_rows.json"),
+        information_rows(HERE / "information" / "information.json"),
     )
     table = markdown_table(results)
     (HERE / "analysis.md").write_text(table)

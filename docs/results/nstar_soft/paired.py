@@ -1,7 +1,7 @@
 """Per seed, the channels side by side: the first budget with a useful pi_HF (greedy SPL
 >= 0.5) and the first from which it stays useful at every larger budget measured.
 
-Usage (from the repository root): ``python docs/results/nstar_soft/paired.py
+Usage (from the repository root): ``PYTHONPATH=. python docs/results/nstar_soft/paired.py
 docs/results/nstar_soft/nstar_rows.json [docs/results/nstar_soft/recalibrated/nstar_rows.json]``;
 the second file's soft rows count as the channel ``soft_recalibrated``. Prints one markdown
 table per (method, task, C) and each channel against the hard one.
@@ -9,9 +9,10 @@ table per (method, task, C) and each channel against the hard one.
 
 from __future__ import annotations
 
-import json
 import sys
 from collections import defaultdict
+
+from services.learner.nstar import load_rows
 
 USEFUL = 0.5
 
@@ -31,11 +32,10 @@ def first_useful(points: list[tuple[int, float]]) -> tuple[int | None, int | Non
 def load(paths: list[str]) -> list[dict]:
     rows = []
     for k, path in enumerate(paths):
-        with open(path) as handle:
-            for row in json.load(handle):
-                if k:
-                    row = {**row, "label_channel": f"{row['label_channel']}_recalibrated"}
-                rows.append(row)
+        for row in load_rows(path).rows:
+            if k:
+                row = {**row, "label_channel": f"{row['label_channel']}_recalibrated"}
+            rows.append(row)
     return rows
 
 
