@@ -39,6 +39,7 @@ from typing import Any, NamedTuple
 import gymnasium as gym
 import numpy as np
 
+from services.core.files import write_bytes_atomic
 from services.learner.bayes_reference import (
     REFERENCE_RULES,
     identified_fraction,
@@ -239,7 +240,10 @@ def run_jobs(
     with ProcessPoolExecutor(max_workers=workers) as pool:
         for job, new in zip(todo, pool.map(run, todo), strict=True):
             rows.extend(new)
-            path.write_text(json.dumps({"config": config, "rows": rows}, indent=1))
+            # atomically: a kill mid-write leaves the previous rows, never half a file
+            write_bytes_atomic(
+                path, json.dumps({"config": config, "rows": rows}, indent=1).encode()
+            )
             if on_done is not None:
                 on_done(job, new)
     return rows
