@@ -541,12 +541,21 @@ def hf_nstar(
     from services.learner.pool import load_sweep
 
     seen = {(*row_key(r), r["n_labels"]) for r in rows}
+    decoder_set = _decoder_set(load_rows(rows_path).feedback_source, rows) if rows else None
     for path in include or []:
         try:
-            stored = load_sweep(path).rows
+            sweep = load_sweep(path)
         except (OSError, ValueError) as exc:
             raise typer.BadParameter(f"{path}: {exc}", param_hint="--include") from None
-        for row in stored:
+        theirs = _decoder_set(sweep.feedback_source, sweep.rows)
+        if theirs is not None and decoder_set is not None and theirs != decoder_set:
+            raise typer.BadParameter(
+                f"{path}: its virtual-subject rows were made with {theirs}, the table's with "
+                f"{decoder_set}; a table holds one decoder set",
+                param_hint="--include",
+            )
+        decoder_set = decoder_set or theirs
+        for row in sweep.rows:
             key = (*row_key(row), row["n_labels"])
             if key not in seen:
                 seen.add(key)
@@ -571,6 +580,21 @@ def hf_nstar(
             + (str(star["n_star"]) if star["n_star"] else f"> {star['above']}")
         )
     typer.echo(f"wrote {out / 'nstar.json'}, nstar.csv and nstar.png")
+
+
+def _decoder_set(
+    feedback_source: dict[str, Any] | None, rows: list[dict[str, Any]]
+) -> dict[str, Any] | None:
+    """The settings of the virtual subjects behind ``rows`` (a folder's ``feedback_source``
+    record; the default set for a folder written before the record); None if no row is
+    a virtual subject's."""
+    if all(row.get("feedback", "oracle") == "oracle" for row in rows):
+        return None
+    if feedback_source is not None:
+        return feedback_source
+    from services.worker.e2e_feedback import VirtualSubjectFactory
+
+    return VirtualSubjectFactory().describe_defaults()
 
 
 def _information_summary(path: Path, given: Path | None) -> list[dict[str, Any]]:

@@ -205,6 +205,42 @@ def test_an_nstar_folder_holds_one_decoder_set(tmp_path: Path, monkeypatch) -> N
     assert len(nstar.load_rows(path).rows) == 3
 
 
+def test_include_refuses_a_sweep_of_another_decoder_set(tmp_path: Path) -> None:
+    """A sweep's virtual-subject rows made with other decoders would join the table's series."""
+    out, sweep = tmp_path / "nstar", tmp_path / "sweep"
+    out.mkdir()
+    sweep.mkdir()
+    lda = {"decoders": ["lda"], "max_passes": 300}
+    rows = _subject_rows("hard", {500: [1.0]})
+    (out / "nstar_rows.json").write_text(
+        json.dumps({"config": {"feedback_source": lda}, "rows": rows})
+    )
+    theirs = [{**row, "sampled_success_rate": 1.0} for row in _subject_rows("hard", {1000: [1.0]})]
+    document = {"runs": theirs, "failed": []}  # written before the record: the default set
+    (sweep / "hf_policies.json").write_text(json.dumps(document))
+    args = ["hf-nstar", "--out", str(out), "--tasks", "sssg", "--labels", "500,1000"]
+    args += [
+        "--reference-draws",
+        "0",
+        "--report-only",
+        "--include",
+        str(sweep / "hf_policies.json"),
+    ]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    message = _flat(result.output)
+    assert _flat("'decoders': ['eegnet', 'lda', 'xdawn_rg']") in message
+    assert _flat("a table holds one decoder set") in message
+    assert not (out / "nstar.json").exists()
+    # the same set recorded: included
+    (sweep / "hf_policies.json").write_text(
+        json.dumps({"config": {"feedback_source": lda}, **document})
+    )
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert len(json.loads((out / "nstar.json").read_text())["table"]) == 2
+
+
 def test_a_rows_file_that_is_not_one_is_a_one_line_error_and_left_alone(tmp_path: Path) -> None:
     out = tmp_path / "nstar"
     out.mkdir()
