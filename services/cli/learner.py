@@ -588,13 +588,18 @@ def _decoder_set(
     """The settings of the virtual subjects behind ``rows`` (a folder's ``feedback_source``
     record; the default set for a folder written before the record); None if no row is
     a virtual subject's."""
-    if all(row.get("feedback", "oracle") == "oracle" for row in rows):
-        return None
-    if feedback_source is not None:
-        return feedback_source
-    from services.worker.e2e_feedback import VirtualSubjectFactory
+    from services.learner.feedback_sources import recorded_feedback_source
 
-    return VirtualSubjectFactory().describe_defaults()
+    feedbacks = [row.get("feedback") for row in rows]
+    if all(feedback in (None, "oracle") for feedback in feedbacks):
+        return None
+
+    def defaults() -> dict[str, Any]:
+        from services.worker.e2e_feedback import VirtualSubjectFactory
+
+        return VirtualSubjectFactory().describe_defaults()
+
+    return recorded_feedback_source(feedback_source, feedbacks, defaults)
 
 
 def _information_summary(path: Path, given: Path | None) -> list[dict[str, Any]]:

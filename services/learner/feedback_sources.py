@@ -110,6 +110,20 @@ FEEDBACK_SOURCE = "feedback_source"
 virtual subjects (:meth:`FeedbackSourceFactory.describe`: their decoders and training passes)."""
 
 
+def recorded_feedback_source(
+    recorded: dict[str, Any] | None,
+    stored: Iterable[str | None],
+    defaults: Callable[[], dict[str, Any]],
+) -> dict[str, Any] | None:
+    """The feedback-source settings a folder's runs (or rows) were made with: its record
+    ``recorded``; for a folder that holds virtual-subject runs (``stored``: their feedbacks,
+    None meaning the oracle's) but recorded nothing, written before the record, ``defaults()``
+    (:meth:`FeedbackSourceFactory.describe_defaults`)."""
+    if recorded is None and any(feedback not in (None, "oracle") for feedback in stored):
+        return defaults()
+    return recorded
+
+
 def one_feedback_source(
     folder: str | Path,
     recorded: dict[str, Any] | None,
@@ -130,8 +144,7 @@ def one_feedback_source(
     if factory is None or all(feedback == "oracle" for feedback in given):
         return recorded
     settings = factory.describe()
-    if recorded is None and any(feedback not in (None, "oracle") for feedback in stored):
-        recorded = factory.describe_defaults()
+    recorded = recorded_feedback_source(recorded, stored, factory.describe_defaults)
     for name in sorted({*(recorded or {}), *settings}):
         if recorded is not None and recorded.get(name) != settings.get(name):
             raise ValueError(
